@@ -1,0 +1,1 @@
+"""gtsam factors and noise models whose uncertainty comes from learned geometry."""

@@ -1,0 +1,121 @@
+"""The interface every LiDAR sequence implements (KITTI on disk, the synthetic renderer).
+
+A sequence is a random-access, streaming collection of :class:`LidarFrame`. Frames are
+produced on demand (read from disk or rendered); nothing holds a whole sequence of raw
+scans in memory.
+
+Frame conventions
+-----------------
+- ``points`` are in the LiDAR (velodyne) frame, ``float64`` of shape ``(N, 3)``, finite.
+- ``intensity`` is ``float32`` of shape ``(N,)`` (reflectance in [0, 1] for KITTI).
+- ``ring`` is the laser index ``0..n_rings-1`` ordered from the *highest* elevation beam
+  (0) to the lowest, ``int16`` of shape ``(N,)``; ``None`` when unknown.
+
+Pose conventions
+----------------
+- ``gt_poses`` are ``T_w_velo`` (LiDAR frame to world), ``(K, 4, 4)`` float64, where the
+  world is the LiDAR frame of scan 0. ``None`` when the sequence has no ground truth.
+- ``T_cam_velo`` (KITTI's ``Tr``) maps LiDAR coordinates to camera-0 coordinates; camera-
+  frame poses are ``T_w_cam = T_cam_velo @ T_w_velo @ inv(T_cam_velo)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+class DatasetError(ValueError):
+    """Raised for malformed or missing dataset files; the message names the file."""
+
+
+@dataclass(frozen=True)
+class LidarFrame:
+    """One LiDAR scan.
+
+    Attributes
+    ----------
+    index : int
+        Frame index within its sequence.
+    timestamp : float
+        Seconds since the start of the sequence.
+    points : np.ndarray
+        ``(N, 3)`` float64 points in the LiDAR frame.
+    intensity : np.ndarray
+        ``(N,)`` float32 reflectance.
+    ring : np.ndarray or None
+        ``(N,)`` int16 laser index (0 = highest beam), or None if unknown.
+    n_rings : int
+        Number of rings of the sensor this frame was taken (or subsampled) with.
+    dropped_nonfinite : int
+        Number of non-finite points removed when the frame was loaded.
+    """
+
+    index: int
+    timestamp: float
+    points: np.ndarray
+    intensity: np.ndarray
+    ring: np.ndarray | None = None
+    n_rings: int = 64
+    dropped_nonfinite: int = 0
+
+    def __post_init__(self) -> None:
+        n = len(self.points)
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise DatasetError(f"frame {self.index}: points must be (N, 3), got {self.points.shape}")
+        if self.intensity.shape != (n,):
+            raise DatasetError(f"frame {self.index}: intensity shape {self.intensity.shape} != ({n},)")
+        if self.ring is not None and self.ring.shape != (n,):
+            raise DatasetError(f"frame {self.index}: ring shape {self.ring.shape} != ({n},)")
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def select(self, mask: np.ndarray, n_rings: int | None = None) -> "LidarFrame":
+        """Return a frame holding only the points where ``mask`` (bool or index array) selects."""
+        return replace(
+            self,
+            points=self.points[mask],
+            intensity=self.intensity[mask],
+            ring=None if self.ring is None else self.ring[mask],
+            n_rings=self.n_rings if n_rings is None else n_rings,
+        )
+
+
+@runtime_checkable
+class LidarSequence(Protocol):
+    """A streaming, random-access LiDAR sequence (see the module docstring for frames)."""
+
+    name: str
+    timestamps: np.ndarray
+    gt_poses: np.ndarray | None
+    T_cam_velo: np.ndarray
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> LidarFrame: ...
+
+    def __iter__(self) -> Iterator[LidarFrame]: ...
+
+
+def check_index(index: int, length: int, name: str) -> int:
+    """Normalise a (possibly negative) frame index, raising ``IndexError`` when out of range."""
+    i = int(index)
+    if i < 0:
+        i += length
+    if not 0 <= i < length:
+        raise IndexError(f"{name}: frame {index} out of range for {length} frames")
+    return i
+
+
+def velo_to_cam_poses(T_w_velo: np.ndarray, T_cam_velo: np.ndarray) -> np.ndarray:
+    """Express LiDAR-frame poses ``(K, 4, 4)`` in the camera-0 frame (KITTI's convention)."""
+    return T_cam_velo @ T_w_velo @ np.linalg.inv(T_cam_velo)
+
+
+def cam_to_velo_poses(T_w_cam: np.ndarray, T_cam_velo: np.ndarray) -> np.ndarray:
+    """Express camera-0-frame poses ``(K, 4, 4)`` in the LiDAR frame: ``Tr⁻¹ · T_w_cam · Tr``."""
+    return np.linalg.inv(T_cam_velo) @ T_w_cam @ T_cam_velo

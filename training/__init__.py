@@ -1,0 +1,1 @@
+"""Self-supervised training of the covariance network (Algorithm 1 of the paper)."""
