@@ -1,0 +1,219 @@
+"""KITTI odometry sequences on disk, streamed frame by frame.
+
+Layout (the official odometry benchmark)::
+
+    ROOT/sequences/XX/velodyne/000000.bin ...   float32 x, y, z, reflectance
+    ROOT/sequences/XX/calib.txt                 P0..P3 and Tr (velodyne -> cam0), 12 floats
+    ROOT/sequences/XX/times.txt                 one timestamp (s) per frame
+    ROOT/poses/XX.txt                           optional ground truth, camera-0 frame
+
+Ground truth is exposed in the LiDAR frame, ``T_w_velo = Tr⁻¹ · T_w_cam · Tr``, with the
+world being the LiDAR frame of frame 0; estimates go back to the camera frame with
+:meth:`KittiSequence.to_camera_frame`. Frames are read on demand; nothing but the file
+list, timestamps and poses is held in memory.
+
+KITTI is licensed CC BY-NC-SA 3.0 (Geiger, Lenz, Urtasun, CVPR 2012).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.datasets.base import (
+    DatasetError,
+    LidarFrame,
+    cam_to_velo_poses,
+    check_index,
+    velo_to_cam_poses,
+)
+from gr_graph.datasets.channels import RingRecoveryError, recover_rings
+
+log = logging.getLogger(__name__)
+
+KITTI_SCAN_PERIOD_S = 0.1037  # mean frame spacing of the odometry sequences (~10 Hz)
+_BYTES_PER_POINT = 16
+
+
+def read_calib(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a KITTI ``calib.txt`` into ``{key: (12,) float64}``.
+
+    Raises
+    ------
+    DatasetError
+        If the file is missing, a line is not ``KEY: 12 numbers``, or ``Tr`` is absent.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: calibration file not found")
+    calib: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        if not sep:
+            raise DatasetError(f"{path}:{lineno}: expected 'KEY: values', got {line[:60]!r}")
+        try:
+            values = np.array([float(v) for v in rest.split()], np.float64)
+        except ValueError as exc:
+            raise DatasetError(f"{path}:{lineno}: non-numeric value in {key!r} ({exc})") from exc
+        if len(values) != 12 or not np.all(np.isfinite(values)):
+            raise DatasetError(f"{path}:{lineno}: {key!r} needs 12 finite numbers, got {len(values)}")
+        calib[key.strip()] = values
+    if "Tr" not in calib:
+        raise DatasetError(f"{path}: no 'Tr' (velodyne -> cam0) line; keys are {sorted(calib)}")
+    return calib
+
+
+def calib_T_cam_velo(calib: dict[str, np.ndarray]) -> np.ndarray:
+    """The 4x4 ``Tr`` (velodyne -> cam0) of a calibration read by :func:`read_calib`."""
+    T = np.eye(4)
+    T[:3, :4] = calib["Tr"].reshape(3, 4)
+    return T
+
+
+def read_times(path: str | Path) -> np.ndarray:
+    """Read ``times.txt`` (one float per line) with errors naming the file and line."""
+    path = Path(path)
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            value = float(line.split()[0])
+        except ValueError as exc:
+            raise DatasetError(f"{path}:{lineno}: non-numeric timestamp {line[:40]!r}") from exc
+        if not np.isfinite(value):
+            raise DatasetError(f"{path}:{lineno}: non-finite timestamp")
+        rows.append(value)
+    return np.asarray(rows, np.float64)
+
+
+def read_velodyne_bin(path: str | Path) -> np.ndarray:
+    """Read one KITTI ``.bin`` as an ``(N, 4)`` float32 array (x, y, z, reflectance).
+
+    Raises
+    ------
+    DatasetError
+        If the file is missing or its size is not a multiple of 16 bytes (truncated).
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError as exc:
+        raise DatasetError(f"{path}: scan file not found") from exc
+    if size % _BYTES_PER_POINT:
+        raise DatasetError(
+            f"{path}: size {size} bytes is not a multiple of {_BYTES_PER_POINT} "
+            "(4 float32 per point); the file is truncated or not a KITTI scan"
+        )
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+
+
+class KittiSequence:
+    """A KITTI odometry sequence read from disk, one frame at a time.
+
+    Parameters
+    ----------
+    root : path
+        Dataset root holding ``sequences/`` (and optionally ``poses/``).
+    seq : str
+        Sequence name, e.g. ``"00"``.
+    recover_ring_index : bool
+        Recover each point's laser ring (needed for channel subsampling). When recovery
+        fails for a frame, the frame is returned with ``ring=None`` and a warning.
+
+    Attributes
+    ----------
+    timestamps : (K,) array
+    gt_poses : (K, 4, 4) array or None
+        Ground truth in the LiDAR frame (``T_w_velo``), None without ``poses/XX.txt``.
+    T_cam_velo : (4, 4) array
+        KITTI's ``Tr``.
+    """
+
+    def __init__(self, root: str | Path, seq: str = "00", recover_ring_index: bool = True) -> None:
+        self.root = Path(root)
+        self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
+        self.name = f"kitti-{self.seq}"
+        self.recover_ring_index = recover_ring_index
+        seq_dir = self.root / "sequences" / self.seq
+        velo_dir = seq_dir / "velodyne"
+        if not velo_dir.is_dir():
+            raise DatasetError(f"{velo_dir}: no such folder (is {self.root} a KITTI odometry root?)")
+        self.files = sorted(velo_dir.glob("*.bin"))
+        if not self.files:
+            raise DatasetError(f"{velo_dir}: no .bin scans")
+        expected = [f"{i:06d}.bin" for i in range(len(self.files))]
+        if [f.name for f in self.files] != expected:
+            first_bad = next(a.name for a, b in zip(self.files, expected) if a.name != b)
+            raise DatasetError(f"{velo_dir}: scans are not numbered 000000.bin.. consecutively (at {first_bad})")
+        self.calib = read_calib(seq_dir / "calib.txt")
+        self.T_cam_velo = calib_T_cam_velo(self.calib)
+
+        times_path = seq_dir / "times.txt"
+        if times_path.is_file():
+            self.timestamps = read_times(times_path)
+            if len(self.timestamps) != len(self.files):
+                raise DatasetError(
+                    f"{times_path}: {len(self.timestamps)} timestamps for {len(self.files)} scans"
+                )
+        else:
+            log.warning("%s missing: assuming %.4f s between frames", times_path, KITTI_SCAN_PERIOD_S)
+            self.timestamps = np.arange(len(self.files)) * KITTI_SCAN_PERIOD_S
+
+        self.gt_poses: np.ndarray | None = None
+        pose_path = self.root / "poses" / f"{self.seq}.txt"
+        if pose_path.is_file():
+            from gr_graph.trajectory import read_kitti_poses
+
+            try:
+                cam_poses = read_kitti_poses(pose_path)
+            except ValueError as exc:
+                raise DatasetError(str(exc)) from exc
+            if len(cam_poses) != len(self.files):
+                raise DatasetError(f"{pose_path}: {len(cam_poses)} poses for {len(self.files)} scans")
+            self.gt_poses = self.to_lidar_frame(cam_poses)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, index: int) -> LidarFrame:
+        i = check_index(index, len(self), self.name)
+        raw = read_velodyne_bin(self.files[i])
+        finite = np.all(np.isfinite(raw), axis=1)
+        dropped = int(len(raw) - finite.sum())
+        if dropped:
+            log.warning("%s: dropped %d non-finite points", self.files[i], dropped)
+            raw = raw[finite]
+        points = raw[:, :3].astype(np.float64)
+        ring = None
+        if self.recover_ring_index and len(points):
+            try:
+                ring = recover_rings(points)
+            except RingRecoveryError as exc:
+                log.warning("%s: ring recovery failed (%s); frame has no ring index", self.files[i], exc)
+        return LidarFrame(
+            index=i,
+            timestamp=float(self.timestamps[i]),
+            points=points,
+            intensity=raw[:, 3].copy(),
+            ring=ring,
+            n_rings=64,
+            dropped_nonfinite=dropped,
+        )
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def to_lidar_frame(self, T_w_cam: np.ndarray) -> np.ndarray:
+        """Camera-0-frame poses ``(K, 4, 4)`` -> LiDAR-frame poses (``Tr⁻¹ · T · Tr``)."""
+        return cam_to_velo_poses(T_w_cam, self.T_cam_velo)
+
+    def to_camera_frame(self, T_w_velo: np.ndarray) -> np.ndarray:
+        """LiDAR-frame poses ``(K, 4, 4)`` -> camera-0 frame, comparable to KITTI's ground truth."""
+        return velo_to_cam_poses(T_w_velo, self.T_cam_velo)

@@ -1,0 +1,170 @@
+"""Open a LiDAR sequence by name: KITTI on disk when present, the synthetic KITTI 00 otherwise.
+
+The KITTI root is looked for, in order: the ``data_root`` argument, the environment variable
+``GR_GRAPH_KITTI_ROOT``, then ``./data/kitti`` and ``~/data/kitti``. A root that is given
+explicitly but lacks the sequence is an error, never a silent switch to synthetic data.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index
+from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
+
+log = logging.getLogger(__name__)
+
+KITTI_ROOT_ENV = "GR_GRAPH_KITTI_ROOT"
+_DEFAULT_ROOTS = (Path("data/kitti"), Path("~/data/kitti"))
+
+
+class SequenceView:
+    """A lazy view of a sequence: a frame range and/or a per-frame transform.
+
+    Frame indices of the view are local (``0..len-1``); each frame keeps its original
+    ``index`` in the parent sequence. ``gt_poses`` are the parent's, sliced (same world).
+
+    Parameters
+    ----------
+    parent : LidarSequence
+    start, stop : int
+        The half-open frame range ``[start, stop)`` of the parent.
+    transform : callable, optional
+        Applied to every frame as it is read (e.g. channel subsampling).
+    label : str
+        Suffix appended to the parent's name.
+    """
+
+    def __init__(
+        self,
+        parent: LidarSequence,
+        start: int = 0,
+        stop: int | None = None,
+        transform: Callable[[LidarFrame], LidarFrame] | None = None,
+        label: str = "",
+    ) -> None:
+        n = len(parent)
+        stop = n if stop is None else stop
+        if not 0 <= start < stop <= n:
+            raise DatasetError(f"{parent.name}: frame range {start}:{stop} is outside 0:{n} or empty")
+        self.parent = parent
+        self.start, self.stop = start, stop
+        self.transform = transform
+        self.name = parent.name + label
+        self.timestamps = np.asarray(parent.timestamps)[start:stop]
+        self.gt_poses = None if parent.gt_poses is None else np.asarray(parent.gt_poses)[start:stop]
+        self.T_cam_velo = parent.T_cam_velo
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def __getitem__(self, index: int) -> LidarFrame:
+        frame = self.parent[self.start + check_index(index, len(self), self.name)]
+        return frame if self.transform is None else self.transform(frame)
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+
+def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[int, int]:
+    """Turn ``"A:B"`` / ``slice`` / ``(A, B)`` / None into a half-open range within ``n`` frames."""
+    if spec is None:
+        return 0, n
+    if isinstance(spec, str):
+        parts = spec.split(":")
+        if len(parts) != 2:
+            raise DatasetError(f"frames {spec!r}: expected 'A:B'")
+        try:
+            spec = slice(int(parts[0]) if parts[0] else None, int(parts[1]) if parts[1] else None)
+        except ValueError as exc:
+            raise DatasetError(f"frames {spec!r}: A and B must be integers") from exc
+    if isinstance(spec, tuple):
+        spec = slice(*spec)
+    start, stop, step = spec.indices(n)
+    if step != 1:
+        raise DatasetError("frames: steps other than 1 are not supported")
+    return start, stop
+
+
+def find_kitti_root(seq: str, data_root: str | os.PathLike[str] | None = None) -> Path | None:
+    """Return the KITTI root holding ``sequences/<seq>/velodyne``, or None when none is found.
+
+    Raises
+    ------
+    DatasetError
+        If ``data_root`` (or ``$GR_GRAPH_KITTI_ROOT``) is given but lacks the sequence.
+    """
+    explicit = data_root if data_root is not None else os.environ.get(KITTI_ROOT_ENV)
+    if explicit:
+        root = Path(explicit).expanduser()
+        if not (root / "sequences" / seq / "velodyne").is_dir():
+            raise DatasetError(f"{root}: no sequences/{seq}/velodyne (given as the KITTI root)")
+        return root
+    for candidate in _DEFAULT_ROOTS:
+        root = candidate.expanduser()
+        if (root / "sequences" / seq / "velodyne").is_dir():
+            return root
+    return None
+
+
+def open_sequence(
+    seq: str = "00",
+    data_root: str | os.PathLike[str] | None = None,
+    channels: int = 64,
+    frames: str | slice | tuple[int, int] | None = None,
+    synthetic_seed: int = 0,
+) -> tuple[LidarSequence, str]:
+    """Open a sequence for SLAM: KITTI if a root is given or found, else synthetic KITTI 00.
+
+    Parameters
+    ----------
+    seq : str
+        KITTI sequence name. The synthetic fallback exists for ``"00"`` only.
+    data_root : path, optional
+        KITTI odometry root; see the module docstring for where else it is looked for.
+    channels : {64, 32, 16}
+        Keep every 1st / 2nd / 4th laser ring.
+    frames : "A:B", slice or (A, B), optional
+        Frame range.
+    synthetic_seed : int
+        Seed of the synthetic rendering.
+
+    Returns
+    -------
+    (sequence, description)
+        The sequence and a one-line description of where it comes from.
+    """
+    if channels not in SUPPORTED_CHANNELS:
+        raise DatasetError(f"channels must be one of {SUPPORTED_CHANNELS}, got {channels}")
+    seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
+    root = find_kitti_root(seq, data_root)
+    base: LidarSequence
+    if root is not None:
+        from gr_graph.datasets.kitti import KittiSequence
+
+        base = KittiSequence(root, seq)
+        source = f"KITTI sequence {seq} from {root}"
+    else:
+        if seq != "00":
+            raise DatasetError(
+                f"no KITTI root with sequence {seq} found (pass --data-root or set {KITTI_ROOT_ENV}); "
+                "the synthetic fallback exists for sequence 00 only"
+            )
+        from gr_graph.datasets.synthetic import SyntheticSequence
+
+        base = SyntheticSequence(seed=synthetic_seed)
+        source = (
+            "no KITTI root given or found: using the synthetic KITTI 00 (ray cast along the real "
+            f"KITTI 00 trajectory, seed {synthetic_seed})"
+        )
+    start, stop = parse_frames(frames, len(base))
+    transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
+    label = "" if channels == 64 else f"-{channels}ch"
+    view = SequenceView(base, start, stop, transform, label)
+    return view, f"{source}, frames {start}:{stop}, {channels} channels"

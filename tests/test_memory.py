@@ -1,0 +1,83 @@
+"""The on-disk memory: round trip, memory mapping, validation and atomic replacement."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory, MemoryFormatError, load_memory
+
+
+def _memory(rng: np.random.Generator, n_scans: int = 4) -> Memory:
+    scans = [rng.normal(size=(int(rng.integers(50, 80)), 3)) for _ in range(n_scans)]
+    poses = np.tile(np.eye(4), (n_scans, 1, 1))
+    poses[:, 0, 3] = np.arange(n_scans)
+    edges = [(k, k + 1) for k in range(n_scans - 1)] + [(n_scans - 1, 0)]
+    kinds = [EDGE_ODOMETRY] * (n_scans - 1) + [EDGE_LOOP]
+    edge_T = [np.linalg.inv(poses[l]) @ poses[k] for k, l in edges]
+    edge_H = [np.eye(6) * (e + 1) for e in range(len(edges))]
+    corr = [
+        np.stack([rng.integers(0, len(scans[k]), 30), rng.integers(0, len(scans[l]), 30)], 1)
+        for k, l in edges
+    ]
+    return Memory.from_scans(scans, poses, edges, kinds, edge_T, edge_H, corr, info={"round": 0})
+
+
+def test_round_trip_memory_mapped(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    mem = _memory(rng)
+    mem.save(tmp_path / "m")
+    back = load_memory(tmp_path / "m")
+    assert isinstance(back.points, np.memmap)
+    assert back.n_scans == 4 and back.n_edges == 4 and back.info == {"round": 0}
+    for k in range(4):
+        np.testing.assert_array_equal(back.scan(k), mem.scan(k))
+    e = back.edge(3)
+    assert (e.k, e.l, e.kind) == (3, 0, EDGE_LOOP)
+    np.testing.assert_array_equal(e.corr, mem.edge(3).corr)
+    np.testing.assert_array_equal(e.H, np.eye(6) * 4)
+
+
+def test_save_replaces_atomically(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    _memory(rng, 3).save(tmp_path / "m")
+    _memory(rng, 5).save(tmp_path / "m")
+    assert load_memory(tmp_path / "m").n_scans == 5
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temporary leftovers
+
+
+def test_failed_save_keeps_previous(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    _memory(rng, 3).save(tmp_path / "m")
+    bad = _memory(rng, 3)
+    bad.edge_T[0, 0, 0] = np.nan
+    with pytest.raises(MemoryFormatError, match="non-finite"):
+        bad.save(tmp_path / "m")
+    assert load_memory(tmp_path / "m").n_scans == 3
+
+
+def test_out_of_range_correspondence(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    mem = _memory(rng)
+    mem.corr[0, 0] = 10_000
+    with pytest.raises(MemoryFormatError, match="correspondence index out of range"):
+        mem.validate()
+
+
+def test_wrong_format_and_missing_parts(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    with pytest.raises(MemoryFormatError, match="no meta.json"):
+        load_memory(tmp_path)
+    _memory(rng).save(tmp_path / "m")
+    (tmp_path / "m" / "corr.npy").unlink()
+    with pytest.raises(MemoryFormatError, match="missing corr.npy"):
+        load_memory(tmp_path / "m")
+    _memory(rng).save(tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "meta.json").read_text())
+    meta["version"] = 99
+    (tmp_path / "m" / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(MemoryFormatError, match="v99"):
+        load_memory(tmp_path / "m")

@@ -1,0 +1,65 @@
+"""Opening sequences: KITTI when found, synthetic otherwise, frame ranges and channel views."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.datasets.base import DatasetError
+from gr_graph.datasets.registry import KITTI_ROOT_ENV, open_sequence, parse_frames
+
+
+def test_parse_frames() -> None:
+    assert parse_frames(None, 10) == (0, 10)
+    assert parse_frames("2:5", 10) == (2, 5)
+    assert parse_frames(":4", 10) == (0, 4)
+    assert parse_frames("7:", 10) == (7, 10)
+    assert parse_frames((1, 3), 10) == (1, 3)
+    with pytest.raises(DatasetError):
+        parse_frames("a:b", 10)
+    with pytest.raises(DatasetError):
+        parse_frames("1:2:3", 10)
+
+
+def test_kitti_root_view(kitti_root: Path) -> None:
+    seq, source = open_sequence("00", data_root=kitti_root, channels=16, frames="1:4")
+    assert "KITTI sequence 00" in source and "16 channels" in source
+    assert len(seq) == 3
+    frame = seq[0]
+    assert frame.index == 1 and frame.n_rings == 16
+    assert seq.gt_poses.shape == (3, 4, 4)
+    full, _ = open_sequence("00", data_root=kitti_root)
+    np.testing.assert_array_equal(seq.gt_poses, full.gt_poses[1:4])
+    np.testing.assert_array_equal(seq.timestamps, full.timestamps[1:4])
+    assert abs(len(frame) / len(full[1]) - 0.25) < 0.05
+
+
+def test_kitti_root_from_environment(kitti_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(KITTI_ROOT_ENV, str(kitti_root))
+    seq, source = open_sequence("00")
+    assert str(kitti_root) in source and len(seq) == 6
+
+
+def test_explicit_root_without_sequence_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="no sequences/00/velodyne"):
+        open_sequence("00", data_root=tmp_path)
+
+
+def test_unknown_sequence_without_kitti(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    with pytest.raises(DatasetError, match="synthetic fallback exists for sequence 00 only"):
+        open_sequence("05")
+
+
+def test_bad_channels() -> None:
+    with pytest.raises(DatasetError, match="channels"):
+        open_sequence("00", channels=8)
+
+
+def test_bad_range(kitti_root: Path) -> None:
+    with pytest.raises(DatasetError, match="outside"):
+        open_sequence("00", data_root=kitti_root, frames="4:4")
