@@ -1,0 +1,228 @@
+"""SE(3) helpers in gtsam's convention, in plain numpy.
+
+Conventions (the same as ``gtsam.Pose3``):
+
+* a tangent vector is ``xi = [omega, v]`` (rotation first, then translation), shape ``(6,)``;
+* ``exp_se3(xi)`` equals ``gtsam.Pose3.Expmap(xi).matrix()`` and ``log_se3(T)`` equals
+  ``gtsam.Pose3.Logmap(gtsam.Pose3(T))``;
+* perturbations are applied on the right: ``T @ exp_se3(xi)`` is ``Pose3.retract(xi)``.
+
+Everything here is double precision and works on single poses; ``hat`` also accepts a
+batch of vectors ``(..., 3)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "hat",
+    "vee",
+    "exp_so3",
+    "log_so3",
+    "exp_se3",
+    "log_se3",
+    "inverse_se3",
+    "adjoint_se3",
+]
+
+_SMALL_ANGLE = 1e-5
+# Below this angle the SE(3) coefficients are evaluated by their Taylor series.
+_SERIES_ANGLE = 0.05
+# Below this distance to pi the axis is read from the symmetric part of R (sin(theta) ~ 0).
+_NEAR_PI = 1e-3
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix of a 3-vector, so that ``hat(w) @ x == np.cross(w, x)``.
+
+    Parameters
+    ----------
+    w : np.ndarray
+        ``(3,)`` vector or a batch ``(..., 3)``.
+
+    Returns
+    -------
+    np.ndarray
+        ``(3, 3)`` (or ``(..., 3, 3)``) skew-symmetric matrix.
+
+    Raises
+    ------
+    ValueError
+        If the last axis does not have length 3.
+    """
+    w = np.asarray(w, dtype=np.float64)
+    if w.shape[-1:] != (3,):
+        raise ValueError(f"hat expects a (..., 3) array, got shape {w.shape}")
+    W = np.zeros(w.shape[:-1] + (3, 3), dtype=np.float64)
+    W[..., 0, 1] = -w[..., 2]
+    W[..., 0, 2] = w[..., 1]
+    W[..., 1, 0] = w[..., 2]
+    W[..., 1, 2] = -w[..., 0]
+    W[..., 2, 0] = -w[..., 1]
+    W[..., 2, 1] = w[..., 0]
+    return W
+
+
+def vee(W: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`hat`: the 3-vector of a (skew-symmetric) ``(..., 3, 3)`` matrix.
+
+    Only the antisymmetric part of ``W`` is used.
+    """
+    W = np.asarray(W, dtype=np.float64)
+    return 0.5 * np.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def _check_vec(x: np.ndarray, n: int, name: str) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} contains non-finite values: {x}")
+    return x
+
+
+def _check_pose(T: np.ndarray, name: str = "T") -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be a (4, 4) homogeneous transform, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} contains non-finite values")
+    return T
+
+
+def _so3_coefficients(theta: float) -> tuple[float, float, float]:
+    """Return ``(A, B, C) = (sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3)``, stable at 0."""
+    t2 = theta * theta
+    if theta < _SERIES_ANGLE:
+        # Taylor series; truncation error < t^8 / 1e6 for t < 0.05.
+        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0 - t2**3 / 5040.0
+        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0
+        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0
+        return A, B, C
+    s = np.sin(theta)
+    half = np.sin(0.5 * theta)
+    return s / theta, 2.0 * half * half / t2, (theta - s) / (t2 * theta)
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``Exp(w)`` of a rotation vector ``w`` (Rodrigues' formula)."""
+    w = _check_vec(w, 3, "w")
+    theta = float(np.linalg.norm(w))
+    A, B, _ = _so3_coefficients(theta)
+    W = hat(w)
+    return np.eye(3) + A * W + B * (W @ W)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector ``w`` with ``exp_so3(w) == R``, ``|w| <= pi``.
+
+    Parameters
+    ----------
+    R : np.ndarray
+        ``(3, 3)`` rotation matrix.
+
+    Returns
+    -------
+    np.ndarray
+        ``(3,)`` rotation vector.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"R must have shape (3, 3), got {R.shape}")
+    axis_sin = vee(R)  # = sin(theta) * n
+    s = float(np.linalg.norm(axis_sin))
+    c = 0.5 * (float(np.trace(R)) - 1.0)
+    theta = float(np.arctan2(s, c))
+    if theta < _SMALL_ANGLE:
+        # theta / sin(theta) = 1 + theta^2 / 6 + ...
+        return (1.0 + theta * theta / 6.0) * axis_sin
+    if np.pi - theta > _NEAR_PI:
+        return (theta / s) * axis_sin
+    # Near pi: R ~ 2 n n^T - I (+ sin term); read n from the symmetric part.
+    S = 0.5 * (R + R.T)
+    B = (S - c * np.eye(3)) / (1.0 - c)  # = n n^T exactly for a rotation
+    k = int(np.argmax(np.diag(B)))
+    n = B[:, k] / np.sqrt(max(B[k, k], 1e-300))
+    n /= np.linalg.norm(n)
+    if float(n @ axis_sin) < 0.0:
+        n = -n
+    return theta * n
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Homogeneous transform ``Exp(xi)`` for ``xi = [omega, v]`` (gtsam ``Pose3.Expmap``).
+
+    Parameters
+    ----------
+    xi : np.ndarray
+        ``(6,)`` tangent vector, rotation first.
+
+    Returns
+    -------
+    np.ndarray
+        ``(4, 4)`` transform ``[[Exp(omega), V(omega) v], [0, 1]]``.
+    """
+    xi = _check_vec(xi, 6, "xi")
+    w, v = xi[:3], xi[3:]
+    theta = float(np.linalg.norm(w))
+    A, B, C = _so3_coefficients(theta)
+    W = hat(w)
+    W2 = W @ W
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + A * W + B * W2
+    T[:3, 3] = (np.eye(3) + B * W + C * W2) @ v
+    return T
+
+
+def log_se3(T: np.ndarray) -> np.ndarray:
+    """Tangent vector ``xi = [omega, v]`` with ``exp_se3(xi) == T`` (gtsam ``Pose3.Logmap``).
+
+    Parameters
+    ----------
+    T : np.ndarray
+        ``(4, 4)`` rigid transform.
+
+    Returns
+    -------
+    np.ndarray
+        ``(6,)`` tangent vector, rotation first.
+    """
+    T = _check_pose(T)
+    w = log_so3(T[:3, :3])
+    theta = float(np.linalg.norm(w))
+    W = hat(w)
+    if theta < _SERIES_ANGLE:
+        t2 = theta * theta
+        coef = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0 + t2**3 / 1209600.0
+    else:
+        half = 0.5 * theta
+        coef = (1.0 - half * np.cos(half) / np.sin(half)) / (theta * theta)
+    V_inv = np.eye(3) - 0.5 * W + coef * (W @ W)
+    return np.concatenate([w, V_inv @ T[:3, 3]])
+
+
+def inverse_se3(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform, ``[[R^T, -R^T t], [0, 1]]``."""
+    T = _check_pose(T)
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def adjoint_se3(T: np.ndarray) -> np.ndarray:
+    """Adjoint ``(6, 6)`` of ``T`` in the ``[omega, v]`` order (gtsam ``Pose3.AdjointMap``).
+
+    ``T @ exp_se3(xi) @ inverse_se3(T) == exp_se3(adjoint_se3(T) @ xi)``.
+    """
+    T = _check_pose(T)
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, :3] = hat(t) @ R
+    Ad[3:, 3:] = R
+    return Ad
