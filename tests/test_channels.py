@@ -96,3 +96,22 @@ def test_cropped_scan_is_refused(frames: list[LidarFrame]) -> None:
     f = frames[0]
     with pytest.raises(RingRecoveryError):
         recover_rings(f.points[f.ring < 40])
+
+
+def test_top_beam_without_returns_ahead(frames: list[LidarFrame]) -> None:
+    # Sky straight ahead: the scan's first point lies well past azimuth 0. Every other
+    # line must still start at azimuth 0 and keep all of its points.
+    f = frames[0]
+    az = np.degrees(np.arctan2(f.points[:, 1], f.points[:, 0]))
+    keep = ~((f.ring == 0) & (az >= 0) & (az < 30))
+    assert keep.sum() < len(f) - 50
+    np.testing.assert_array_equal(recover_rings(f.points[keep]), f.ring[keep])
+
+
+def test_first_point_just_short_of_zero(frames: list[LidarFrame]) -> None:
+    # Azimuth jitter can put a line's first point a hair below 0 deg; it stays in line 0.
+    f = frames[0]
+    pts = f.points.copy()
+    r = np.hypot(pts[0, 0], pts[0, 1])
+    pts[0, :2] = r * np.cos(np.radians(-0.01)), r * np.sin(np.radians(-0.01))
+    np.testing.assert_array_equal(recover_rings(pts), f.ring)

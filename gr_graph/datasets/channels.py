@@ -5,8 +5,9 @@ line, each line one full turn of the sensor. Splitting where the azimuth wraps a
 over-counts (the azimuth jitters across +-pi inside a line: about 69 breaks for 64 rings
 in frame 0 of sequence 00). We instead *unwrap* the azimuth along the storage order, so
 that jitter cancels and the unwrapped angle grows by one turn per line; a point's line is
-the number of whole turns swept before it (on the real KITTI 00 frames the azimuth
-crosses the sweep start exactly where the elevation steps to the next beam).
+the number of whole turns swept since azimuth 0, where every line starts (on the real
+KITTI 00 frames the azimuth crosses 0 exactly where the elevation steps to the next beam;
+the first point of a scan need not lie at 0 when the top beam has no return ahead).
 
 The elevation angle then checks the result and numbers the lines: the lines' median
 elevations must be strictly ordered along the storage order (KITTI stores the beams top
@@ -26,6 +27,7 @@ from gr_graph.datasets.base import DatasetError, LidarFrame
 
 SUPPORTED_CHANNELS = (64, 32, 16)
 _TWO_PI = 2.0 * np.pi
+_START_TOLERANCE = np.radians(1.0)  # a line may start this far short of azimuth 0
 
 
 class RingRecoveryError(DatasetError):
@@ -65,8 +67,14 @@ def recover_rings(points: np.ndarray, n_rings: int = 64) -> np.ndarray:
         raise RingRecoveryError(f"{n} points are too few to hold {n_rings} scan lines")
     azimuth = np.arctan2(points[:, 1], points[:, 0])
     unwrapped = np.unwrap(azimuth)
-    turns = np.abs(unwrapped - unwrapped[0]) / _TWO_PI
-    line = np.maximum.accumulate(np.floor(turns).astype(np.int64))
+    direction = 1.0 if unwrapped[-1] >= unwrapped[0] else -1.0
+    # Lines start facing forward (azimuth 0), as in KITTI. Count turns from there, not from
+    # the first point: when the top beam has no return straight ahead, the first point lies
+    # further round, and counting from it would push the next lines' first points into the
+    # line above. A first point a hair short of 0 (jitter) belongs to line 0 as well.
+    start = np.mod(direction * azimuth[0] + _START_TOLERANCE, _TWO_PI) - _START_TOLERANCE
+    turns = (direction * (unwrapped - unwrapped[0]) + start) / _TWO_PI
+    line = np.maximum.accumulate(np.maximum(np.floor(turns), 0).astype(np.int64))
     n_lines = int(line[-1]) + 1
     if n_lines != n_rings:
         raise RingRecoveryError(

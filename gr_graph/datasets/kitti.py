@@ -125,6 +125,8 @@ class KittiSequence:
     recover_ring_index : bool
         Recover each point's laser ring (needed for channel subsampling). When recovery
         fails for a frame, the frame is returned with ``ring=None`` and a warning.
+    n_rings : int
+        Rings of the sensor (64 for KITTI's HDL-64E; 32 or 16 for subsampled exports).
 
     Attributes
     ----------
@@ -135,8 +137,11 @@ class KittiSequence:
         KITTI's ``Tr``.
     """
 
-    def __init__(self, root: str | Path, seq: str = "00", recover_ring_index: bool = True) -> None:
+    def __init__(
+        self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64
+    ) -> None:
         self.root = Path(root)
+        self.n_rings = n_rings
         self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
         self.name = f"kitti-{self.seq}"
         self.recover_ring_index = recover_ring_index
@@ -193,7 +198,7 @@ class KittiSequence:
         ring = None
         if self.recover_ring_index and len(points):
             try:
-                ring = recover_rings(points)
+                ring = recover_rings(points, self.n_rings)
             except RingRecoveryError as exc:
                 log.warning("%s: ring recovery failed (%s); frame has no ring index", self.files[i], exc)
         return LidarFrame(
@@ -202,7 +207,7 @@ class KittiSequence:
             points=points,
             intensity=raw[:, 3].copy(),
             ring=ring,
-            n_rings=64,
+            n_rings=self.n_rings,
             dropped_nonfinite=dropped,
         )
 

@@ -1,0 +1,179 @@
+"""Benchmark of the synthetic KITTI-00 renderer (not a test).
+
+Measures the scene build time (procedural town + open3d BVH), frames rendered per second
+at 64/32/16 rings with 1 ray-casting thread and with all threads, and, as a check that the
+town is a realistic odometry problem, small_gicp VGICP frame-to-frame odometry over a
+stretch of frames against the ground truth.
+
+Run::
+
+    python benchmarks/bench_render.py [--frames 60] [--odometry 100]
+
+Writes ``benchmarks/results/render.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import platform
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.datasets.synthetic import SyntheticSequence
+from gr_graph.datasets.synthetic.sequence import clear_scene_cache, get_town_and_scene
+
+RESULTS = Path(__file__).resolve().parent / "results" / "render.md"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def bench_build() -> tuple[float, float, int]:
+    """Town build seconds, BVH build seconds (first cast), triangles."""
+    import open3d as o3d
+
+    clear_scene_cache()
+    t0 = time.perf_counter()
+    town, scene = get_town_and_scene(0)
+    t_town = time.perf_counter() - t0
+    ray = np.array([[0, 0, 1.73, 1, 0, 0]], dtype=np.float32)
+    t0 = time.perf_counter()
+    scene.cast_rays(o3d.core.Tensor(ray))  # embree builds its BVH lazily on the first query
+    t_bvh = time.perf_counter() - t0
+    return t_town, t_bvh, len(town.triangles)
+
+
+def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray) -> tuple[float, float]:
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads)
+    seq[int(frames[0])]  # warm up
+    n_pts = 0
+    t0 = time.perf_counter()
+    for i in frames:
+        n_pts += len(seq[int(i)])
+    dt_ = time.perf_counter() - t0
+    return len(frames) / dt_, n_pts / len(frames)
+
+
+def bench_odometry(n_rings: int, start: int, n: int) -> dict[str, float]:
+    """Frame-to-frame VGICP (small_gicp) from a constant-velocity guess, vs GT."""
+    import small_gicp
+
+    seq = SyntheticSequence(seed=0, n_rings=n_rings)
+    gt = seq.gt_poses[start:start + n + 1]
+    T = np.eye(4)
+    est = [T.copy()]
+    prev = None
+    guess = np.eye(4)
+    errs_t, errs_r = [], []
+    for k in range(n):
+        if prev is None:
+            prev = seq[start]
+        cur = seq[start + k + 1]
+        res = small_gicp.align(prev.points, cur.points, init_T_target_source=guess,
+                               registration_type="VGICP", voxel_resolution=1.0,
+                               downsampling_resolution=0.25, num_threads=1)
+        rel = res.T_target_source
+        rel_gt = np.linalg.inv(gt[k]) @ gt[k + 1]
+        E = np.linalg.inv(rel_gt) @ rel
+        errs_t.append(np.linalg.norm(E[:3, 3]))
+        errs_r.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+        T = T @ rel
+        est.append(T.copy())
+        guess, prev = rel, cur
+    gt_rel = np.linalg.inv(gt[0]) @ gt
+    length = np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))
+    end_err = np.linalg.norm(est[-1][:3, 3] - gt_rel[-1][:3, 3])
+    return {"frames": n, "length_m": length, "end_drift_pct": 100 * end_err / length,
+            "mean_t_cm": 100 * float(np.mean(errs_t)), "max_t_cm": 100 * float(np.max(errs_t)),
+            "mean_r_deg": float(np.mean(errs_r)), "max_r_deg": float(np.max(errs_r))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=60, help="frames timed per configuration")
+    ap.add_argument("--odometry", type=int, default=100, help="frames of the odometry check (0: skip)")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    load0 = os.getloadavg()
+    t_town, t_bvh, n_tri = bench_build()
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rng = np.random.default_rng(0)
+    seq_frames = np.arange(1000, 1000 + args.frames)
+    rand_frames = np.sort(rng.choice(4541, args.frames, replace=False))
+    rows = []
+    for n_rings in (64, 32, 16):
+        for nthreads in (1, 0):
+            fps, pts = bench_fps(n_rings, nthreads, seq_frames)
+            fps_r, _ = bench_fps(n_rings, nthreads, rand_frames)
+            rows.append((n_rings, "1" if nthreads == 1 else f"all ({os.cpu_count()})", fps, fps_r, pts))
+            print(rows[-1])
+    odo = []
+    if args.odometry:
+        for n_rings in (64, 16):
+            for start in (1000, 3000):
+                odo.append((n_rings, start, bench_odometry(n_rings, start, args.odometry)))
+                print(odo[-1])
+    load1 = os.getloadavg()
+
+    lines = [
+        "# Synthetic KITTI-00 renderer: speed",
+        "",
+        f"Reproduce: `python benchmarks/bench_render.py --frames {args.frames} --odometry {args.odometry}`",
+        "",
+        f"- date (UTC): {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M}",
+        f"- machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; load average "
+        f"{load0[0]:.1f} before / {load1[0]:.1f} after (the machine is shared: other jobs run "
+        "at the same time, so these are lower bounds)",
+        f"- open3d RaycastingScene (Embree), seed 0, 2000 azimuth steps, max range 120 m",
+        "",
+        "## Scene build (once per process and seed)",
+        "",
+        f"- procedural town: **{t_town:.1f} s** ({n_tri / 1e6:.2f} M triangles)",
+        f"- BVH build on the first ray cast: **{t_bvh:.1f} s**",
+        f"- peak RSS after the build: {rss_mb:.0f} MB",
+        "",
+        "## Frames rendered per second (target: >= 10 at 64 rings)",
+        "",
+        "| rings | ray-cast threads | frames/s, sequential (1000..) | frames/s, random frames | points/frame |",
+        "|---:|---|---:|---:|---:|",
+    ]
+    lines += [f"| {r} | {t} | {f:.1f} | {fr:.1f} | {p:,.0f} |" for r, t, f, fr, p in rows]
+    if odo:
+        lines += [
+            "",
+            "## Is it a realistic odometry problem? small_gicp VGICP frame to frame vs GT",
+            "",
+            "VGICP (voxel 1 m, downsampling 0.25 m), each pair started from the previous relative "
+            "motion (constant velocity), chained; errors of each relative pose vs the ground truth.",
+            "",
+            "| rings | frames | length [m] | end drift [% of length] | rel. trans. error mean / max [cm] "
+            "| rel. rot. error mean / max [deg] |",
+            "|---:|---|---:|---:|---:|---:|",
+        ]
+        lines += [f"| {r} | {s}..{s + o['frames']} | {o['length_m']:.0f} | {o['end_drift_pct']:.2f} | "
+                  f"{o['mean_t_cm']:.1f} / {o['max_t_cm']:.1f} | {o['mean_r_deg']:.3f} / {o['max_r_deg']:.3f} |"
+                  for r, s, o in odo]
+    text = "\n".join(lines) + "\n"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".md")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, args.out)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,443 @@
+"""A procedural town laid out around a driving path (the KITTI 00 trajectory).
+
+The town is a fixed world (one triangle mesh) built once from a seed:
+
+- a ground height field that follows the path's own height (the sensor rides
+  ``sensor_height`` above it), a road of ``road_half_width`` around the path, a raised
+  sidewalk (curb) beyond it, and gently undulating terrain further out;
+- building blocks of varied length, depth, height and set-back along both sides of the
+  path, with gaps, some with an upper tier; low walls in some gaps;
+- street poles (some with a lamp arm), trees (trunk + irregular crown), bushes,
+  scattered park trees, and parked cars (body + cabin, raised off the ground).
+
+Every object is checked against the *whole* path (a KD-tree of the path sampled every
+0.5 m), so nothing stands on the road where the path passes, including at intersections
+and on revisited stretches; objects are also checked against each other on an occupancy
+grid, so a revisited stretch keeps the objects placed on the first pass and renders the
+same structures again.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gr_graph.datasets.synthetic.meshes import MATERIAL, MeshBuilder, blob, box, cylinder
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TownConfig:
+    """Layout parameters of the procedural town (metres)."""
+
+    sensor_height: float = 1.73
+    road_half_width: float = 5.0
+    sidewalk_width: float = 3.0
+    curb_height: float = 0.12
+    ground_cell: float = 1.0
+    ground_extent: float = 135.0
+    """The ground mesh covers everything within this distance of the path."""
+    path_step: float = 0.5
+    terrain_amplitude: float = 0.8
+    building_clearance: float = 8.5
+    car_clearance: float = 2.4
+    furniture_clearance: float = 5.6
+
+
+@dataclass
+class Town:
+    """The town's triangle mesh, per-triangle reflectance/material, and its layout.
+
+    Attributes
+    ----------
+    vertices : np.ndarray
+        ``(V, 3)`` float32 world coordinates (world = LiDAR frame of scan 0, z up).
+    triangles : np.ndarray
+        ``(T, 3)`` uint32 vertex indices.
+    albedo : np.ndarray
+        ``(T,)`` float32 reflectance of each triangle in [0, 1].
+    material : np.ndarray
+        ``(T,)`` uint8 material id (see ``meshes.MATERIAL_NAMES``).
+    footprints : dict
+        ``kind -> (n, 4, 2)`` rectangle corners (buildings, walls, cars) or ``(n, 3)``
+        circles ``x, y, r`` (trees, bushes, poles), for plots.
+    path_xyz : np.ndarray
+        ``(M, 3)`` the sensor path resampled every ``config.path_step`` metres.
+    ground : GroundModel
+        The analytic height field the ground mesh samples.
+    seed : int
+        The layout seed.
+    config : TownConfig
+        The layout parameters.
+    build_seconds : float
+        Wall time of :func:`build_town`.
+    ground_grid : dict
+        ``x`` ``(nx,)``, ``y`` ``(ny,)`` and ``z`` ``(nx, ny)`` (NaN off the ground mesh), for plots.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    albedo: np.ndarray
+    material: np.ndarray
+    footprints: dict[str, np.ndarray]
+    path_xyz: np.ndarray
+    ground: "GroundModel"
+    seed: int
+    config: TownConfig
+    build_seconds: float = 0.0
+    ground_grid: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def resample_path(positions: np.ndarray, step: float) -> np.ndarray:
+    """Resample a polyline ``(K, 3)`` by arc length (xy) every ``step`` metres."""
+    seg = np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    keep = np.concatenate([[True], seg > 1e-9])  # drop stationary duplicates
+    s, positions = s[keep], positions[keep]
+    q = np.arange(0.0, s[-1] + 1e-9, step)
+    return np.stack([np.interp(q, s, positions[:, k]) for k in range(3)], axis=1)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+class GroundModel:
+    """Analytic ground height ``h(x, y)``.
+
+    ``h = h_path + curb(d) + undulation(x, y) · blend(d)``, where ``h_path`` is an
+    inverse-distance-weighted average of the path's ground height (sensor height minus
+    ``sensor_height``) over the 16 nearest path samples taken every metre (weights
+    ``1 / (d² + 16 m²)``), ``d`` the distance to the path, the
+    curb raises the sidewalk by ``curb_height`` just beyond the road edge, and the
+    undulation (a few long-wavelength sinusoids) fades in from 12 m to 42 m off the road.
+    """
+
+    def __init__(self, path_xyz: np.ndarray, config: TownConfig, rng: np.random.Generator):
+        self.config = config
+        self.path_xyz = path_xyz
+        self.kd = cKDTree(path_xyz[:, :2])
+        stride = max(1, int(round(1.0 / config.path_step)))
+        self.kd_h = cKDTree(path_xyz[::stride, :2])
+        self.h_samples = path_xyz[::stride, 2] - config.sensor_height
+        n = 4
+        ang = rng.uniform(0, np.pi, n)
+        self.wave_dir = np.c_[np.cos(ang), np.sin(ang)]
+        self.wave_k = 2 * np.pi / rng.uniform(60.0, 180.0, n)
+        self.wave_phase = rng.uniform(0, 2 * np.pi, n)
+        self.wave_amp = rng.uniform(0.5, 1.0, n) * config.terrain_amplitude / n * 2
+
+    def distance(self, xy: np.ndarray, upper: float = np.inf) -> np.ndarray:
+        """Distance of each xy to the path (``inf`` beyond ``upper``)."""
+        return self.kd.query(xy, k=1, distance_upper_bound=upper, workers=-1)[0]
+
+    def __call__(self, xy: np.ndarray, d: np.ndarray | None = None) -> np.ndarray:
+        """Ground height at ``xy`` ``(N, 2)``; ``d`` (distance to the path) if known."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=np.float64))
+        h = np.empty(len(xy))
+        k = min(16, len(self.h_samples))
+        for s in range(0, len(xy), 65536):  # chunks bound the memory of the k-NN query
+            dist, idx = self.kd_h.query(xy[s:s + 65536], k=k, workers=-1)
+            dist, idx = dist.reshape(len(dist), -1), idx.reshape(len(idx), -1)
+            w = 1.0 / (dist**2 + 16.0)
+            h[s:s + 65536] = (w * self.h_samples[idx]).sum(axis=1) / w.sum(axis=1)
+        if d is None:
+            d = self.distance(xy)
+        c = self.config
+        h = h + c.curb_height * _smoothstep((d - c.road_half_width) / 0.5)
+        wave = (self.wave_amp * np.sin(xy @ self.wave_dir.T * self.wave_k + self.wave_phase)).sum(1)
+        return h + wave * _smoothstep((d - 12.0) / 30.0)
+
+
+class _Layout:
+    """Occupancy grid + path-clearance checks for placing footprints."""
+
+    def __init__(self, ground: GroundModel, lo: np.ndarray, hi: np.ndarray, cell: float = 0.5):
+        self.ground = ground
+        self.lo, self.cell = lo, cell
+        shape = np.ceil((hi - lo) / cell).astype(int) + 1
+        self.occ = np.zeros(shape, dtype=bool)
+
+    @staticmethod
+    def rect_samples(cx, cy, yaw, length, width, spacing=0.35) -> np.ndarray:
+        nl = max(2, int(np.ceil(length / spacing)) + 1)
+        nw = max(2, int(np.ceil(width / spacing)) + 1)
+        u, v = np.meshgrid(np.linspace(-length / 2, length / 2, nl),
+                           np.linspace(-width / 2, width / 2, nw), indexing="ij")
+        c, s = np.cos(yaw), np.sin(yaw)
+        return np.c_[cx + c * u.ravel() - s * v.ravel(), cy + s * u.ravel() + c * v.ravel()]
+
+    def _cells(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        ij = np.floor((pts - self.lo) / self.cell).astype(int)
+        if (ij < 0).any() or (ij[:, 0] >= self.occ.shape[0]).any() or (ij[:, 1] >= self.occ.shape[1]).any():
+            return None
+        return ij[:, 0], ij[:, 1]
+
+    def try_place(self, pts: np.ndarray, clearance: float, occupy_pts: np.ndarray | None = None) -> bool:
+        """Place a footprint sampled by ``pts`` if it is ``clearance`` off the path and free."""
+        cells = self._cells(pts)
+        if cells is None or self.occ[cells].any():
+            return False
+        if np.isfinite(self.ground.distance(pts, upper=clearance)).any():
+            return False
+        occ = cells if occupy_pts is None else self._cells(occupy_pts)
+        if occ is not None:
+            self.occ[occ] = True
+        return True
+
+
+def _rect_corners(cx, cy, yaw, length, width) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    local = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
+                      [length / 2, width / 2], [-length / 2, width / 2]])
+    return local @ np.array([[c, s], [-s, c]]) + (cx, cy)
+
+
+def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None = None) -> Town:
+    """Build the town around the sensor path ``positions`` ``(K, 3)`` (world frame, z up).
+
+    Deterministic for ``(positions, seed, config)``.
+    """
+    t0 = time.perf_counter()
+    c = config or TownConfig()
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) < 2:
+        raise ValueError(f"build_town: positions must be (K>=2, 3), got {positions.shape}")
+    if not np.isfinite(positions).all():
+        raise ValueError("build_town: positions contain non-finite values")
+    ss = np.random.SeedSequence([int(seed), 0x70776E])
+    rngs = [np.random.default_rng(s) for s in ss.spawn(10)]
+    path = resample_path(positions, c.path_step)
+    if len(path) < 4:
+        raise ValueError("build_town: the path is shorter than 2 m")
+    ground = GroundModel(path, c, rngs[0])
+    mb = MeshBuilder()
+
+    # ---- ground height field -------------------------------------------------------------
+    lo = path[:, :2].min(0) - c.ground_extent
+    hi = path[:, :2].max(0) + c.ground_extent
+    xs = np.arange(lo[0], hi[0] + c.ground_cell, c.ground_cell)
+    ys = np.arange(lo[1], hi[1] + c.ground_cell, c.ground_cell)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    gxy = np.c_[gx.ravel(), gy.ravel()]
+    vd = ground.distance(gxy, upper=c.ground_extent + 2 * c.ground_cell)
+    vmask = np.isfinite(vd)
+    vz = np.full(len(gxy), np.nan)
+    vz[vmask] = ground(gxy[vmask], vd[vmask])
+    nx, ny = len(xs), len(ys)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    v00, v10, v01, v11 = i * ny + j, (i + 1) * ny + j, i * ny + j + 1, (i + 1) * ny + j + 1
+    cmask = vmask[v00] & vmask[v10] & vmask[v01] & vmask[v11]
+    v00, v10, v01, v11 = v00[cmask], v10[cmask], v01[cmask], v11[cmask]
+    cd = 0.25 * (vd[v00] + vd[v10] + vd[v01] + vd[v11])  # ~ distance of the cell centre
+    keep = cd <= c.ground_extent
+    v00, v10, v01, v11, cd = v00[keep], v10[keep], v01[keep], v11[keep], cd[keep]
+    used = np.zeros(len(gxy), dtype=bool)
+    used[np.concatenate([v00, v10, v01, v11])] = True
+    remap = np.cumsum(used) - 1
+    gverts = np.c_[gxy[used], vz[used]]
+    gtris = np.concatenate([np.c_[remap[v00], remap[v10], remap[v11]],
+                            np.c_[remap[v00], remap[v11], remap[v01]]])
+    mat = np.where(cd < c.road_half_width, MATERIAL["road"],
+                   np.where(cd < c.road_half_width + c.sidewalk_width, MATERIAL["sidewalk"],
+                            MATERIAL["terrain"])).astype(np.uint8)
+    base_albedo = np.array([0.16, 0.32, 0.42], np.float32)[mat]
+    alb = np.clip(base_albedo + rngs[1].normal(0, 0.03, len(mat)).astype(np.float32), 0.02, 1)
+    mb.add((gverts, gtris), np.concatenate([alb, alb]), np.concatenate([mat, mat]))
+    grid_z = vz.reshape(nx, ny)
+
+    # ---- tangents / normals along the path --------------------------------------------------
+    xy = path[:, :2]
+    w = max(1, int(round(2.0 / c.path_step)))
+    tang = xy[np.minimum(np.arange(len(xy)) + w, len(xy) - 1)] - xy[np.maximum(np.arange(len(xy)) - w, 0)]
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-9)
+    left = np.c_[-tang[:, 1], tang[:, 0]]
+    heading = np.arctan2(tang[:, 1], tang[:, 0])
+    total = (len(path) - 1) * c.path_step
+    layout = _Layout(ground, lo, hi)
+    fp: dict[str, list] = {k: [] for k in ("building", "wall", "car", "tree", "bush", "pole")}
+
+    def frame_at(s: float) -> int:
+        return int(np.clip(round(s / c.path_step), 0, len(path) - 1))
+
+    def place_rect(s, side, offset, length, width, clearance, yaw_jitter=0.0, rng=None):
+        k = frame_at(s)
+        centre = xy[k] + side * left[k] * offset
+        yaw = heading[k] + (rng.uniform(-yaw_jitter, yaw_jitter) if yaw_jitter else 0.0)
+        pts = layout.rect_samples(centre[0], centre[1], yaw, length, width)
+        if not layout.try_place(pts, clearance):
+            return None
+        return centre, yaw, pts
+
+    # ---- buildings -------------------------------------------------------------------------
+    rng = rngs[2]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 10.0)
+        while s < total:
+            length = rng.uniform(8.0, 32.0)
+            depth = rng.uniform(8.0, 18.0)
+            setback = rng.uniform(c.building_clearance + 0.5, 15.0)
+            kind = rng.uniform()
+            height = (rng.uniform(3.0, 5.0) if kind < 0.1 else rng.uniform(6.0, 12.0)
+                      if kind < 0.7 else rng.uniform(12.0, 24.0))
+            tier, gap_draw, albedo = rng.uniform(), rng.uniform(), rng.uniform(0.3, 0.7)
+            got = place_rect(s + length / 2, side, setback + depth / 2, length, depth,
+                             c.building_clearance)
+            if got is None:
+                s += 3.0
+                continue
+            centre, yaw, pts = got
+            hg = ground(pts[:: max(1, len(pts) // 64)])
+            z0, zt = hg.min() - 0.5, hg.mean() + height
+            mb.add(box(centre[0], centre[1], yaw, length, depth, z0, zt), albedo, MATERIAL["building"])
+            fp["building"].append(_rect_corners(centre[0], centre[1], yaw, length, depth))
+            if tier < 0.35 and length > 10 and depth > 9:
+                # an upper tier set back 2 m from every side of the block
+                mb.add(box(centre[0], centre[1], yaw, length - 4.0, depth - 4.0, zt - 0.2,
+                           zt + rng.uniform(3.0, 8.0)), albedo * 0.9, MATERIAL["building"])
+            s += length + (0.0 if gap_draw < 0.45 else rng.uniform(2.0, 14.0))
+
+    # ---- low walls / fences (fill some gaps) ------------------------------------------------
+    rng = rngs[3]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 20.0)
+        while s < total:
+            length = rng.uniform(4.0, 16.0)
+            off = rng.uniform(c.building_clearance + 0.3, 10.5)
+            height = rng.uniform(1.0, 2.2)
+            albedo = rng.uniform(0.25, 0.6)
+            got = place_rect(s + length / 2, side, off, length, 0.3, c.building_clearance)
+            if got is not None:
+                centre, yaw, pts = got
+                hg = ground(pts[::8])
+                mb.add(box(centre[0], centre[1], yaw, length, 0.3, hg.min() - 0.3, hg.mean() + height),
+                       albedo, MATERIAL["wall"])
+                fp["wall"].append(_rect_corners(centre[0], centre[1], yaw, length, 0.3))
+            s += length + rng.uniform(5.0, 25.0)
+
+    # ---- trees along the sidewalk, bushes, poles ---------------------------------------------
+    def add_tree(x, y, rng, crown_scale=1.0, crown_check=1.0) -> bool:
+        rc = rng.uniform(1.5, 3.0) * crown_scale
+        rz = rng.uniform(1.5, 3.5) * crown_scale
+        trunk_r, trunk_h = rng.uniform(0.15, 0.3), rng.uniform(2.0, 3.5)
+        stretch = rng.uniform(0.8, 1.2)
+        rcheck = max(rc * crown_check, 2 * trunk_r)
+        crown_pts = layout.rect_samples(x, y, 0.0, 2 * rcheck, 2 * rcheck, spacing=0.5)
+        trunk_pts = layout.rect_samples(x, y, 0.0, 2 * trunk_r, 2 * trunk_r)
+        cells = layout._cells(crown_pts)
+        if cells is None or layout.occ[cells].any():
+            return False
+        if not layout.try_place(trunk_pts, c.furniture_clearance, occupy_pts=crown_pts):
+            return False
+        g = float(ground(np.array([[x, y]]))[0])
+        mb.add(cylinder(x, y, trunk_r, g - 0.3, g + trunk_h + 0.5 * rz, 7), rng.uniform(0.25, 0.4),
+               MATERIAL["trunk"])
+        mb.add(blob(np.array([x, y, g + trunk_h + 0.8 * rz]), np.array([rc * stretch, rc / stretch, rz]),
+                    rng, subdivisions=2, roughness=0.3), rng.uniform(0.15, 0.3), MATERIAL["foliage"])
+        fp["tree"].append((x, y, rc))
+        return True
+
+    rng = rngs[4]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 15.0)
+        while s < total:
+            k = frame_at(s)
+            off = rng.uniform(6.0, 7.5)
+            p = xy[k] + side * left[k] * off
+            # street trees: smaller crowns that may reach over facades a little
+            add_tree(p[0], p[1], rng, crown_scale=0.75, crown_check=0.5)
+            s += rng.uniform(7.0, 22.0)
+
+    rng = rngs[5]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 30.0)
+        while s < total:
+            k = frame_at(s)
+            off = rng.uniform(5.7, 6.4)
+            p = xy[k] + side * left[k] * off
+            r, h = rng.uniform(0.08, 0.16), rng.uniform(5.0, 9.0)
+            arm = rng.uniform() < 0.5
+            pts = layout.rect_samples(p[0], p[1], 0.0, 2 * r + 0.2, 2 * r + 0.2)
+            if layout.try_place(pts, c.furniture_clearance):
+                g = float(ground(p[None])[0])
+                mb.add(cylinder(p[0], p[1], r, g - 0.3, g + h, 8), rng.uniform(0.4, 0.7), MATERIAL["pole"])
+                if arm:  # a lamp arm reaching over the road
+                    q = p - side * left[k] * 1.0
+                    yaw = np.arctan2(left[k, 1], left[k, 0])
+                    mb.add(box(q[0], q[1], yaw, 2.0, 0.15, g + h - 0.25, g + h - 0.05), 0.5, MATERIAL["pole"])
+                fp["pole"].append((p[0], p[1], r))
+            s += rng.uniform(18.0, 45.0)
+
+    rng = rngs[6]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 8.0)
+        while s < total:
+            k = frame_at(s)
+            off = rng.uniform(7.6, 10.0)
+            p = xy[k] + side * left[k] * off
+            rr = rng.uniform(0.4, 1.2, 2)
+            rz = rng.uniform(0.35, 0.9)
+            pts = layout.rect_samples(p[0], p[1], 0.0, 2 * rr.max(), 2 * rr.max(), spacing=0.4)
+            if layout.try_place(pts, c.furniture_clearance + 1.0):
+                g = float(ground(p[None])[0])
+                mb.add(blob(np.array([p[0], p[1], g + 0.6 * rz]), np.array([rr[0], rr[1], rz]), rng,
+                            subdivisions=1, roughness=0.4), rng.uniform(0.15, 0.35), MATERIAL["foliage"])
+                fp["bush"].append((p[0], p[1], rr.max()))
+            s += rng.uniform(3.0, 14.0)
+
+    # ---- parks: trees scattered in open space off the road -----------------------------------
+    rng = rngs[7]
+    n_try = int(total / 2.5)
+    for _ in range(n_try):
+        k = rng.integers(len(path))
+        side = 1.0 if rng.uniform() < 0.5 else -1.0
+        off = rng.uniform(11.0, 70.0)
+        p = xy[k] + side * left[k] * off + rng.normal(0, 5.0, 2)
+        if np.isfinite(ground.distance(p[None], upper=c.building_clearance)).any():
+            continue
+        add_tree(p[0], p[1], rng, crown_scale=rng.uniform(0.9, 1.5))
+
+    # ---- parked cars ------------------------------------------------------------------------
+    rng = rngs[8]
+    for side in (1.0, -1.0):
+        s = rng.uniform(0.0, 10.0)
+        parked = False
+        while s < total:
+            slot = rng.uniform(5.5, 8.0)
+            parked = rng.uniform() < (0.75 if parked else 0.25)
+            if parked:
+                L, W = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
+                off = rng.uniform(3.55, 3.95)
+                got = place_rect(s + slot / 2, side, off, L, W, c.car_clearance, yaw_jitter=0.06, rng=rng)
+                if got is not None:
+                    centre, yaw, pts = got
+                    g = float(ground(centre[None])[0])
+                    hb, hc = rng.uniform(0.65, 0.9), rng.uniform(0.45, 0.65)
+                    clear = rng.uniform(0.2, 0.32)
+                    colour = rng.uniform(0.2, 0.85)
+                    mb.add(box(centre[0], centre[1], yaw, L, W, g + clear, g + clear + hb), colour, MATERIAL["car"])
+                    shift = rng.uniform(-0.4, 0.1) * L / 2
+                    cc = centre + shift * np.array([np.cos(yaw), np.sin(yaw)])
+                    mb.add(box(cc[0], cc[1], yaw, rng.uniform(0.45, 0.6) * L, W - 0.15,
+                               g + clear + hb - 0.05, g + clear + hb + hc), 0.08, MATERIAL["glass"])
+                    fp["car"].append(_rect_corners(centre[0], centre[1], yaw, L, W))
+            s += slot
+
+    verts, tris, albedo, material = mb.build()
+    footprints = {k: np.asarray(v, dtype=np.float64) for k, v in fp.items()}
+    town = Town(
+        vertices=verts.astype(np.float32), triangles=tris, albedo=albedo, material=material,
+        footprints=footprints, path_xyz=path, ground=ground, seed=int(seed), config=c,
+        ground_grid={"x": xs, "y": ys, "z": grid_z},
+    )
+    town.build_seconds = time.perf_counter() - t0
+    log.info("built town (seed %d): %d triangles, %s in %.1f s", seed, len(tris),
+             ", ".join(f"{len(v)} {k}s" for k, v in footprints.items()), town.build_seconds)
+    return town

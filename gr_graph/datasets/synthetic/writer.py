@@ -1,0 +1,136 @@
+"""Export a rendered sequence in the KITTI odometry layout.
+
+::
+
+    DIR/sequences/00/velodyne/%06d.bin   float32 x, y, z, intensity (one row per point)
+    DIR/sequences/00/calib.txt           P0 and Tr lines (Tr = velodyne -> camera 0)
+    DIR/sequences/00/times.txt           one timestamp (s) per frame
+    DIR/sequences/00/synthetic.json      how it was rendered (seed, rings, source frames)
+    DIR/poses/00.txt                     ground truth in the camera-0 frame, 12 floats a row
+
+Frames ``A:B`` of the synthetic sequence are written as files ``000000 .. B-A-1`` with the
+matching rows of ``times.txt`` and ``poses/00.txt`` (the original timestamps and camera-frame
+poses, not re-based), so the folder is a self-consistent KITTI sequence; ``synthetic.json``
+records ``first_frame = A``. Every file is written atomically (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.datasets.base import velo_to_cam_poses
+from gr_graph.datasets.synthetic.path import load_kitti00_path
+
+log = logging.getLogger(__name__)
+
+
+def parse_frames(spec: str | None, length: int) -> range:
+    """Parse ``"A:B"`` (B exclusive; either side may be empty) into a range within ``length``."""
+    if spec is None or spec.strip() in ("", ":"):
+        return range(length)
+    a, sep, b = spec.partition(":")
+    if not sep:
+        raise ValueError(f"--frames must look like A:B (B exclusive), got {spec!r}")
+    try:
+        start = int(a) if a.strip() else 0
+        stop = int(b) if b.strip() else length
+    except ValueError as exc:
+        raise ValueError(f"--frames {spec!r}: A and B must be integers") from exc
+    if not 0 <= start < stop <= length:
+        raise ValueError(f"--frames {spec!r}: need 0 <= A < B <= {length}")
+    return range(start, stop)
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _fmt_rows(rows: np.ndarray) -> str:
+    return "".join(" ".join(f"{v:.12e}" for v in row) + "\n" for row in np.atleast_2d(rows))
+
+
+def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: str = "00",
+                       overwrite: bool = False, progress: bool = True) -> Path:
+    """Render ``frames`` of ``seq`` (a SyntheticSequence) into ``out`` in KITTI layout.
+
+    Parameters
+    ----------
+    seq : SyntheticSequence
+        Any LidarSequence with ``gt_poses`` works; ``seed``/``n_rings`` are recorded if present.
+    out : Path
+        Dataset root (``DIR``).
+    frames : range, optional
+        Contiguous frames to write (default: all).
+    overwrite : bool
+        Remove existing ``.bin`` files in the target velodyne folder first; without it an
+        existing, non-empty velodyne folder is an error (mixing runs gives a wrong dataset).
+
+    Returns
+    -------
+    Path
+        The sequence folder ``out/sequences/<seq_name>``.
+    """
+    from tqdm import tqdm
+
+    frames = range(len(seq)) if frames is None else frames
+    if frames.step != 1 or len(frames) == 0 or frames.start < 0 or frames.stop > len(seq):
+        raise ValueError(f"frames must be a non-empty contiguous range within 0..{len(seq)}, got {frames}")
+    if seq.gt_poses is None:
+        raise ValueError("write_kitti_layout: the sequence has no ground truth to write")
+    out = Path(out)
+    seq_dir = out / "sequences" / seq_name
+    velo = seq_dir / "velodyne"
+    velo.mkdir(parents=True, exist_ok=True)
+    (out / "poses").mkdir(parents=True, exist_ok=True)
+    existing = sorted(velo.glob("*.bin"))
+    if existing:
+        if not overwrite:
+            raise FileExistsError(f"{velo} already holds {len(existing)} .bin files; "
+                                  "pass overwrite=True (--overwrite) to replace them")
+        for f in existing:
+            f.unlink()
+
+    Tr = np.asarray(seq.T_cam_velo, dtype=np.float64)
+    P0 = load_kitti00_path().P0  # the rendering is of KITTI 00: its camera-0 projection
+    calib = f"P0: {_fmt_rows(P0.reshape(1, 12)).strip()}\nTr: {_fmt_rows(Tr[:3].reshape(1, 12)).strip()}\n"
+    _atomic_write_bytes(seq_dir / "calib.txt", calib.encode())
+    idx = np.arange(frames.start, frames.stop)
+    times = np.asarray(seq.timestamps, dtype=np.float64)[idx]
+    _atomic_write_bytes(seq_dir / "times.txt", "".join(f"{t:.12e}\n" for t in times).encode())
+    T_cam = velo_to_cam_poses(np.asarray(seq.gt_poses, dtype=np.float64)[idx], Tr)
+    _atomic_write_bytes(out / "poses" / f"{seq_name}.txt", _fmt_rows(T_cam[:, :3, :].reshape(-1, 12)).encode())
+    meta = {
+        "generator": "gr_graph.datasets.synthetic",
+        "sequence": getattr(seq, "name", type(seq).__name__),
+        "seed": getattr(seq, "seed", None),
+        "n_rings": getattr(seq, "n_rings", None),
+        "repr": repr(seq),
+        "first_frame": frames.start,
+        "n_frames": len(frames),
+        "source": "trajectory: KITTI odometry 00 ground truth (Geiger, Lenz, Urtasun, CVPR 2012; "
+                  "CC BY-NC-SA 3.0)",
+    }
+    _atomic_write_bytes(seq_dir / "synthetic.json", (json.dumps(meta, indent=2) + "\n").encode())
+
+    for k, i in enumerate(tqdm(frames, desc=f"rendering {len(frames)} frames", disable=not progress)):
+        f = seq[i]
+        arr = np.empty((len(f), 4), dtype=np.float32)
+        arr[:, :3] = f.points
+        arr[:, 3] = f.intensity
+        _atomic_write_bytes(velo / f"{k:06d}.bin", arr.tobytes())
+    log.info("wrote %d frames (%d..%d) to %s", len(frames), frames.start, frames.stop - 1, seq_dir)
+    return seq_dir

@@ -1,0 +1,457 @@
+"""Global registration evaluation: random scan pairs near each other, solved without a guess.
+
+The paper's protocol: sample ``N = 100`` scan pairs whose ground-truth translation distance
+is at most 10 m, register each pair from scratch (no initial guess), and count a pair as a
+success when the rotation error is below 10 deg and the translation error below 2 m.
+
+Solvers (both start from FPFH features of voxel-downsampled scans):
+
+- ``"kiss_matcher"``: KISS-Matcher (faster-PFH + ROBIN max-clique pruning + GNC, a
+  TEASER-class certifiable-style solver). Optional dependency ``kiss-matcher``; when it is
+  missing the solver is skipped with a log line.
+- ``"fpfh_ransac"``: open3d's FPFH + RANSAC
+  (``registration_ransac_based_on_feature_matching``), seeded and deterministic.
+
+Conventions: scans are ``(N, 3)`` points in their own sensor frame; ``poses`` are
+``T_w_sensor`` for the same frames (for KITTI: ``LidarSequence.gt_poses`` = ``T_w_velo``,
+not the camera-frame file). A pair ``(source, target)`` has the reference transform
+``T_target_source = inv(T_w_target) @ T_w_source`` (maps source points into the target
+frame), and the sampled pairs use the later frame as the source.
+
+Command line::
+
+    python -m gr_graph.global_registration --seq 00 --channels 32 --n-pairs 100 --seed 0 \\
+        --out results/global_registration
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gr_graph.trajectory import atomic_write_text, check_poses
+
+logger = logging.getLogger(__name__)
+
+MAX_ROT_DEG = 10.0
+MAX_TRANS_M = 2.0
+DEFAULT_VOXEL = 0.5
+SOLVER_NAMES = ("kiss_matcher", "fpfh_ransac")
+
+
+# ----------------------------------------------------------------------------- pairs
+
+
+def sample_pairs(
+    poses: np.ndarray,
+    n: int = 100,
+    max_distance: float = 10.0,
+    seed: int = 0,
+    min_index_gap: int = 1,
+    min_frame: int = 0,
+) -> np.ndarray:
+    """Sample scan pairs whose ground-truth positions are within ``max_distance``.
+
+    Parameters
+    ----------
+    poses : (K, 4, 4) array
+        Ground-truth poses (only the translations are used).
+    n : int
+        Number of pairs, drawn uniformly without replacement among all qualifying pairs.
+    max_distance : float
+        Largest ground-truth translation distance (metres), inclusive.
+    seed : int
+        Seed of :func:`numpy.random.default_rng`.
+    min_index_gap : int
+        Smallest ``|i - j|`` (1 allows consecutive frames).
+    min_frame : int
+        Frames below this index are never used (e.g. 14 for KITTI 00, whose ground truth
+        of frames 0-13 is an extrapolation).
+
+    Returns
+    -------
+    np.ndarray
+        ``(n, 2)`` int64 rows ``(source, target)`` with ``source > target``, sorted.
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``n`` qualifying pairs exist.
+    """
+    P = check_poses(poses, "sample_pairs poses")[:, :3, 3]
+    idx = np.arange(min_frame, len(P))
+    cand = cKDTree(P[idx]).query_pairs(r=float(max_distance), output_type="ndarray")
+    if len(cand):
+        a, b = idx[cand[:, 0]], idx[cand[:, 1]]
+        cand = np.stack([np.maximum(a, b), np.minimum(a, b)], axis=1)
+        cand = cand[(cand[:, 0] - cand[:, 1]) >= min_index_gap]
+        # cKDTree's pair order is an implementation detail: sort before drawing.
+        cand = cand[np.lexsort((cand[:, 0], cand[:, 1]))]
+    if len(cand) < n:
+        raise ValueError(
+            f"only {len(cand)} scan pairs are within {max_distance} m "
+            f"(min index gap {min_index_gap}, frames >= {min_frame}); {n} requested"
+        )
+    rng = np.random.default_rng(seed)
+    pick = np.sort(rng.choice(len(cand), size=n, replace=False))
+    return cand[pick].astype(np.int64)
+
+
+def relative_transform(poses: np.ndarray, source: int, target: int) -> np.ndarray:
+    """Reference ``T_target_source = inv(T_w_target) @ T_w_source``."""
+    return np.linalg.inv(poses[target]) @ poses[source]
+
+
+def save_pairs(path: str | os.PathLike[str], pairs: np.ndarray, meta: dict[str, Any]) -> Path:
+    """Write the pair list and its sampling parameters (seed, distance, ...) as JSON, atomically."""
+    doc = {**meta, "pairs": np.asarray(pairs, dtype=np.int64).tolist()}
+    return atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+
+
+def load_pairs(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, Any]]:
+    """Read a file written by :func:`save_pairs`: ``(pairs (n, 2), meta)``."""
+    doc = json.loads(Path(path).read_text())
+    if "pairs" not in doc:
+        raise ValueError(f"{path}: no 'pairs' entry")
+    pairs = np.asarray(doc.pop("pairs"), dtype=np.int64).reshape(-1, 2)
+    return pairs, doc
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+def rotation_error_deg(T_est: np.ndarray, T_ref: np.ndarray) -> float:
+    """Angle (deg) of ``R_est^T R_ref``."""
+    R = T_est[:3, :3].T @ T_ref[:3, :3]
+    c = 0.5 * (np.trace(R) - 1.0)
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def translation_error_m(T_est: np.ndarray, T_ref: np.ndarray) -> float:
+    """``|t_est - t_ref|`` (metres)."""
+    return float(np.linalg.norm(T_est[:3, 3] - T_ref[:3, 3]))
+
+
+def is_success(
+    T_est: np.ndarray, T_ref: np.ndarray, max_rot_deg: float = MAX_ROT_DEG, max_trans_m: float = MAX_TRANS_M
+) -> bool:
+    """Success criterion: rotation error < ``max_rot_deg`` and translation error < ``max_trans_m``."""
+    return rotation_error_deg(T_est, T_ref) < max_rot_deg and translation_error_m(T_est, T_ref) < max_trans_m
+
+
+# ----------------------------------------------------------------------------- solvers
+
+
+@dataclass(frozen=True)
+class RegistrationOutcome:
+    """One global registration: the estimate ``T_target_source`` and solver diagnostics."""
+
+    solver: str
+    T: np.ndarray
+    n_inliers: int
+    seconds: float
+
+
+def _check_cloud(points: np.ndarray, name: str) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name}: expected (N, 3) points, got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name}: contains non-finite points")
+    if len(p) < 10:
+        raise ValueError(f"{name}: only {len(p)} points")
+    return p
+
+
+def _fpfh(points: np.ndarray, voxel: float) -> tuple[Any, Any]:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+    feat = reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
+    return pc, feat
+
+
+def register_fpfh_ransac(
+    source: np.ndarray,
+    target: np.ndarray,
+    voxel: float = DEFAULT_VOXEL,
+    seed: int = 0,
+    max_iterations: int = 100_000,
+    confidence: float = 0.999,
+) -> RegistrationOutcome:
+    """Global registration with open3d FPFH features + RANSAC (deterministic for a seed).
+
+    Parameters
+    ----------
+    source, target : (N, 3) arrays
+        Points in their own frames.
+    voxel : float
+        Voxel size (m) of the downsampling; normals use radius 2.5 voxel, FPFH 5 voxel,
+        inlier distance 1.5 voxel.
+    seed : int
+        open3d random seed.
+    max_iterations, confidence : RANSAC stopping criteria.
+
+    Returns
+    -------
+    RegistrationOutcome
+        ``T`` maps source points into the target frame; ``n_inliers`` is the RANSAC
+        correspondence-set size.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    src = _check_cloud(source, "source")
+    tgt = _check_cloud(target, "target")
+    t0 = time.perf_counter()
+    a, fa = _fpfh(src, voxel)
+    b, fb = _fpfh(tgt, voxel)
+    o3d.utility.random.seed(int(seed))
+    dist = 1.5 * voxel
+    res = reg.registration_ransac_based_on_feature_matching(
+        a,
+        b,
+        fa,
+        fb,
+        True,  # mutual filter
+        dist,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+        reg.RANSACConvergenceCriteria(int(max_iterations), float(confidence)),
+    )
+    T = np.array(res.transformation, dtype=np.float64)
+    return RegistrationOutcome("fpfh_ransac", T, int(len(res.correspondence_set)), time.perf_counter() - t0)
+
+
+def kiss_matcher_available() -> bool:
+    """True when the optional ``kiss_matcher`` package can be imported."""
+    try:
+        import kiss_matcher  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def register_kiss_matcher(
+    source: np.ndarray, target: np.ndarray, voxel: float = DEFAULT_VOXEL
+) -> RegistrationOutcome:
+    """Global registration with KISS-Matcher (``pip install kiss-matcher``).
+
+    Returns
+    -------
+    RegistrationOutcome
+        ``T`` maps source points into the target frame (identity when KISS-Matcher reports
+        no valid solution); ``n_inliers`` is its final inlier count.
+
+    Raises
+    ------
+    ImportError
+        ``kiss_matcher`` is not installed.
+    """
+    try:
+        import kiss_matcher
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("KISS-Matcher is not installed: pip install kiss-matcher") from exc
+    src = _check_cloud(source, "source")
+    tgt = _check_cloud(target, "target")
+    t0 = time.perf_counter()
+    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(float(voxel)))
+    sol = matcher.estimate(src, tgt)
+    T = np.eye(4)
+    if sol.valid:
+        T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64)
+        T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).ravel()
+    else:
+        logger.debug("KISS-Matcher returned no valid solution")
+    n_in = int(matcher.get_num_final_inliers()) if sol.valid else 0
+    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0)
+
+
+def available_solvers() -> tuple[str, ...]:
+    """Names of the solvers usable here (``kiss_matcher`` only if installed)."""
+    return tuple(s for s in SOLVER_NAMES if s != "kiss_matcher" or kiss_matcher_available())
+
+
+def register(solver: str, source: np.ndarray, target: np.ndarray, voxel: float = DEFAULT_VOXEL, seed: int = 0) -> RegistrationOutcome:
+    """Dispatch to a solver by name (see :data:`SOLVER_NAMES`)."""
+    if solver == "fpfh_ransac":
+        return register_fpfh_ransac(source, target, voxel=voxel, seed=seed)
+    if solver == "kiss_matcher":
+        return register_kiss_matcher(source, target, voxel=voxel)
+    raise ValueError(f"unknown solver {solver!r}; choose from {SOLVER_NAMES}")
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+ScanSource = Callable[[int], np.ndarray] | Sequence[Any]
+
+
+def _scan(scans: ScanSource, k: int) -> np.ndarray:
+    if callable(scans):
+        return np.asarray(scans(k), dtype=np.float64)
+    item = scans[k]
+    return np.asarray(getattr(item, "points", item), dtype=np.float64)
+
+
+def evaluate_pairs(
+    scans: ScanSource,
+    poses: np.ndarray,
+    pairs: np.ndarray,
+    solvers: Sequence[str] | None = None,
+    voxel: float = DEFAULT_VOXEL,
+    seed: int = 0,
+    max_rot_deg: float = MAX_ROT_DEG,
+    max_trans_m: float = MAX_TRANS_M,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Register every pair with every solver and score it against the ground truth.
+
+    Parameters
+    ----------
+    scans : callable ``k -> (N, 3)`` or sequence of frames / arrays
+        Scan ``k`` in its own sensor frame (a :class:`LidarSequence` works directly).
+    poses : (K, 4, 4) array
+        Ground-truth ``T_w_sensor`` of the same frames.
+    pairs : (n, 2) int array
+        Rows ``(source, target)``.
+    solvers : sequence of str, optional
+        Default: :func:`available_solvers`. ``kiss_matcher`` is skipped (logged) if missing.
+    voxel, seed : solver settings.
+    max_rot_deg, max_trans_m : success thresholds.
+    progress : bool
+        Show a tqdm bar.
+
+    Returns
+    -------
+    dict
+        JSON-serialisable: ``settings``, ``summary`` (per solver: success_rate, n_success,
+        n_pairs, median errors and time) and ``pairs`` (one row per pair and solver).
+    """
+    from tqdm import tqdm
+
+    P = check_poses(poses, "evaluate_pairs poses")
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(P)):
+        raise ValueError(f"pair indices must be in [0, {len(P)}), got {pairs.min()}..{pairs.max()}")
+    wanted = list(solvers) if solvers is not None else list(available_solvers())
+    for s in wanted:
+        if s not in SOLVER_NAMES:
+            raise ValueError(f"unknown solver {s!r}; choose from {SOLVER_NAMES}")
+    if "kiss_matcher" in wanted and not kiss_matcher_available():
+        logger.warning("kiss_matcher is not installed (pip install kiss-matcher): skipping that solver")
+        wanted.remove("kiss_matcher")
+    rows: list[dict[str, Any]] = []
+    for src_i, tgt_i in tqdm(pairs.tolist(), desc="global registration", disable=not progress):
+        src, tgt = _scan(scans, src_i), _scan(scans, tgt_i)
+        T_ref = relative_transform(P, src_i, tgt_i)
+        for s in wanted:
+            out = register(s, src, tgt, voxel=voxel, seed=seed)
+            re, te = rotation_error_deg(out.T, T_ref), translation_error_m(out.T, T_ref)
+            rows.append(
+                {
+                    "solver": s,
+                    "source": src_i,
+                    "target": tgt_i,
+                    "gt_distance_m": float(np.linalg.norm(T_ref[:3, 3])),
+                    "rot_err_deg": re,
+                    "trans_err_m": te,
+                    "success": bool(re < max_rot_deg and te < max_trans_m),
+                    "n_inliers": out.n_inliers,
+                    "seconds": out.seconds,
+                    "T_est": out.T.tolist(),
+                }
+            )
+    summary: dict[str, Any] = {}
+    for s in wanted:
+        r = [x for x in rows if x["solver"] == s]
+        ok = [x["success"] for x in r]
+        summary[s] = {
+            "n_pairs": len(r),
+            "n_success": int(sum(ok)),
+            "success_rate": float(np.mean(ok)) if r else None,
+            "median_rot_err_deg": float(np.median([x["rot_err_deg"] for x in r])) if r else None,
+            "median_trans_err_m": float(np.median([x["trans_err_m"] for x in r])) if r else None,
+            "median_seconds": float(np.median([x["seconds"] for x in r])) if r else None,
+        }
+    settings = {
+        "voxel": voxel,
+        "seed": seed,
+        "max_rot_deg": max_rot_deg,
+        "max_trans_m": max_trans_m,
+        "solvers": wanted,
+    }
+    return {"settings": settings, "summary": summary, "pairs": rows}
+
+
+def write_results(path: str | os.PathLike[str], results: dict[str, Any]) -> Path:
+    """Write :func:`evaluate_pairs` output as JSON, atomically."""
+    return atomic_write_text(path, json.dumps(results, indent=1) + "\n")
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command line: sample pairs on a sequence, register them, write pairs.json and results.json."""
+    from gr_graph.datasets.registry import open_sequence
+
+    ap = argparse.ArgumentParser(prog="python -m gr_graph.global_registration", description=__doc__.split("\n")[0])
+    ap.add_argument("--seq", default="00")
+    ap.add_argument("--data-root", default=None)
+    ap.add_argument("--channels", type=int, default=64)
+    ap.add_argument("--n-pairs", type=int, default=100)
+    ap.add_argument("--max-distance", type=float, default=10.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL)
+    ap.add_argument("--min-frame", type=int, default=None, help="default 14 for seq 00 (GT of 0-13 is extrapolated)")
+    ap.add_argument("--pairs", default=None, help="reuse a pairs.json instead of sampling")
+    ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+    seq, desc = open_sequence(args.seq, args.data_root, args.channels)
+    logger.info("%s", desc)
+    if seq.gt_poses is None:
+        raise SystemExit(f"{desc}: no ground-truth poses, cannot evaluate global registration")
+    poses = np.asarray(seq.gt_poses)
+    out = Path(args.out)
+    if args.pairs:
+        pairs, meta = load_pairs(args.pairs)
+    else:
+        min_frame = args.min_frame if args.min_frame is not None else (14 if args.seq in ("00", "0") else 0)
+        pairs = sample_pairs(poses, args.n_pairs, args.max_distance, args.seed, min_frame=min_frame)
+        meta = {
+            "sequence": desc,
+            "n_pairs": args.n_pairs,
+            "max_distance_m": args.max_distance,
+            "seed": args.seed,
+            "min_frame": min_frame,
+            "convention": "rows are (source, target); T_target_source = inv(T_w_target) @ T_w_source",
+        }
+    save_pairs(out / "pairs.json", pairs, meta)
+    res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed)
+    res["settings"].update(sequence=desc, channels=args.channels, pairs_file=str(out / "pairs.json"))
+    write_results(out / "results.json", res)
+    for s, v in res["summary"].items():
+        logger.info("%s: success %d/%d (%.1f%%)", s, v["n_success"], v["n_pairs"], 100 * (v["success_rate"] or 0))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

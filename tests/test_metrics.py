@@ -1,0 +1,277 @@
+"""Trajectory metrics against evo's command-line tool and closed forms."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gr_graph.metrics import (
+    KITTI_LENGTHS,
+    InsufficientTrajectoryError,
+    ate,
+    kitti_devkit_errors,
+    kitti_devkit_segments,
+    rpe_translation,
+    trajectory_metrics,
+)
+from gr_graph.trajectory import Trajectory, read_kitti_poses, write_kitti_poses
+
+
+def drifted_copy(gt: np.ndarray, seed: int = 0) -> np.ndarray:
+    """GT with a random-walk drift on translation (world) and rotation (body)."""
+    rng = np.random.default_rng(seed)
+    K = len(gt)
+    dt = np.cumsum(rng.normal(scale=0.02, size=(K, 3)), axis=0)
+    drot = Rotation.from_rotvec(np.cumsum(rng.normal(scale=2e-4, size=(K, 3)), axis=0)).as_matrix()
+    est = gt.copy()
+    est[:, :3, :3] = gt[:, :3, :3] @ drot
+    # re-orthonormalise exactly (the 7-digit GT rotations are off by ~1e-7)
+    u, _, vt = np.linalg.svd(est[:, :3, :3])
+    est[:, :3, :3] = u @ vt
+    est[:, :3, 3] += dt
+    return est
+
+
+def run_evo_rpe(ref: Path, est: Path, out: Path, all_pairs: bool) -> dict:
+    """Run evo's own CLI (``evo_rpe``) and load the saved result."""
+    from evo.tools import file_interface
+
+    exe = shutil.which("evo_rpe")
+    cmd = [exe] if exe else [sys.executable, "-c", "import sys; from evo.cli.entry_points import rpe; sys.exit(rpe())"]
+    cmd += ["kitti", str(ref), str(est), "--delta", "300", "--delta_unit", "f",
+            "--pose_relation", "trans_part", "--save_results", str(out), "--no_warnings"]
+    if all_pairs:
+        cmd.append("--all_pairs")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    res = file_interface.load_res_file(str(out))
+    return {"stats": res.stats, "error": np.asarray(res.np_arrays["error_array"])}
+
+
+@pytest.fixture(scope="module")
+def kitti00(kitti00_gt_dir: Path) -> np.ndarray:
+    return read_kitti_poses(kitti00_gt_dir / "00.txt")
+
+
+@pytest.mark.parametrize("all_pairs", [False, True], ids=["consecutive", "all_pairs"])
+def test_rpe_matches_evo_cli_on_kitti00(tmp_path: Path, kitti00_gt_dir: Path, kitti00: np.ndarray, all_pairs: bool) -> None:
+    ref_file = kitti00_gt_dir / "00.txt"  # the official file as is
+    est_file = write_kitti_poses(tmp_path / "est.txt", drifted_copy(kitti00))
+    est = read_kitti_poses(est_file)
+    cli = run_evo_rpe(ref_file, est_file, tmp_path / "res.zip", all_pairs)
+    ours = rpe_translation(est, kitti00, delta=300, all_pairs=all_pairs)
+    assert ours.n == cli["error"].size == (4241 if all_pairs else 15)
+    for key in ("mean", "rmse", "median", "max", "min", "std"):
+        assert getattr(ours, key) == pytest.approx(cli["stats"][key], rel=0, abs=1e-9), key
+    assert ours.mean > 0.1  # the drift is visible, so the agreement is not 0 == 0
+
+
+def test_rpe_closed_form_scaled_positions() -> None:
+    """Positions scaled by (1+s) about the origin, same rotations: error = s |t_j - t_i|."""
+    rng = np.random.default_rng(5)
+    K, d, s = 700, 300, 0.03
+    ref = np.tile(np.eye(4), (K, 1, 1))
+    ref[:, :3, :3] = Rotation.from_rotvec(np.cumsum(rng.normal(scale=0.01, size=(K, 3)), axis=0)).as_matrix()
+    ref[:, :3, 3] = np.cumsum(rng.normal(size=(K, 3)), axis=0)
+    est = ref.copy()
+    est[:, :3, 3] *= 1 + s
+    pairs = [(0, 300), (300, 600)]
+    expected = np.array([s * np.linalg.norm(ref[j, :3, 3] - ref[i, :3, 3]) for i, j in pairs])
+    r = rpe_translation(est, ref, delta=d, all_pairs=False)
+    assert r.n == 2
+    assert r.mean == pytest.approx(expected.mean(), rel=1e-12)
+    assert r.rmse == pytest.approx(np.sqrt(np.mean(expected**2)), rel=1e-12)
+    exp_all = np.array([s * np.linalg.norm(ref[i + d, :3, 3] - ref[i, :3, 3]) for i in range(K - d)])
+    r_all = rpe_translation(est, ref, delta=d, all_pairs=True)
+    assert r_all.n == K - d
+    assert r_all.mean == pytest.approx(exp_all.mean(), rel=1e-12)
+    assert r_all.max == pytest.approx(exp_all.max(), rel=1e-12)
+
+
+def test_ate_rigid_and_similarity_copies() -> None:
+    rng = np.random.default_rng(6)
+    K = 400
+    ref = np.tile(np.eye(4), (K, 1, 1))
+    ref[:, :3, :3] = Rotation.from_rotvec(np.cumsum(rng.normal(scale=0.02, size=(K, 3)), axis=0)).as_matrix()
+    ref[:, :3, 3] = np.cumsum(rng.normal(size=(K, 3)), axis=0) * 5
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec([0.3, -1.0, 2.0]).as_matrix()
+    G[:3, 3] = [100.0, -40.0, 7.0]
+    est = G @ ref
+    assert ate(est, ref, align=True).rmse < 1e-9
+    assert ate(est, ref, align=False).rmse > 50
+    # constant offset without alignment: every error is |c|
+    off = ref.copy()
+    off[:, :3, 3] += [3.0, 4.0, 0.0]
+    a = ate(off, ref, align=False)
+    assert a.mean == pytest.approx(5.0, abs=1e-12) and a.max == pytest.approx(5.0, abs=1e-12)
+    # scaled copy: SE(3) alignment leaves an error, Sim(3) removes it and finds the scale
+    sim = G @ ref
+    sim[:, :3, 3] *= 0.8
+    assert ate(sim, ref, align=True).rmse > 1.0
+    a7 = ate(sim, ref, align=True, correct_scale=True)
+    assert a7.rmse < 1e-9
+    assert a7.scale == pytest.approx(1 / 0.8, rel=1e-9)
+    # inputs are not modified by the in-place evo alignment
+    np.testing.assert_array_equal(sim[:, :3, 3], (G @ ref)[:, :3, 3] * 0.8)
+
+
+# ----------------------------------------------------------------------------- KITTI devkit
+
+
+def straight_line(K: int, spacing: float = 1.0) -> np.ndarray:
+    """Camera-frame poses driving along +z, ``spacing`` metres a frame."""
+    T = np.tile(np.eye(4), (K, 1, 1))
+    T[:, 2, 3] = np.arange(K) * spacing
+    return T
+
+
+def devkit_segment_set(K: int, step: int = 10) -> list[tuple[int, float]]:
+    """(first, L) of every segment for a 1 m-spaced straight line: last = first + L + 1."""
+    return [(f, L) for f in range(0, K, step) for L in KITTI_LENGTHS if f + L + 1 <= K - 1]
+
+
+def test_kitti_devkit_constant_scale_error() -> None:
+    K, s = 1200, 0.02
+    ref = straight_line(K)
+    est = straight_line(K, 1 + s)
+    segs = devkit_segment_set(K)
+    # each segment spans L + 1 m of GT (first frame whose distance *exceeds* L), so the
+    # translation error is s (L + 1), divided by the nominal L
+    expected_t = 100 * np.mean([s * (L + 1) / L for _, L in segs])
+    t_err, r_err = kitti_devkit_errors(est, ref)
+    assert kitti_devkit_segments(est, ref).first.size == len(segs)
+    assert t_err == pytest.approx(expected_t, rel=1e-12)
+    assert t_err == pytest.approx(100 * s, rel=0.01)  # ~ s %
+    assert r_err == 0.0
+
+
+def test_kitti_devkit_constant_yaw_rate_bias() -> None:
+    """est integrates the true motion (1 m forward) plus a yaw of b rad every frame."""
+    K, b = 1200, 1e-4
+    ref = straight_line(K)
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_rotvec([0.0, b, 0.0]).as_matrix()  # yaw about camera y
+    step[2, 3] = 1.0
+    est = np.empty_like(ref)
+    est[0] = np.eye(4)
+    for k in range(1, K):
+        est[k] = est[k - 1] @ step
+    segs = devkit_segment_set(K)
+    n = np.array([L + 1 for _, L in segs])  # frames between first and last
+    Ls = np.array([L for _, L in segs])
+    # rotation error of a segment: n b
+    expected_r = np.degrees(np.mean(n * b / Ls)) * 100
+    # translation: est moved along an arc, sum_k (sin kb, 0, cos kb), GT n along z
+    z = (1 - np.exp(1j * n * b)) / (1 - np.exp(1j * b))  # sum_{k<n} e^{ikb} = cos + i sin
+    chord = np.stack([z.imag, np.zeros_like(n, dtype=float), z.real], axis=1)
+    t_seg = np.linalg.norm(chord - np.stack([0 * n, 0 * n, n], axis=1), axis=1)
+    expected_t = 100 * np.mean(t_seg / Ls)
+    t_err, r_err = kitti_devkit_errors(est, ref)
+    assert r_err == pytest.approx(expected_r, rel=1e-9)
+    assert r_err == pytest.approx(np.degrees(b) * 100, rel=0.01)  # ~ deg per metre * 100
+    assert t_err == pytest.approx(expected_t, rel=1e-7)
+
+
+def test_kitti_devkit_identity_and_real_gt(kitti00: np.ndarray) -> None:
+    t, r = kitti_devkit_errors(kitti00, kitti00)
+    assert t < 1e-12 and r < 1e-12
+    # a rigid change of the world frame does not change any relative motion
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
+    G[:3, 3] = [5, 6, 7]
+    t, r = kitti_devkit_errors(G @ kitti00, kitti00)
+    assert t < 1e-9 and r < 1e-6
+    est = drifted_copy(kitti00)
+    t, r = kitti_devkit_errors(est, kitti00)
+    assert 0.01 < t < 10 and 0.01 < r < 10
+
+
+def test_kitti_devkit_matches_kiss_icp_port(kitti00: np.ndarray) -> None:
+    """Cross-check against an independent C++ port of the devkit (KISS-ICP's, float32 output)."""
+    kiss_metrics = pytest.importorskip("kiss_icp.metrics", reason="kiss-icp (bench extra) not installed")
+    for est in (drifted_copy(kitti00), drifted_copy(kitti00, seed=1)):
+        t_ref, r_ref_deg_per_m = kiss_metrics.sequence_error(kitti00, est)
+        t, r = kitti_devkit_errors(est, kitti00)
+        assert t == pytest.approx(t_ref, rel=1e-5)
+        # KISS-ICP reports deg / m and loses ~1e-4 relative in float32 acos near 1
+        assert r == pytest.approx(100 * r_ref_deg_per_m, rel=2e-3)
+
+
+def test_kitti_devkit_too_short() -> None:
+    with pytest.raises(InsufficientTrajectoryError, match="shorter than the shortest segment"):
+        kitti_devkit_errors(straight_line(50), straight_line(50))
+
+
+# ----------------------------------------------------------------------------- bundle
+
+
+def arc(K: int, yaw_rate: float = 2e-3) -> np.ndarray:
+    """1 m a frame forward while turning at a constant yaw rate (a circle arc)."""
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_rotvec([0.0, yaw_rate, 0.0]).as_matrix()
+    step[2, 3] = 1.0
+    T = np.empty((K, 4, 4))
+    T[0] = np.eye(4)
+    for k in range(1, K):
+        T[k] = T[k - 1] @ step
+    return T
+
+
+def test_trajectory_metrics_bundle() -> None:
+    rng = np.random.default_rng(7)
+    K = 800
+    ref = arc(K)
+    est = ref.copy()
+    est[:, :3, 3] += np.cumsum(rng.normal(scale=0.01, size=(K, 3)), axis=0)
+    m = trajectory_metrics(est, Trajectory.from_poses(ref))
+    json.dumps(m)  # serialisable
+    c = rpe_translation(est, ref, 300, all_pairs=False)
+    a = rpe_translation(est, ref, 300, all_pairs=True)
+    assert m["n_frames"] == K
+    assert m["rpe300_consecutive_mean"] == c.mean and m["rpe300_consecutive_rmse"] == c.rmse
+    assert m["rpe300_consecutive_n"] == 2
+    assert m["rpe300_all_pairs_mean"] == a.mean and m["rpe300_all_pairs_rmse"] == a.rmse
+    assert m["rpe300_all_pairs_n"] == 500
+    assert m["ate_rmse"] == ate(est, ref).rmse
+    t, r = kitti_devkit_errors(est, ref)
+    assert m["kitti_t_err_percent"] == t and m["kitti_r_err_deg_per_100m"] == r
+    assert m["kitti_n_segments"] > 0
+
+
+def test_trajectory_metrics_short_and_mismatched(caplog: pytest.LogCaptureFixture) -> None:
+    ref = straight_line(60)
+    est = ref.copy()
+    est[:, 0, 3] += 0.1
+    with caplog.at_level(logging.WARNING, logger="gr_graph.metrics"):
+        m = trajectory_metrics(est, ref, delta=300)
+    assert m["rpe300_consecutive_mean"] is None and m["rpe300_all_pairs_rmse"] is None
+    assert m["kitti_t_err_percent"] is None and m["kitti_n_segments"] == 0
+    assert m["ate_rmse"] is None  # a straight line leaves the alignment undetermined
+    assert "needs at least 301 poses, got 60" in caplog.text
+    assert "shorter than 100 m" in caplog.text
+    assert "collinear" in caplog.text
+    json.dumps(m)
+    # on a curved path of the same length the ATE exists; a constant offset aligns away
+    curved = arc(60, 0.05)
+    shifted = curved.copy()
+    shifted[:, :3, 3] += [0.1, -0.2, 0.3]
+    m = trajectory_metrics(shifted, curved, delta=300)
+    assert m["ate_rmse"] == pytest.approx(0.0, abs=1e-9)
+    assert m["rpe300_consecutive_mean"] is None
+    with pytest.raises(InsufficientTrajectoryError):
+        rpe_translation(est, ref, delta=300)
+    with pytest.raises(ValueError, match="est has 59 poses but ref has 60"):
+        trajectory_metrics(est[:-1], ref)
+    with pytest.raises(ValueError, match="non-finite"):
+        bad = est.copy()
+        bad[3, 0, 3] = np.inf
+        rpe_translation(bad, ref, delta=10)
