@@ -1,0 +1,110 @@
+"""Proof that self-supervised training learns the right thing (known geometry, known noise).
+
+Scene: a 16-channel LiDAR (elevations +2..-24.8 deg, 0.5 deg azimuth steps) in a street of
+planes (ground, two walls) and vertical cylinders (poles / trunks, radius 0.3-1 m); every
+return is displaced along the true surface normal by N(0, sigma^2), sigma = 2 cm, so the
+true local covariance has its smallest eigenvector along the normal with variance sigma^2.
+The memory holds 6 scans from varied poses, 9 pairs with the true T̂ and nearest-neighbour
+correspondences (as SLAM would produce). f_theta is trained self-supervised (no normals,
+no noise level given) and evaluated on a held-out scan from a new pose.
+
+Bounds (measured values in benchmarks/results/training.md, section "What is learned"):
+* planar points: median angle(smallest eigenvector, true normal) < 5 deg, >= 75 % within
+  10 deg; median normal variance n^T C n within a factor 2 of sigma^2 (0.5 .. 2);
+* all points: the learned covariances beat PCA of the raw 16-NN neighbourhood on the same
+  points (median angle and fraction within 10 deg), PCA's collinear neighbourhoods on the
+  sparse scan lines being the paper's premise; the smallest PCA eigenvalue on the ground is
+  off by more than a factor 5 while the learned one is within a factor 2.
+Cylinders are harder (thin, few points per scan line); their numbers are reported in the
+benchmark, and only a loose bound (median < 45 deg, i.e. better than a random direction's
+~60 deg) is asserted here. Honest caveat (see the benchmark): on walls and cylinders PCA with
+k >= 10 is more accurate than the learned covariances at this training budget; the learned
+ones win overall because of the ground, where k-NN PCA fails on sparse scan lines.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from training.predict import predict_covariances
+from training.toy_scenes import make_memory, pose_xy_yaw, render_scan, street_scene
+from training.trainer import TrainConfig, Trainer
+
+torch.set_num_threads(1)
+SIGMA = 0.02
+N_AZ = 720
+
+
+def _poses(rng, xs):
+    out = []
+    for x in xs:
+        T = pose_xy_yaw(x, rng.uniform(-1, 1), 1.73 + rng.uniform(-0.15, 0.15), rng.uniform(-0.2, 0.2))
+        T[:3, :3] = T[:3, :3] @ Rotation.from_euler("xy", rng.uniform(-0.03, 0.03, 2)).as_matrix()
+        out.append(T)
+    return out
+
+
+def _angles(C, normals):
+    w, v = np.linalg.eigh(C)
+    return np.degrees(np.arccos(np.clip(np.abs((v[:, :, 0] * normals).sum(1)), 0, 1))), w
+
+
+def _pca(pts, k=16):
+    _, j = cKDTree(pts).query(pts, k=k)
+    nb = pts[j]
+    c = nb - nb.mean(1, keepdims=True)
+    return np.einsum("nki,nkj->nij", c, c) / (k - 1)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    scene = street_scene(seed=1, radius_range=(0.3, 1.0))
+    rng = np.random.default_rng(11)
+    poses = _poses(rng, [k - 3.0 for k in range(6)])
+    edges = [(k, k + 1) for k in range(5)] + [(k, k + 2) for k in range(4)]
+    mem, _ = make_memory(scene, poses, edges, seed=0, n_corr=1500, max_dist=1.0, sigma_normal=SIGMA, n_azimuth=N_AZ)
+    cfg = TrainConfig.from_dict({"epochs": 20, "lr": 3e-3, "max_corr": 1024, "progress": False, "net": {"n_points": 4096}})
+    out = tmp_path_factory.mktemp("learn")
+    path = Trainer(mem, out, cfg).fit(resume=False)
+    pts, nrm, ids = render_scan(scene, _poses(rng, [0.5])[0], np.random.default_rng(5), sigma_normal=SIGMA,
+                                n_azimuth=N_AZ, return_ids=True)
+    C = predict_covariances(path, pts, n_points=4096)
+    return {"pts": pts, "nrm": nrm, "ids": ids, "C": C, "n_planes": len(scene.planes)}
+
+
+def test_planes_normal_and_noise_level_are_learned(trained):
+    m = trained["ids"] < trained["n_planes"]
+    ang, _ = _angles(trained["C"][m], trained["nrm"][m])
+    nvar = np.einsum("ni,nij,nj->n", trained["nrm"][m], trained["C"][m], trained["nrm"][m]) / SIGMA**2
+    print(f"planes: median angle {np.median(ang):.2f} deg, within 10 deg {np.mean(ang < 10):.2f}, "
+          f"median n^T C n / sigma^2 {np.median(nvar):.2f}")
+    assert np.median(ang) < 5.0
+    assert np.mean(ang < 10.0) >= 0.75
+    assert 0.5 < np.median(nvar) < 2.0
+
+
+def test_beats_pca_on_sparse_16_channel_scan(trained):
+    pts, nrm, C = trained["pts"], trained["nrm"], trained["C"]
+    ang_net, w_net = _angles(C, nrm)
+    ang_pca, w_pca = _angles(_pca(pts, 16), nrm)
+    print(f"all points: net median {np.median(ang_net):.2f} deg ({np.mean(ang_net < 10):.2f} within 10 deg), "
+          f"PCA-16 median {np.median(ang_pca):.2f} deg ({np.mean(ang_pca < 10):.2f})")
+    assert np.median(ang_net) < np.median(ang_pca)
+    assert np.mean(ang_net < 10) > np.mean(ang_pca < 10) + 0.2
+    ground = trained["ids"] == 0
+    r_net = np.median(w_net[ground, 0]) / SIGMA**2
+    r_pca = np.median(w_pca[ground, 0]) / SIGMA**2
+    print(f"ground: median lambda_min / sigma^2: net {r_net:.2f}, PCA-16 {r_pca:.3f}")
+    assert 0.5 < r_net < 2.0
+    assert r_pca < 0.2 or r_pca > 5.0
+
+
+def test_cylinders_loose_bound(trained):
+    m = trained["ids"] >= trained["n_planes"]
+    ang, _ = _angles(trained["C"][m], trained["nrm"][m])
+    print(f"cylinders: median angle {np.median(ang):.2f} deg")
+    assert np.median(ang) < 45.0

@@ -1,0 +1,114 @@
+"""Pose layer T(C): agreement with factors.wls.solve_wls, IFT gradient vs finite differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from training.pose_layer import PoseLayerError, exact_hessian, solve_pose, wls_terms
+from training.se3_torch import exp_se3, inverse_se3, log_se3
+
+torch.set_num_threads(1)
+
+
+def _problem(M=80, seed=0, noise=0.02):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-10, 10, (M, 3))
+    A = rng.normal(size=(M, 3, 3)) * 0.05
+    C = A @ A.transpose(0, 2, 1) + 1e-4 * np.eye(3)
+    xi = np.r_[rng.normal(size=3) * 0.1, rng.normal(size=3)]
+    T = exp_se3(torch.tensor(xi)).numpy()
+    q = p @ T[:3, :3].T + T[:3, 3] + rng.normal(size=(M, 3)) * noise
+    return p, q, C, T
+
+
+def test_se3_matches_factors_and_roundtrip():
+    fse3 = pytest.importorskip("factors.se3")
+    rng = np.random.default_rng(1)
+    for scale in (1e-9, 1e-5, 0.3, 2.5):
+        xi = rng.normal(size=6) * scale
+        T = exp_se3(torch.tensor(xi)).numpy()
+        np.testing.assert_allclose(T, fse3.exp_se3(xi), atol=1e-12)
+        np.testing.assert_allclose(log_se3(torch.tensor(T)).numpy(), xi, atol=1e-11, rtol=1e-9)
+        np.testing.assert_allclose(log_se3(torch.tensor(T)).numpy(), fse3.log_se3(T), atol=1e-11)
+
+
+def test_agrees_with_factors_solve_wls():
+    wls = pytest.importorskip("factors.wls")
+    for seed in range(3):
+        p, q, C, _ = _problem(seed=seed)
+        ref = wls.solve_wls(p, q, C)
+        res = solve_pose(torch.tensor(p), torch.tensor(q), torch.tensor(C), tol=1e-12)
+        np.testing.assert_allclose(res.T.detach().numpy(), ref.T, atol=1e-8)
+        np.testing.assert_allclose(res.H.detach().numpy(), ref.hessian, rtol=1e-8)
+
+
+def test_exact_hessian_matches_autograd():
+    p, q, C, T = _problem(M=30, seed=3, noise=0.3)
+    pt, qt = torch.tensor(p), torch.tensor(q)
+    Lam = torch.linalg.inv(2 * torch.tensor(C))
+    T0 = torch.tensor(T)
+
+    def f(xi):
+        return wls_terms(T0 @ exp_se3(xi), pt, qt, Lam)[0]
+
+    H_auto = torch.autograd.functional.hessian(f, torch.zeros(6, dtype=torch.float64))
+    _, _, H_gn, d = wls_terms(T0, pt, qt, Lam)
+    H_ex = exact_hessian(T0, pt, d, Lam, H_gn)
+    np.testing.assert_allclose(H_ex.numpy(), H_auto.numpy(), rtol=1e-9, atol=1e-9 * H_auto.abs().max().item())
+    assert (H_ex - H_gn).abs().max() > 1e-6 * H_gn.abs().max()  # the residual term matters here
+
+
+def test_ift_gradient_matches_finite_differences_of_whole_solve():
+    p, q, C, T = _problem(M=40, seed=5, noise=0.05)
+    rng = np.random.default_rng(7)
+    pt, qt = torch.tensor(p), torch.tensor(q)
+    L0 = np.linalg.cholesky(C)
+    wts = torch.tensor(rng.normal(size=6))
+    Tref = torch.tensor(T)
+
+    def phi(Lflat: torch.Tensor) -> torch.Tensor:
+        Lm = Lflat.reshape(-1, 3, 3).tril()
+        Cm = Lm @ Lm.transpose(-1, -2)
+        res = solve_pose(pt, qt, Cm, T0=Tref, tol=1e-14, max_iterations=100)
+        mu = log_se3(inverse_se3(Tref) @ res.T)
+        return (wts * mu).sum() * 1e3 + res.H.trace() * 1e-3
+
+    x = torch.tensor(L0.reshape(-1), requires_grad=True)
+    val = phi(x)
+    (grad,) = torch.autograd.grad(val, x)
+    idx = [i for i in range(x.numel()) if (i % 9) in (0, 3, 4, 6, 7, 8)]  # lower-triangular entries
+    sel = rng.choice(idx, 25, replace=False)
+    h = 1e-6
+    for i in sel:
+        e = torch.zeros_like(x)
+        e[i] = h
+        with torch.no_grad():
+            fd = (phi(x.detach() + e) - phi(x.detach() - e)) / (2 * h)
+        assert abs(grad[i].item() - fd.item()) <= 1e-5 * max(1.0, abs(fd.item())), (i, grad[i].item(), fd.item())
+
+
+def test_gauss_newton_step_derivative_is_only_approximate():
+    """The exact-Hessian step is needed: the GN-Hessian step's derivative differs with big residuals."""
+    p, q, C, T = _problem(M=40, seed=9, noise=0.5)
+    pt, qt = torch.tensor(p), torch.tensor(q)
+    Ct = torch.tensor(C, requires_grad=True)
+    g1 = torch.autograd.grad(log_se3(solve_pose(pt, qt, Ct).T).sum(), Ct)[0]
+    g2 = torch.autograd.grad(log_se3(solve_pose(pt, qt, Ct, exact_hessian_step=False).T).sum(), Ct)[0]
+    assert (g1 - g2).abs().max() > 1e-4 * g1.abs().max()
+
+
+def test_degenerate_geometry_raises():
+    rng = np.random.default_rng(0)
+    p = np.zeros((50, 3))
+    p[:, 0] = rng.uniform(-5, 5, 50)  # all points on a line: rotation about it unobservable
+    C = np.tile(np.eye(3) * 1e-2, (50, 1, 1))
+    with pytest.raises(PoseLayerError, match="degenerate"):
+        solve_pose(torch.tensor(p), torch.tensor(p), torch.tensor(C))
+    with pytest.raises(PoseLayerError, match="at least 3"):
+        solve_pose(torch.zeros(2, 3), torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3))
+    Cbad = torch.tensor(C).clone()
+    Cbad[3, 0, 0] = float("nan")
+    with pytest.raises(PoseLayerError, match="non-finite"):
+        solve_pose(torch.tensor(p), torch.tensor(p), Cbad)

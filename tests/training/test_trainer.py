@@ -1,0 +1,263 @@
+"""Trainer (Algorithm 1): learning signal, exact resume, CLI / library entry, robustness."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gr_graph.memory import Memory, load_memory
+from training.dataset import PairDataset, SkipSample
+from training.network import NetConfig
+from training.predict import predict_covariances
+from training.toy_scenes import make_memory, pose_xy_yaw, street_scene
+from training.train import main as train_main
+from training.train import train_from_memory
+from training.trainer import TrainConfig, Trainer, TrainingError, load_model
+
+torch.set_num_threads(1)
+REPO = Path(__file__).resolve().parents[2]
+SMALL_NET = {"n_points": 512, "k0": 8, "k1": 8, "k2": 8, "c0": 16, "c1": 32, "c2": 32}
+
+
+def _memory(n_scans=4, seed=0, extra_edges=()):
+    scene = street_scene(seed=1)
+    poses = [pose_xy_yaw(1.0 * k, 0.2 * np.sin(k), 1.73, 0.02 * k) for k in range(n_scans)]
+    edges = [(k, k + 1) for k in range(n_scans - 1)] + list(extra_edges)
+    mem, normals = make_memory(scene, poses, edges, seed=seed, n_corr=600, n_azimuth=360)
+    return mem
+
+
+@pytest.fixture(scope="module")
+def memory_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("mem") / "memory"
+    _memory(extra_edges=[(0, 2), (1, 3)]).save(d)
+    return d
+
+
+def _cfg(**kw):
+    base = dict(epochs=2, lr=3e-3, max_corr=300, seed=3, checkpoint_every=2, progress=False, net=SMALL_NET)
+    base.update(kw)
+    return TrainConfig.from_dict(base)
+
+
+def _log(out):
+    return [json.loads(line) for line in (Path(out) / "train_log.jsonl").read_text().splitlines()]
+
+
+def test_dataset_sample_is_consistent_and_deterministic(memory_dir):
+    mem = load_memory(memory_dir)
+    ds = PairDataset(mem, NetConfig(**SMALL_NET), max_corr=300, seed=0)
+    s = ds.sample(1, epoch=0)
+    e = mem.edge(1)
+    Q = np.asarray(mem.scan(e.l))
+    assert len(s.q_points) == 512 and len(s.p_corr) <= 300
+    # the network input row of every correspondence holds exactly its target point
+    np.testing.assert_array_equal(s.q_points[s.q_index].astype(np.float64), s.q_corr)
+    assert np.isin(s.q_corr, Q).all()
+    s2 = ds.sample(1, epoch=0)
+    np.testing.assert_array_equal(s.q_points, s2.q_points)
+    assert not np.array_equal(ds.sample(1, epoch=1).q_points, s.q_points)
+
+
+def test_losses_decrease_on_short_run(memory_dir, tmp_path):
+    cfg = _cfg(epochs=6)
+    Trainer(load_memory(memory_dir), tmp_path, cfg).fit(resume=False)
+    recs = _log(tmp_path)
+    first = np.mean([r["corr"] for r in recs if r["epoch"] == 0])
+    last = np.mean([r["corr"] for r in recs if r["epoch"] == 5])
+    assert last < first - 1.0, (first, last)  # nats per correspondence
+    pf = np.mean([r["pose"] for r in recs if r["epoch"] == 0])
+    pl = np.mean([r["pose"] for r in recs if r["epoch"] == 5])
+    assert pl < pf, (pf, pl)
+    assert all(r.get("skipped") is None for r in recs)
+
+
+def test_resume_after_kill_equals_uninterrupted_run(memory_dir, tmp_path):
+    mem = load_memory(memory_dir)
+    cfg = _cfg(epochs=2)
+    ref_path = Trainer(mem, tmp_path / "a", cfg).fit(resume=False)
+
+    class Kill(Exception):
+        pass
+
+    n = {"steps": 0}
+
+    def killer(rec):
+        n["steps"] += 1
+        if n["steps"] == 7:  # mid epoch 2 (5 pairs per epoch), checkpoint at step 2 of epoch 2
+            raise Kill()
+
+    with pytest.raises(Kill):
+        Trainer(mem, tmp_path / "b", cfg).fit(resume=False, callback=killer)
+    ck = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    assert (ck["epoch"], ck["step"]) == (1, 2)
+    path = Trainer(mem, tmp_path / "b", cfg).fit(resume=True)
+    a = torch.load(ref_path, weights_only=False)["model_state"]
+    b = torch.load(path, weights_only=False)["model_state"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    la, lb = _log(tmp_path / "a"), _log(tmp_path / "b")
+    assert [(r["epoch"], r["step"], r["edge"]) for r in la] == [(r["epoch"], r["step"], r["edge"]) for r in lb]
+    assert [r["loss"] for r in la] == [r["loss"] for r in lb]
+    # a different configuration must not silently resume
+    with pytest.raises(TrainingError, match="different configuration"):
+        Trainer(mem, tmp_path / "b", _cfg(epochs=3, lr=1e-2)).fit(resume=True)
+
+
+def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
+    cfg = {"epochs": 1, "progress": False, "max_corr": 200, "net": SMALL_NET}
+    path = train_from_memory(memory_dir, tmp_path / "lib", cfg)
+    assert path.name == "model.pt" and path.is_file()
+    summary = json.loads((tmp_path / "lib" / "summary.json").read_text())
+    assert summary["epochs_done"] == 1 and summary["dataset"]["n_edges"] == 5
+    pts = np.asarray(load_memory(memory_dir).scan(0))[:1500]
+    C = predict_covariances(path, pts)
+    assert C.shape == (1500, 3, 3) and np.all(np.linalg.eigvalsh(C) > 0)
+    np.testing.assert_array_equal(C, predict_covariances(load_model(path), pts))  # deterministic
+    # CLI (in-process and as a module)
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(json.dumps({"max_corr": 200, "net": SMALL_NET}))
+    assert train_main(["--memory", str(memory_dir), "--epochs", "1", "--out", str(tmp_path / "cli"), "--config", str(cfg_file), "--no-progress"]) == 0
+    a = torch.load(path, weights_only=False)["model_state"]
+    b = torch.load(tmp_path / "cli" / "model.pt", weights_only=False)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in a)  # same seed, same config -> same weights
+    r = subprocess.run([sys.executable, "-m", "training.train", "--memory", str(tmp_path / "missing")],
+                       cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 2 and "no meta.json" in r.stderr
+
+
+def test_bad_config_is_rejected():
+    with pytest.raises(TrainingError, match="unknown training config keys"):
+        TrainConfig.from_dict({"epochz": 1})
+    with pytest.raises(TrainingError, match="corr_reduction"):
+        TrainConfig.from_dict({"corr_reduction": "median"})
+
+
+def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
+    mem = _memory(n_scans=3)
+    # edge 2: no correspondences; edge 3: correspondences on 20 collinear-ish points only
+    scans = [np.asarray(mem.scan(k)) for k in range(3)]
+    line = np.zeros((40, 3), np.float32)
+    line[:, 0] = np.linspace(1, 20, 40)
+    scans.append(line)
+    scans.append(line.copy())
+    edges = [tuple(map(int, mem.edges[e])) for e in range(mem.n_edges)] + [(0, 2), (3, 4)]
+    corr = [mem.edge(e).corr for e in range(mem.n_edges)] + [np.zeros((0, 2), np.int32), np.stack([np.arange(40)] * 2, 1)]
+    m2 = Memory.from_scans(scans, np.stack([np.eye(4)] * 5), edges, [0] * 4, [mem.edge_T[0], mem.edge_T[1], np.eye(4), np.eye(4)],
+                           [np.eye(6)] * 4, corr)
+    tr = Trainer(m2, tmp_path, _cfg(epochs=1, net={**SMALL_NET, "n_points": 256}))
+    with pytest.raises(SkipSample):
+        tr.dataset.sample(2)
+    tr.fit(resume=False)
+    assert tr.skip_counts["empty_pair"] == 1 and tr.skip_counts["degenerate_H"] == 1
+    assert all(torch.isfinite(p).all() for p in tr.model.parameters())
+    recs = _log(tmp_path)
+    assert sorted(r.get("skipped") or "" for r in recs) == ["", "", "degenerate_H", "empty_pair"]
+    # too many bad pairs abort with a clear error
+    with pytest.raises(TrainingError, match="skipped"):
+        Trainer(m2, tmp_path / "x", _cfg(epochs=1, max_skip_fraction=0.2, net={**SMALL_NET, "n_points": 256})).fit(resume=False)
+
+
+def test_nonfinite_network_output_and_gradient_never_reach_the_weights(memory_dir, tmp_path):
+    mem = load_memory(memory_dir)
+    tr = Trainer(mem, tmp_path, _cfg(epochs=1, checkpoint_every=100))
+    before = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    real_forward = tr.model.forward
+    calls = {"n": 0}
+
+    def bad_forward(points, nb):
+        calls["n"] += 1
+        L, C = real_forward(points, nb)
+        if calls["n"] in (1, 2):
+            C = C.clone()
+            C[5, 0, 0] = float("nan")
+        return L, C
+
+    tr.model.forward = bad_forward
+    hooks = []
+    # a NaN gradient in step 3: the update must not be applied
+    state = {"step": 0}
+
+    def hook(grad):
+        return grad * float("nan") if state["step"] == 2 else grad
+
+    hooks.append(tr.model.head.weight.register_hook(hook))
+
+    def cb(rec):
+        state["step"] += 1
+        if state["step"] == 2:  # the two poisoned steps must not have moved any weight
+            for k, v in tr.model.state_dict().items():
+                assert torch.equal(v, before[k]), k
+
+    tr.fit(resume=False, callback=cb)
+    assert tr.skip_counts["nonfinite_output"] == 2
+    assert tr.skip_counts["nonfinite_grad"] == 1
+    assert all(torch.isfinite(v).all() for v in tr.model.state_dict().values())
+    assert any(not torch.equal(v, before[k]) for k, v in tr.model.state_dict().items())  # later steps trained
+
+
+def test_trains_from_a_memory_written_by_gr_graph_slam(kitti_root, tmp_path):
+    """Integration: gr_graph.slam on real KITTI frames (16 channels) -> memory -> trainer."""
+    config = pytest.importorskip("gr_graph.config")
+    r = subprocess.run([sys.executable, "-m", "gr_graph.slam", "--data-root", str(kitti_root), "--frames", "0:6",
+                        "--channels", "16", "--out", str(tmp_path / "slam"), "--quiet", "--no-loops"],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    mem_dir = tmp_path / "slam" / "round_0" / "memory"
+    mem = load_memory(mem_dir)
+    assert mem.n_edges >= 5
+    # the pipeline passes its pydantic `training` section: unknown keys (rounds, ...) are ignored
+    section = config.SlamConfig().training
+    cfg = TrainConfig.from_dict(section, strict=False)
+    cfg.epochs, cfg.progress, cfg.max_corr = 1, False, 300
+    cfg.net = NetConfig(**SMALL_NET)
+    path = train_from_memory(mem_dir, tmp_path / "train", cfg)
+    summary = json.loads((tmp_path / "train" / "summary.json").read_text())
+    assert summary["skip_counts"] == {} and summary["epochs_done"] == 1
+    recs = _log(tmp_path / "train")
+    assert len(recs) == mem.n_edges and all(np.isfinite(r["loss"]) for r in recs)
+    C = predict_covariances(path, np.asarray(mem.scan(0)))
+    assert C.shape == (len(mem.scan(0)), 3, 3) and np.linalg.eigvalsh(C).min() > 0
+
+
+def test_sigkill_mid_epoch_then_resume_equals_uninterrupted_cli_run(memory_dir, tmp_path):
+    """A real kill (SIGKILL) of ``python -m training.train``; rerunning the command resumes."""
+    import os
+    import signal
+    import time
+
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(json.dumps({"max_corr": 200, "checkpoint_every": 1, "net": SMALL_NET}))
+    base = [sys.executable, "-m", "training.train", "--memory", str(memory_dir), "--epochs", "12", "--seed", "4",
+            "--config", str(cfg_file), "--threads", "1", "--no-progress"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    ref = subprocess.run(base + ["--out", str(tmp_path / "ref")], cwd=REPO, capture_output=True, text=True, env=env)
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(base + ["--out", str(out)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    ck = out / "checkpoint.pt"
+    t0 = time.time()
+    while time.time() - t0 < 120:
+        if ck.exists():
+            st = torch.load(ck, weights_only=False)
+            if st["epoch"] >= 2 and st["step"] >= 2:
+                break
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (out / "model.pt").exists(), "the run finished before it could be killed"
+    st = torch.load(ck, weights_only=False)
+    assert st["epoch"] < 12
+    again = subprocess.run(base + ["--out", str(out)], cwd=REPO, capture_output=True, text=True, env=env)
+    assert again.returncode == 0, again.stderr[-2000:]
+    a = torch.load(tmp_path / "ref" / "model.pt", weights_only=False)["model_state"]
+    b = torch.load(out / "model.pt", weights_only=False)["model_state"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert [r["loss"] for r in _log(tmp_path / "ref")] == [r["loss"] for r in _log(out)]

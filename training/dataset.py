@@ -1,0 +1,145 @@
+"""Training samples from the edges (odometry and loop pairs) of a memory.
+
+For edge ``e = (k, l)``: ``P = S_k`` (source), ``Q = S_l`` (target, the scan whose covariances
+the network predicts), ``T̂_kl`` and correspondences ``(i, j)``. A sample holds
+
+* ``q_points`` ``(n, 3)`` float32: the network input, a subsample of ``Q`` of at most
+  ``n_points`` points that contains every correspondence target used (those first), filled
+  up with random other points of ``Q``;
+* ``nb``: the precomputed neighbourhoods of ``q_points`` (:mod:`training.neighbors`);
+* ``p_corr``, ``q_corr`` ``(m, 3)`` float64 and ``q_index`` ``(m,)``: the correspondences used
+  (at most ``max_corr``) and the row of ``q_points`` holding each target point;
+* ``T_hat`` ``(4, 4)`` float64.
+
+Sampling is deterministic: sample ``(epoch, e)`` uses ``np.random.default_rng([seed, epoch, e])``,
+so it does not depend on what was drawn before (needed for exact resume).
+
+Augmentation (``augment_yaw``): the target frame is rotated about the LiDAR z axis by a random
+angle ``a`` (``q -> R_z(a) q``, ``T̂ -> R_z(a) T̂``). Residuals rotate with it and the pose
+discrepancy ``Log(T(C)^-1 T̂)`` is unchanged, so the losses are the same functions of the
+geometry; the network cannot lean on the absolute heading of walls seen in training and must
+read surface orientation from the local geometry (a yaw-rotated scan is an equally valid
+LiDAR scan, as the sensor may face anywhere; gravity / the z axis is kept).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gr_graph.memory import Memory
+from training.network import NetConfig
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SkipSample", "PairSample", "PairDataset"]
+
+
+class SkipSample(Exception):
+    """This pair cannot be used (empty, too few correspondences, non-finite data); ``reason`` says why."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass
+class PairSample:
+    """One training pair, ready for the network and the losses (see module docstring)."""
+
+    edge: int
+    k: int
+    l: int
+    kind: int
+    q_points: np.ndarray
+    nb: dict[str, np.ndarray]
+    p_corr: np.ndarray
+    q_corr: np.ndarray
+    q_index: np.ndarray
+    T_hat: np.ndarray
+
+
+class PairDataset:
+    """All edges of a memory as training pairs.
+
+    Parameters
+    ----------
+    memory : Memory
+        Loaded memory (``gr_graph.memory.load_memory``).
+    net_config : NetConfig
+        Gives ``n_points`` and the neighbourhood sizes.
+    max_corr : int
+        Correspondences used per pair at most (random subset above that).
+    min_corr : int
+        Pairs with fewer correspondences are skipped (``SkipSample("empty_pair")``).
+    seed : int
+        Base seed of the deterministic sampling.
+    augment_yaw : bool
+        Rotate every sample's target frame by a random yaw (see module docstring).
+    """
+
+    def __init__(self, memory: Memory, net_config: NetConfig, max_corr: int = 1024, min_corr: int = 16, seed: int = 0,
+                 augment_yaw: bool = False):
+        self.memory = memory
+        self.net_config = net_config
+        self.max_corr = int(max_corr)
+        self.min_corr = max(3, int(min_corr))
+        self.seed = int(seed)
+        self.augment_yaw = bool(augment_yaw)
+
+    def __len__(self) -> int:
+        return self.memory.n_edges
+
+    def sample(self, e: int, epoch: int = 0) -> PairSample:
+        """Build the sample of edge ``e`` for ``epoch`` (raises :class:`SkipSample`)."""
+        mem = self.memory
+        edge = mem.edge(int(e))
+        rng = np.random.default_rng([self.seed, int(epoch), int(e)])
+        corr = np.asarray(edge.corr, np.int64)
+        if len(corr) < self.min_corr:
+            raise SkipSample("empty_pair", f"edge {e} ({edge.k}, {edge.l}): {len(corr)} correspondences < {self.min_corr}")
+        P = np.asarray(mem.scan(edge.k))
+        Q = np.asarray(mem.scan(edge.l))
+        n_points = self.net_config.n_points
+        if len(corr) > self.max_corr:
+            corr = corr[np.sort(rng.choice(len(corr), self.max_corr, replace=False))]
+        uj = np.unique(corr[:, 1])
+        if len(uj) > n_points:  # keep only correspondences whose target fits into the input
+            keep_j = np.sort(rng.choice(uj, n_points, replace=False))
+            corr = corr[np.isin(corr[:, 1], keep_j)]
+            uj = keep_j
+        n_fill = min(n_points, len(Q)) - len(uj)
+        if n_fill > 0:
+            mask = np.ones(len(Q), bool)
+            mask[uj] = False
+            others = np.flatnonzero(mask)
+            fill = np.sort(rng.choice(others, n_fill, replace=False))
+            sub = np.concatenate([uj, fill])
+        else:
+            sub = uj
+        q_points = np.ascontiguousarray(Q[sub], dtype=np.float32)
+        q_index = np.searchsorted(uj, corr[:, 1])
+        p_corr = P[corr[:, 0]].astype(np.float64)
+        q_corr = Q[corr[:, 1]].astype(np.float64)
+        if not (np.isfinite(q_points).all() and np.isfinite(p_corr).all()):
+            raise SkipSample("nonfinite_input", f"edge {e}: non-finite points")
+        nb = self.net_config.neighborhoods(q_points, start=int(rng.integers(2**31))).as_dict()
+        T_hat = np.array(edge.T, np.float64)
+        if self.augment_yaw:
+            a = rng.uniform(0.0, 2 * np.pi)
+            Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+            q_points = np.ascontiguousarray((q_points.astype(np.float64) @ Rz.T).astype(np.float32))
+            q_corr = q_corr @ Rz.T
+            T_hat[:3] = Rz @ T_hat[:3]
+        return PairSample(
+            edge=int(e), k=edge.k, l=edge.l, kind=edge.kind, q_points=q_points, nb=nb,
+            p_corr=p_corr, q_corr=q_corr, q_index=q_index.astype(np.int64), T_hat=T_hat,
+        )
+
+    def describe(self) -> dict[str, Any]:
+        """Counts for logs."""
+        kinds = np.asarray(self.memory.edge_kind)
+        return {"n_edges": len(self), "n_odometry": int((kinds == 0).sum()), "n_loop": int((kinds == 1).sum())}

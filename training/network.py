@@ -1,0 +1,249 @@
+"""The covariance network f_theta: PointNet++-style, per-point Cholesky factor -> C = L L^T + eps I.
+
+Architecture (all neighbour indices precomputed by :mod:`training.neighbors`)::
+
+    SA0  every point:     max_k MLP([x_j - x_i] / r), moments(x_j - x_i)    -> f0 (N, c0 + 7)
+    SA1  N/4 centroids:   max_k MLP([x_j - c] / r, f0_j), moments(x_j - c)  -> f1 (N1, c1 + 7)
+    SA2  N1/4 centroids:  max_k MLP([x_j - c] / r, f1_j)  over level 1      -> f2 (N2, c2)
+    FP2  level 1:         MLP(interp3(f2), f1)                              -> g1 (N1, c1)
+    FP1  input points:    MLP(interp3(g1), f0, z / 2, range / 20)           -> g0 (N, c0)
+    head (two variants, ``NetConfig.head``):
+
+``"geometric"`` (default): a learned, weighted scatter of the point's neighbours, reshaped::
+
+    S_i = sum_j w_ij o_ij o_ij^T / sum_j w_ij,   o_ij = x_j - x_i,
+          j over the k0 nearest input points and the kw nearest level-1 centroids,
+          w_ij = sigmoid(MLP(g0_i, f_j, o_ij))                   (attention-like weights)
+    C_i  = alpha_i kappa_i S_i (S_i + kappa_i I)^-1 + gamma_i^2 I + eps I
+
+with ``alpha, kappa, gamma > 0`` per point from ``Linear(g0)``. ``C``'s eigenvectors are those of
+``S`` (the map ``lambda -> alpha kappa lambda / (lambda + kappa)`` is increasing), so surface
+orientation comes from the measured geometry and the network learns *which* neighbours
+belong to the point's surface (the wide neighbours span several scan lines, which fixes the
+collinear k-NN neighbourhoods of sparse scans) and how to turn their spread into the
+residual covariance (``alpha`` ~ scale, ``kappa`` (m^2) saturates the tangential variance,
+``gamma`` is an isotropic floor). At initialisation all ``w = 1/2``: a PCA-like start.
+``L`` is returned as the Cholesky factor of ``C - eps I`` (positive diagonal).
+
+``"cholesky"``: ``Linear(g0)`` -> 3 log-diagonal + 3 off-diagonal entries,
+``L = [[e^a, 0, 0], [b, e^c, 0], [d, e, e^f]] * cov_scale`` (positive diagonal, log-parametrised
+and clamped so it cannot overflow).
+
+In both cases ``C = L L^T + eps I`` (m^2, LiDAR frame of the input).
+Distances are divided by ``r = 1 m``. ``moments`` are the group's second moments of the
+offsets, normalised by their trace (6 numbers: the shape of the neighbourhood, as PCA sees it),
+and the log of the trace (its size); they give the MLPs the neighbourhood's second-order
+shape directly, which max-pooling alone learns only slowly. The network runs in float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from training.neighbors import Neighborhoods, build_neighborhoods
+
+__all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov"]
+
+
+@dataclass
+class NetConfig:
+    """Hyper-parameters of :class:`CovarianceNet` and of its input sampling.
+
+    Attributes
+    ----------
+    n_points : int
+        Points per network input (scans are subsampled / split to this size).
+    k0, k1, k2 : int
+        Group sizes of the three set-abstraction levels.
+    ratio1, ratio2 : int
+        Centroid down-sampling ratios of levels 1 and 2.
+    c0, c1, c2 : int
+        Feature widths of the levels.
+    cov_scale : float
+        Scale (m) of the Cholesky factor at zero network output: initial C ~ cov_scale^2 I.
+    eps : float
+        The paper's epsilon (m^2) added to the diagonal of C.
+    sampling : str
+        Centroid sampling of the set-abstraction levels: ``"random"`` or ``"fps"``.
+    head : str
+        ``"geometric"`` or ``"cholesky"`` (see the module docstring).
+    kw : int
+        Wide neighbours (level-1 centroids) per point used by the geometric head.
+    """
+
+    n_points: int = 2048
+    k0: int = 16
+    ratio1: int = 4
+    k1: int = 16
+    ratio2: int = 4
+    k2: int = 16
+    c0: int = 32
+    c1: int = 64
+    c2: int = 128
+    cov_scale: float = 0.1
+    eps: float = 1e-6
+    sampling: str = "random"
+    head: str = "geometric"
+    kw: int = 16
+
+    def neighborhoods(self, points: np.ndarray, start: int = 0) -> Neighborhoods:
+        """Neighbour indices of ``points`` for this configuration (``start`` seeds the sampling)."""
+        return build_neighborhoods(points, self.k0, self.ratio1, self.k1, self.ratio2, self.k2, start, self.sampling, self.kw)
+
+    def to_dict(self) -> dict:
+        """Plain dict (stored in checkpoints)."""
+        return asdict(self)
+
+
+def _mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2 or last_act:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+def neighborhoods_to_torch(nb: Neighborhoods | dict, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Convert precomputed neighbourhoods to torch tensors on ``device``."""
+    d = nb.as_dict() if isinstance(nb, Neighborhoods) else nb
+    return {k: torch.as_tensor(np.asarray(v)).to(device) for k, v in d.items()}
+
+
+def _moments(rel: torch.Tensor) -> torch.Tensor:
+    """``(M, k, 3)`` offsets -> ``(M, 7)``: trace-normalised second moments (6) and log trace."""
+    S = (rel[..., :, None] * rel[..., None, :]).mean(-3)
+    tr = S[..., 0, 0] + S[..., 1, 1] + S[..., 2, 2] + 1e-6
+    iu = (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 1, 2, 1, 2, 2]))
+    return torch.cat([S[..., iu[0], iu[1]] / tr[..., None], torch.log(tr)[..., None] / 5.0], -1)
+
+
+def _inv3(S: torch.Tensor) -> torch.Tensor:
+    """Batch 3x3 inverse by the adjugate (well conditioned here: ``S + kappa I``)."""
+    a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
+    d, e, f = S[..., 1, 0], S[..., 1, 1], S[..., 1, 2]
+    g, h, i = S[..., 2, 0], S[..., 2, 1], S[..., 2, 2]
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    adj = torch.stack(
+        [
+            torch.stack([A, -(b * i - c * h), b * f - c * e], -1),
+            torch.stack([B, a * i - c * g, -(a * f - c * d)], -1),
+            torch.stack([C, -(a * h - b * g), a * e - b * d], -1),
+        ],
+        -2,
+    )
+    return adj / det[..., None, None]
+
+
+def cholesky_to_cov(raw: torch.Tensor, cov_scale: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map raw head outputs ``(N, 6)`` to ``(L, C)``, each ``(N, 3, 3)``."""
+    a = torch.clamp(raw[:, :3], -12.0, 6.0)
+    diag = torch.exp(a)
+    n = raw.shape[0]
+    L = raw.new_zeros(n, 3, 3)
+    L[:, 0, 0] = diag[:, 0]
+    L[:, 1, 1] = diag[:, 1]
+    L[:, 2, 2] = diag[:, 2]
+    L[:, 1, 0] = raw[:, 3]
+    L[:, 2, 0] = raw[:, 4]
+    L[:, 2, 1] = raw[:, 5]
+    L = L * cov_scale
+    C = L @ L.transpose(-1, -2) + eps * torch.eye(3, dtype=raw.dtype, device=raw.device)
+    return L, C
+
+
+class _GroupMLP(nn.Module):
+    """MLP on ``[offset, neighbour feature]`` of grouped points, first layer split for speed.
+
+    ``Linear([o, f_j]) = W_o o + W_f f_j + b``: ``W_f f`` is computed once per source point and
+    then gathered, instead of on every (duplicated) group member; identical to the plain MLP.
+    """
+
+    def __init__(self, n_off: int, n_feat: int, sizes: list[int]):
+        super().__init__()
+        self.off = nn.Linear(n_off, sizes[0])
+        self.feat = nn.Linear(n_feat, sizes[0], bias=False)
+        self.rest = _mlp(sizes) if len(sizes) > 1 else None  # single layer: linear output
+
+    def forward(self, off: torch.Tensor, feat_src: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        h = self.off(off) + self.feat(feat_src)[idx]
+        return h if self.rest is None else self.rest(torch.relu(h))
+
+
+class CovarianceNet(nn.Module):
+    """f_theta: points (N, 3) + precomputed neighbourhoods -> per-point (L, C)."""
+
+    def __init__(self, config: NetConfig | None = None):
+        super().__init__()
+        self.config = config or NetConfig()
+        c = self.config
+        c0 = c.c0
+        self.sa0 = _mlp([3, c0, c0])
+        self.sa1 = _GroupMLP(3, c0 + 7, [c.c1, c.c1])
+        self.sa2 = _GroupMLP(3, c.c1 + 7, [c.c2, c.c2])
+        self.fp2 = _mlp([c.c2 + c.c1 + 7, c.c1, c.c1])
+        self.fp1 = _mlp([c.c1 + c0 + 7 + 2, c0 * 2, c0 * 2])
+        if c.head not in ("geometric", "cholesky"):
+            raise ValueError(f"NetConfig.head must be 'geometric' or 'cholesky', got {c.head!r}")
+        self.head = nn.Linear(c0 * 2, 3 if c.head == "geometric" else 6)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+        if c.head == "geometric":
+            h = 32
+            self.att_i = nn.Linear(c0 * 2, h)
+            self.att_local = _GroupMLP(4, c0 + 7, [h])
+            self.att_wide = _GroupMLP(4, c.c1, [h])
+            self.att_out = nn.Linear(h, 1)
+            nn.init.zeros_(self.att_out.weight)
+            nn.init.zeros_(self.att_out.bias)
+
+    def forward(self, points: torch.Tensor, nb: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predict ``(L, C)``, each ``(N, 3, 3)`` float32, for ``points`` ``(N, 3)``."""
+        x = points.to(torch.float32)
+        # SA0: local shape of every point
+        rel0 = x[nb["knn0"]] - x[:, None, :]
+        f0 = torch.cat([self.sa0(rel0).amax(1), _moments(rel0)], -1)
+        # SA1
+        x1 = x[nb["idx1"]]
+        rel1 = x[nb["knn1"]] - x1[:, None, :]
+        f1 = torch.cat([self.sa1(rel1, f0, nb["knn1"]).amax(1), _moments(rel1)], -1)
+        # SA2
+        x2 = x1[nb["idx2"]]
+        rel2 = x1[nb["knn2"]] - x2[:, None, :]
+        f2 = self.sa2(rel2, f1, nb["knn2"]).amax(1)
+        # FP2: level 2 -> level 1
+        i21 = (f2[nb["up21"]] * nb["w21"][..., None]).sum(1)
+        g1 = self.fp2(torch.cat([i21, f1], -1))
+        # FP1: level 1 -> points
+        i10 = (g1[nb["up10"]] * nb["w10"][..., None]).sum(1)
+        glob = torch.stack([x[:, 2] / 2.0, torch.linalg.norm(x, dim=1) / 20.0], -1)
+        g0 = self.fp1(torch.cat([i10, f0, glob], -1))
+        raw = self.head(g0)
+        if self.config.head == "cholesky":
+            return cholesky_to_cov(raw, self.config.cov_scale, self.config.eps)
+        # geometric head: attention-weighted neighbour scatter, eigenvalues reshaped
+        xw = x1[nb["knnw"]] - x[:, None, :]  # (N, kw, 3) wide offsets
+        ol = torch.cat([rel0, torch.linalg.norm(rel0, dim=-1, keepdim=True)], -1)
+        ow = torch.cat([xw, torch.linalg.norm(xw, dim=-1, keepdim=True)], -1)
+        hi = self.att_i(g0)[:, None, :]
+        hl = self.att_local(ol, f0, nb["knn0"])
+        hw = self.att_wide(ow, g1, nb["knnw"])
+        w = torch.sigmoid(self.att_out(torch.relu(hi + torch.cat([hl, hw], 1))))  # (N, k0 + kw, 1)
+        o = torch.cat([rel0, xw], 1)
+        S = (w[..., None] * o[..., :, None] * o[..., None, :]).sum(1) / w.sum(1)[..., None]
+        cs2 = self.config.cov_scale**2
+        a = torch.clamp(raw, -12.0, 8.0)
+        alpha = 0.5 * torch.exp(a[:, 0])
+        kappa = cs2 * torch.exp(a[:, 1])
+        gamma2 = (0.03 * self.config.cov_scale) ** 2 * torch.exp(2 * a[:, 2])
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        Sk = S + kappa[:, None, None] * eye
+        M = (alpha * kappa)[:, None, None] * (S @ _inv3(Sk)) + gamma2[:, None, None] * eye
+        M = 0.5 * (M + M.transpose(-1, -2))
+        L, _ = torch.linalg.cholesky_ex(M)
+        return L, M + self.config.eps * eye

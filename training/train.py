@@ -1,0 +1,110 @@
+"""Command line and library entry point of the trainer (Algorithm 1).
+
+CLI::
+
+    python -m training.train --memory DIR [--epochs N] [--out DIR] [--device cpu|cuda] [--seed S]
+                             [--config cfg.yaml] [--no-resume]
+
+Library (used by ``gr_graph.slam`` between reciprocal rounds)::
+
+    from training.train import train_from_memory
+    model_path = train_from_memory(memory_dir, out_dir, {"epochs": 2})
+
+An existing ``out_dir/checkpoint.pt`` written with the same configuration is resumed, so an
+interrupted run is continued by simply running the same command again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from gr_graph.memory import load_memory
+from training.trainer import TrainConfig, Trainer
+
+log = logging.getLogger(__name__)
+
+__all__ = ["train_from_memory", "main"]
+
+
+def train_from_memory(
+    memory_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    config: TrainConfig | dict[str, Any] | None = None,
+    resume: bool = True,
+) -> Path:
+    """Train f_theta on the memory in ``memory_dir``; return the path of the final ``model.pt``.
+
+    Parameters
+    ----------
+    memory_dir : path
+        A memory written by ``gr_graph.memory.Memory.save`` (e.g. by ``gr_graph.slam``).
+    out_dir : path
+        Output folder: ``model.pt`` (load with ``training.trainer.load_model`` or pass it to
+        ``training.predict.predict_covariances``), ``checkpoint.pt``, ``train_log.jsonl``,
+        ``summary.json``.
+    config : TrainConfig, dict or pydantic model, optional
+        Training hyper-parameters (keys as :class:`training.trainer.TrainConfig`, with
+        ``"net"`` a dict of :class:`training.network.NetConfig`); keys the trainer does not
+        know (e.g. ``rounds``) are logged and ignored. Use ``init_checkpoint`` to continue
+        from the previous round's ``model.pt``.
+    resume : bool
+        Continue from ``out_dir/checkpoint.pt`` if it exists (same configuration required).
+
+    Raises
+    ------
+    gr_graph.memory.MemoryFormatError
+        If the memory cannot be read.
+    training.trainer.TrainingError
+        On a bad configuration, an incompatible checkpoint or too many unusable pairs.
+    """
+    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config, strict=False)
+    memory = load_memory(memory_dir)
+    log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
+    return Trainer(memory, out_dir, cfg).fit(resume=resume)
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--memory", required=True, help="memory directory (written by gr_graph.slam)")
+    ap.add_argument("--out", default=None, help="output directory (default: <memory>/../training)")
+    ap.add_argument("--epochs", type=int, default=None, help="epochs (default from config, 1)")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default=None)
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--config", default=None, help="YAML/JSON file with TrainConfig keys")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
+    ap.add_argument("--no-progress", action="store_true")
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry; returns the exit code."""
+    args = _parse(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cfg: dict[str, Any] = {}
+    if args.config:
+        import yaml
+
+        cfg = yaml.safe_load(Path(args.config).read_text()) or {}
+    for key, val in (("epochs", args.epochs), ("device", args.device), ("seed", args.seed), ("num_threads", args.threads)):
+        if val is not None:
+            cfg[key] = val
+    if args.no_progress:
+        cfg["progress"] = False
+    out = Path(args.out) if args.out else Path(args.memory).resolve().parent / "training"
+    try:
+        path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)
+    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

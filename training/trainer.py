@@ -1,0 +1,486 @@
+"""Algorithm 1 of the paper: self-supervised training of f_theta from a memory.
+
+For each epoch the memory's edges are visited in a seeded random order; every pair gives
+``lambda_corr * L_corr + lambda_pose * L_pose`` (:mod:`training.losses`) and Adam takes a step
+every ``pairs_per_step`` pairs (the paper: every pair). Robustness:
+
+* a pair with too few correspondences, non-finite input, non-finite network output, a
+  degenerate WLS Hessian or a failing loss is *skipped and counted* (``skipped`` in the log,
+  ``skip_counts`` in the checkpoint and summary); more than ``max_skip_fraction`` skipped pairs
+  in an epoch raises :class:`TrainingError`;
+* a step whose (averaged) gradient is non-finite is not applied (counted as
+  ``nonfinite_grad``), so the weights never receive a NaN; gradients are norm-clipped.
+
+Outputs in ``out_dir``: ``checkpoint.pt`` (latest state, written atomically every
+``checkpoint_every`` steps and at each epoch end; resuming from it reproduces the
+uninterrupted run exactly), ``train_log.jsonl`` (one JSON line per pair), ``model.pt`` (the
+final network: weights + NetConfig) and ``summary.json``.
+
+Data parallel: with ``world_size > 1`` (see :mod:`training.ddp`) the network is wrapped in
+``torch.nn.parallel.DistributedDataParallel``; step ``s`` of an epoch uses the pairs
+``perm[s*B*W : (s+1)*B*W]``, rank ``r`` taking ``B`` of them, and DDP averages the gradients,
+so one step equals a single-process step with ``pairs_per_step = B*W``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from gr_graph.memory import Memory
+from training.dataset import PairDataset, PairSample, SkipSample
+from training.losses import LossError, corr_nll, default_gamma, pose_nll
+from training.network import CovarianceNet, NetConfig, neighborhoods_to_torch
+from training.pose_layer import PoseLayerError, solve_pose
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TrainConfig", "TrainingError", "Trainer", "save_atomic", "load_model"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+MODEL_NAME = "model.pt"
+LOG_NAME = "train_log.jsonl"
+
+
+class TrainingError(RuntimeError):
+    """Training cannot proceed (bad config, incompatible checkpoint, too many skipped pairs)."""
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of Algorithm 1 (the paper's Omega) and of the training run.
+
+    Attributes
+    ----------
+    epochs : int
+        Passes over all edges (the paper's I).
+    lr : float
+        Adam learning rate (the paper's eta).
+    lambda_corr, lambda_pose : float
+        Weights of the correspondence and pose NLLs.
+    gamma_rot_std : float
+        Std (rad) of the pose observation noise: Gamma's rotation block is ``gamma_rot_std^2`` (rad^2).
+    gamma_trans_std : float
+        Std (m): Gamma's translation block is ``gamma_trans_std^2`` (m^2).
+    corr_reduction : str
+        ``"mean"`` (default) or ``"sum"`` (paper) over the correspondences of a pair.
+    max_corr, min_corr : int
+        Correspondences per pair used at most / needed at least (else the pair is skipped).
+    pairs_per_step : int
+        Pairs whose losses are averaged per Adam step (per process).
+    augment_yaw : bool
+        Random yaw rotation of each sample's target frame (``training.dataset``).
+    seed : int
+        Seeds the initial weights and all sampling.
+    checkpoint_every : int
+        Steps between checkpoints (also written at every epoch end).
+    grad_clip : float
+        Max gradient norm (0 disables).
+    device : str
+        ``"cpu"`` or ``"cuda"``.
+    num_threads : int or None
+        ``torch.set_num_threads`` for the run (None leaves it alone).
+    max_skip_fraction : float
+        Abort if more than this fraction of an epoch's pairs is skipped.
+    progress : bool
+        Show a tqdm bar with running losses.
+    net : NetConfig
+        Network / input sampling configuration.
+    init_checkpoint : str or None
+        Start from the weights of this ``model.pt``/``checkpoint.pt`` (e.g. the previous round).
+    """
+
+    epochs: int = 1
+    lr: float = 1e-3
+    lambda_corr: float = 1.0
+    lambda_pose: float = 1.0
+    gamma_rot_std: float = 2e-3
+    gamma_trans_std: float = 2e-2
+    corr_reduction: str = "mean"
+    max_corr: int = 1024
+    min_corr: int = 16
+    pairs_per_step: int = 1
+    augment_yaw: bool = True
+    seed: int = 0
+    checkpoint_every: int = 50
+    grad_clip: float = 10.0
+    device: str = "cpu"
+    num_threads: int | None = None
+    max_skip_fraction: float = 0.5
+    progress: bool = True
+    net: NetConfig = field(default_factory=NetConfig)
+    init_checkpoint: str | None = None
+
+    @classmethod
+    def from_dict(cls, d: Any = None, strict: bool = True) -> "TrainConfig":
+        """Build from a (possibly partial) dict or pydantic model.
+
+        Unknown keys raise :class:`TrainingError` if ``strict``, else they are logged and
+        ignored (for a config section shared with other parts, e.g. ``gr_graph``'s
+        ``training`` section that also holds ``rounds``).
+        """
+        if d is not None and hasattr(d, "model_dump"):
+            d = d.model_dump()
+        d = dict(d or {})
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown and strict:
+            raise TrainingError(f"unknown training config keys: {sorted(unknown)}")
+        if unknown:
+            log.info("training config: ignoring keys not used by the trainer: %s", sorted(unknown))
+            d = {k: v for k, v in d.items() if k in names}
+        net = d.pop("net", None)
+        if isinstance(net, dict):
+            bad = set(net) - {f.name for f in fields(NetConfig)}
+            if bad:
+                raise TrainingError(f"unknown network config keys: {sorted(bad)}")
+            net = NetConfig(**net)
+        cfg = cls(**d, **({"net": net} if net is not None else {}))
+        cfg.validate()
+        return cfg
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-serialisable dict."""
+        return asdict(self)
+
+    def validate(self) -> None:
+        """Raise :class:`TrainingError` on out-of-range values."""
+        if self.epochs < 0 or self.pairs_per_step < 1 or self.checkpoint_every < 1:
+            raise TrainingError("epochs must be >= 0, pairs_per_step and checkpoint_every >= 1")
+        if self.lr <= 0 or self.lambda_corr < 0 or self.lambda_pose < 0 or self.lambda_corr + self.lambda_pose == 0:
+            raise TrainingError("lr must be > 0 and lambda_corr, lambda_pose >= 0, not both 0")
+        if self.gamma_rot_std <= 0 or self.gamma_trans_std <= 0:
+            raise TrainingError("gamma_rot_std and gamma_trans_std must be > 0")
+        if self.corr_reduction not in ("mean", "sum"):
+            raise TrainingError(f"corr_reduction must be 'mean' or 'sum', got {self.corr_reduction!r}")
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise TrainingError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+
+    def resume_key(self) -> dict[str, Any]:
+        """Settings that must match for a checkpoint to be resumed."""
+        d = self.to_dict()
+        for k in ("epochs", "progress", "device", "num_threads", "checkpoint_every", "max_skip_fraction"):
+            d.pop(k)
+        return d
+
+
+def save_atomic(obj: Any, path: Path) -> None:
+    """``torch.save`` to a temporary sibling, fsync, then ``os.replace`` into ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        torch.save(obj, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str = "cpu") -> CovarianceNet:
+    """A :class:`CovarianceNet` from a ``model.pt`` / ``checkpoint.pt`` path (or pass-through)."""
+    if isinstance(checkpoint, CovarianceNet):
+        return checkpoint
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise FileNotFoundError(f"no model checkpoint at {path}")
+    state = torch.load(path, map_location=device, weights_only=False)
+    if "model_state" not in state or "net_config" not in state:
+        raise TrainingError(f"{path}: not a training checkpoint (missing model_state / net_config)")
+    model = CovarianceNet(NetConfig(**state["net_config"]))
+    model.load_state_dict(state["model_state"])
+    return model.to(device)
+
+
+class Trainer:
+    """Runs Algorithm 1 over a memory; see the module docstring.
+
+    Parameters
+    ----------
+    memory : Memory
+        The memory to train from.
+    out_dir : path
+        Where checkpoints, the log and the final model go.
+    config : TrainConfig
+    rank, world_size : int
+        Process rank and count for data-parallel runs (a process group must exist).
+    """
+
+    def __init__(self, memory: Memory, out_dir: str | os.PathLike[str], config: TrainConfig, rank: int = 0, world_size: int = 1):
+        config.validate()
+        self.memory = memory
+        self.out_dir = Path(out_dir)
+        self.config = config
+        self.rank = rank
+        self.world_size = world_size
+        if config.device.startswith("cuda") and not torch.cuda.is_available():
+            raise TrainingError("device 'cuda' requested but torch.cuda.is_available() is False")
+        self.device = torch.device(config.device)
+        self.dataset = PairDataset(memory, config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
+        torch.manual_seed(config.seed)
+        self.model = CovarianceNet(config.net).to(self.device)
+        if config.init_checkpoint:
+            init = load_model(config.init_checkpoint, str(self.device))
+            if init.config.to_dict() != config.net.to_dict():
+                raise TrainingError(f"init_checkpoint {config.init_checkpoint}: network config differs from config.net")
+            self.model.load_state_dict(init.state_dict())
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        self.gamma = default_gamma(config.gamma_rot_std, config.gamma_trans_std).to(self.device)
+        self.ddp_model: torch.nn.Module = self.model
+        if world_size > 1:
+            from torch.nn.parallel import DistributedDataParallel
+
+            self.ddp_model = DistributedDataParallel(self.model)
+        self.epoch = 0
+        self.step = 0
+        self.skip_counts: Counter[str] = Counter()
+        self._dummy: tuple[torch.Tensor, dict[str, torch.Tensor]] | None = None
+
+    # ------------------------------------------------------------------ losses of one pair
+    def forward(self, sample: PairSample) -> torch.Tensor:
+        """Network covariances ``(n, 3, 3)`` float32 of the sample's input points."""
+        pts = torch.as_tensor(sample.q_points, device=self.device)
+        nb = neighborhoods_to_torch(sample.nb, self.device)
+        _, C = self.ddp_model(pts, nb)
+        return C
+
+    def pair_loss(self, sample: PairSample, C: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """``lambda_corr * L_corr + lambda_pose * L_pose`` of one pair given the network output.
+
+        Raises :class:`SkipSample` for non-finite outputs, degenerate Hessians or loss failures.
+        """
+        cfg = self.config
+        if not bool(torch.isfinite(C).all()):
+            raise SkipSample("nonfinite_output", f"edge {sample.edge}: non-finite network output")
+        Cq = C.to(torch.float64)[torch.as_tensor(sample.q_index, device=self.device)]
+        p = torch.as_tensor(sample.p_corr, device=self.device)
+        q = torch.as_tensor(sample.q_corr, device=self.device)
+        T_hat = torch.as_tensor(sample.T_hat, device=self.device)
+        d = q - p @ T_hat[:3, :3].T - T_hat[:3, 3]
+        info: dict[str, float] = {}
+        try:
+            loss = torch.zeros((), dtype=torch.float64, device=self.device)
+            if cfg.lambda_corr > 0:
+                lc = corr_nll(Cq, d, cfg.corr_reduction)
+                loss = loss + cfg.lambda_corr * lc
+                info["corr"] = float(lc.detach())
+            if cfg.lambda_pose > 0:
+                res = solve_pose(p, q, Cq, T0=T_hat)
+                lp = pose_nll(res.T, T_hat, res.H, self.gamma)
+                loss = loss + cfg.lambda_pose * lp
+                info["pose"] = float(lp.detach())
+        except PoseLayerError as exc:
+            raise SkipSample("degenerate_H", f"edge {sample.edge}: {exc}") from exc
+        except LossError as exc:
+            raise SkipSample("loss_error", f"edge {sample.edge}: {exc}") from exc
+        if not bool(torch.isfinite(loss)):
+            raise SkipSample("nonfinite_loss", f"edge {sample.edge}: non-finite loss")
+        info["loss"] = float(loss.detach())
+        return loss, info
+
+    def _dummy_output(self) -> torch.Tensor:
+        if self._dummy is None:
+            g = np.random.default_rng(0)
+            pts = g.normal(size=(32, 3)).astype(np.float32)
+            self._dummy = (torch.as_tensor(pts, device=self.device), neighborhoods_to_torch(self.config.net.neighborhoods(pts), self.device))
+        return self.ddp_model(*self._dummy)[1]
+
+    # ------------------------------------------------------------------ checkpoints
+    def state(self) -> dict[str, Any]:
+        """Everything needed to resume exactly."""
+        return {
+            "model_state": self.model.state_dict(),
+            "optimizer_state": self.optimizer.state_dict(),
+            "net_config": self.config.net.to_dict(),
+            "train_config": self.config.to_dict(),
+            "resume_key": self.config.resume_key(),
+            "epoch": self.epoch,
+            "step": self.step,
+            "world_size": self.world_size,
+            "skip_counts": dict(self.skip_counts),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def save_checkpoint(self) -> Path:
+        """Write ``checkpoint.pt`` atomically (rank 0 only); returns its path."""
+        path = self.out_dir / CHECKPOINT_NAME
+        if self.rank == 0:
+            save_atomic(self.state(), path)
+        return path
+
+    def try_resume(self) -> bool:
+        """Load ``checkpoint.pt`` if present; True if resumed. Incompatible ones raise."""
+        path = self.out_dir / CHECKPOINT_NAME
+        if not path.is_file():
+            return False
+        st = torch.load(path, map_location=self.device, weights_only=False)
+        if st.get("resume_key") != self.config.resume_key() or st.get("world_size") != self.world_size:
+            raise TrainingError(
+                f"{path}: checkpoint was written with a different configuration or world size; "
+                "use another --out directory or delete the checkpoint"
+            )
+        self.model.load_state_dict(st["model_state"])
+        self.optimizer.load_state_dict(st["optimizer_state"])
+        self.epoch, self.step = int(st["epoch"]), int(st["step"])
+        self.skip_counts = Counter(st["skip_counts"])
+        torch.set_rng_state(st["torch_rng"])
+        log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
+        self._truncate_log()
+        return True
+
+    def _log_path(self) -> Path:
+        return self.out_dir / (LOG_NAME if self.rank == 0 else f"train_log.rank{self.rank}.jsonl")
+
+    def _truncate_log(self) -> None:
+        """Drop log lines of steps after the checkpoint (they are redone)."""
+        path = self._log_path()
+        if not path.is_file():
+            return
+        keep = []
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if (rec.get("epoch", 0), rec.get("step", 0)) < (self.epoch, self.step):
+                keep.append(line)
+        _write_text_atomic(path, "".join(k + "\n" for k in keep))
+
+    # ------------------------------------------------------------------ main loop
+    def steps_per_epoch(self) -> int:
+        """Adam steps per epoch."""
+        return math.ceil(len(self.dataset) / (self.config.pairs_per_step * self.world_size))
+
+    def epoch_order(self, epoch: int) -> np.ndarray:
+        """The seeded visiting order of the edges in ``epoch``."""
+        return np.random.default_rng([self.config.seed, epoch, 7919]).permutation(len(self.dataset))
+
+    def fit(self, resume: bool = True, callback: Callable[[dict[str, Any]], None] | None = None) -> Path:
+        """Train for ``config.epochs`` epochs (continuing a checkpoint if ``resume``).
+
+        ``callback(record)`` is called after every step (rank 0 and others) with the step's
+        record; an exception raised there interrupts training like a kill would (the last
+        checkpoint stays valid). Returns the path of ``model.pt``.
+        """
+        cfg = self.config
+        if cfg.num_threads:
+            torch.set_num_threads(cfg.num_threads)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        if len(self.dataset) == 0:
+            raise TrainingError("the memory has no edges to train on")
+        if resume:
+            self.try_resume()
+        elif (self.out_dir / CHECKPOINT_NAME).exists() and self.rank == 0:
+            (self.out_dir / CHECKPOINT_NAME).unlink()
+            self._log_path().unlink(missing_ok=True)
+        B, W = cfg.pairs_per_step, self.world_size
+        n_steps = self.steps_per_epoch()
+        from tqdm.auto import tqdm
+
+        logfh = open(self._log_path(), "a")
+        try:
+            while self.epoch < cfg.epochs:
+                order = self.epoch_order(self.epoch)
+                run: dict[str, list[float]] = {"loss": [], "corr": [], "pose": []}
+                n_skipped = 0
+                bar = tqdm(total=n_steps, initial=self.step, desc=f"epoch {self.epoch + 1}/{cfg.epochs}",
+                           disable=not cfg.progress or self.rank != 0, leave=False)
+                while self.step < n_steps:
+                    chunk = order[self.step * B * W : (self.step + 1) * B * W]
+                    mine = list(chunk[self.rank * B : (self.rank + 1) * B])
+                    mine += [-1] * (B - len(mine))  # this rank has no pair left: dummy pass
+                    t0 = time.perf_counter()
+                    self.optimizer.zero_grad(set_to_none=False)
+                    records = []
+                    for b, e in enumerate(mine):
+                        sync = b == B - 1
+                        ctx = self.ddp_model.no_sync() if (W > 1 and not sync) else contextlib.nullcontext()
+                        rec: dict[str, Any] = {"epoch": self.epoch, "step": self.step, "edge": int(e), "rank": self.rank}
+                        with ctx:
+                            C = None
+                            try:
+                                if e < 0:
+                                    raise SkipSample("no_pair", "no pair for this rank")
+                                sample = self.dataset.sample(int(e), self.epoch)
+                                C = self.forward(sample)
+                                loss, info = self.pair_loss(sample, C)
+                                rec.update(info)
+                                (loss / B).backward()
+                            except SkipSample as exc:
+                                if exc.reason != "no_pair":
+                                    self.skip_counts[exc.reason] += 1
+                                    n_skipped += 1
+                                    log.warning("skipping pair: %s", exc)
+                                rec["skipped"] = exc.reason
+                                out = C if C is not None else self._dummy_output()
+                                (out.nan_to_num(0.0) * 0.0).sum().backward()
+                        records.append(rec)
+                    grads_ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.model.parameters())
+                    has_grad = any(p.grad is not None and bool((p.grad != 0).any()) for p in self.model.parameters())
+                    if grads_ok and not has_grad:
+                        grads_ok = False  # every pair of the step was skipped: no Adam step (keeps its moments)
+                    elif grads_ok:
+                        if cfg.grad_clip > 0:
+                            torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                        self.optimizer.step()
+                    else:
+                        self.skip_counts["nonfinite_grad"] += 1
+                        log.warning("step %d: non-finite gradient, update not applied", self.step)
+                    dt = time.perf_counter() - t0
+                    for rec in records:
+                        rec["time_s"] = dt / B
+                        rec["applied"] = grads_ok
+                        logfh.write(json.dumps(rec) + "\n")
+                        for k in run:
+                            if k in rec:
+                                run[k].append(rec[k])
+                    logfh.flush()
+                    self.step += 1
+                    bar.update(1)
+                    bar.set_postfix({k: f"{np.mean(v[-50:]):.3f}" for k, v in run.items() if v})
+                    if self.step % cfg.checkpoint_every == 0 and self.step < n_steps:
+                        self.save_checkpoint()
+                    if callback is not None:
+                        callback(records[-1])
+                bar.close()
+                n_pairs = max(1, min(len(self.dataset), n_steps * B * W) // W)
+                if n_skipped > cfg.max_skip_fraction * n_pairs:
+                    raise TrainingError(
+                        f"epoch {self.epoch}: {n_skipped} of ~{n_pairs} pairs skipped ({dict(self.skip_counts)})"
+                    )
+                log.info("epoch %d done: %s", self.epoch, {k: float(np.mean(v)) for k, v in run.items() if v})
+                self.epoch += 1
+                self.step = 0
+                self.save_checkpoint()
+        finally:
+            logfh.close()
+        return self._finish()
+
+    def _finish(self) -> Path:
+        path = self.out_dir / MODEL_NAME
+        if self.rank == 0:
+            save_atomic(
+                {"model_state": self.model.state_dict(), "net_config": self.config.net.to_dict(),
+                 "train_config": self.config.to_dict(), "epochs_done": self.epoch},
+                path,
+            )
+            summary = {"epochs_done": self.epoch, "skip_counts": dict(self.skip_counts),
+                       "dataset": self.dataset.describe(), "config": self.config.to_dict(),
+                       "model": str(path)}
+            _write_text_atomic(self.out_dir / "summary.json", json.dumps(summary, indent=2))
+        return path
