@@ -1,0 +1,291 @@
+"""Loop closures: candidates (proximity on the estimate, Scan Context), geometric verification.
+
+Candidates for the query scan i are older scans j (i − j ≥ ``min_frame_gap``):
+
+- *proximity*: the nearest scan within ``radius`` on the current (loop-corrected) estimate,
+  with the estimate's relative pose as initial guess;
+- *Scan Context* (Kim & Kim, IROS 2018): a polar max-height descriptor (rings × sectors),
+  a rotation-invariant ring key to shortlist, and the column-shift distance to rescore; the
+  best shift gives an initial yaw. It finds revisits when drift is too large for proximity.
+
+A candidate enters the graph only after verification: GICP from the guess with a coarse
+then a fine correspondence distance; accepted when the fraction of source points within
+``max_correspondence_distance`` of the target is ≥ ``min_inlier_ratio``, the inlier RMSE is
+≤ ``max_rmse`` and (proximity) the correction to the guess is ≤ ``max_correction``.
+The edge is (i, j): source P = S_i, target Q = S_j, T̂_ij maps scan i into the frame of j.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import small_gicp
+
+from gr_graph.config import GraphConfig, LoopConfig
+from gr_graph.odometry import RegistrationEdge, scaled_information
+from gr_graph.preprocess import Scan
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------- descriptor
+
+
+def scan_context(points: np.ndarray, n_rings: int = 20, n_sectors: int = 60, max_radius: float = 80.0,
+                 z_offset: float = 2.0) -> np.ndarray:
+    """Scan Context descriptor: max of (z + ``z_offset``) per polar bin, ``(n_rings, n_sectors)``.
+
+    Sector 0 starts at azimuth −π; empty bins are 0.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    desc = np.zeros((n_rings, n_sectors), dtype=np.float64)
+    if len(p) == 0:
+        return desc
+    r = np.hypot(p[:, 0], p[:, 1])
+    keep = r < max_radius
+    p, r = p[keep], r[keep]
+    ring = np.minimum((r / max_radius * n_rings).astype(np.int64), n_rings - 1)
+    az = np.arctan2(p[:, 1], p[:, 0])
+    sector = np.minimum(((az + np.pi) / (2 * np.pi) * n_sectors).astype(np.int64), n_sectors - 1)
+    h = np.maximum(p[:, 2] + z_offset, 0.0)
+    np.maximum.at(desc, (ring, sector), h)
+    return desc
+
+
+def ring_key(desc: np.ndarray) -> np.ndarray:
+    """Rotation-invariant key: the fraction of occupied sectors per ring."""
+    return (desc > 0).mean(axis=1)
+
+
+def scan_context_distance(query: np.ndarray, candidate: np.ndarray) -> tuple[float, int]:
+    """Column-shift cosine distance between two descriptors and the best shift.
+
+    Returns ``(distance in [0, 1], shift)`` where ``np.roll(query, shift, axis=1)`` best
+    matches ``candidate``: the query scan is rotated by ``shift · 2π / n_sectors`` (yaw)
+    relative to the candidate.
+    """
+    n_s = query.shape[1]
+    shifts = np.stack([np.roll(query, s, axis=1) for s in range(n_s)])  # (S, R, N)
+    num = np.einsum("srn,rn->sn", shifts, candidate)
+    nq = np.linalg.norm(shifts, axis=1)
+    nc = np.linalg.norm(candidate, axis=0)[None, :]
+    valid = (nq > 0) & (nc > 0)
+    cos = np.where(valid, num / np.where(valid, nq * nc, 1.0), 0.0)
+    cnt = valid.sum(axis=1)
+    sim = np.where(cnt > 0, cos.sum(axis=1) / np.maximum(cnt, 1), 0.0)
+    s = int(np.argmax(sim))
+    return float(1.0 - sim[s]), s
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    """4x4 rotation about z."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    return T
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+@dataclass
+class LoopCandidate:
+    """A candidate pair: query i (source) and old scan j (target), with an initial guess T_ji."""
+
+    query: int
+    match: int
+    guess: np.ndarray
+    source: str  # "proximity" or "scan_context"
+    score: float  # distance [m] or descriptor distance
+
+
+class ScanContextDatabase:
+    """Descriptors and ring keys of the scans seen so far."""
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        self.cfg = cfg
+        self.descs: list[np.ndarray] = []
+        self.keys: list[np.ndarray] = []
+
+    def add(self, points: np.ndarray) -> None:
+        d = scan_context(points, self.cfg.sc_rings, self.cfg.sc_sectors, self.cfg.sc_max_radius)
+        self.descs.append(d)
+        self.keys.append(ring_key(d))
+
+    def query(self, i: int) -> LoopCandidate | None:
+        """Best Scan Context candidate for scan ``i`` among scans ≤ i − min_frame_gap."""
+        last = i - self.cfg.min_frame_gap
+        if last < 0:
+            return None
+        keys = np.asarray(self.keys[: last + 1])
+        dk = np.linalg.norm(keys - self.keys[i][None, :], axis=1)
+        order = np.argsort(dk)[: self.cfg.sc_num_candidates]
+        best: tuple[float, int, int] | None = None
+        for j in order:
+            d, s = scan_context_distance(self.descs[i], self.descs[j])
+            if best is None or d < best[0]:
+                best = (d, int(j), s)
+        if best is None or best[0] > self.cfg.sc_threshold:
+            return None
+        d, j, s = best
+        yaw = s * 2 * np.pi / self.cfg.sc_sectors
+        return LoopCandidate(i, j, yaw_matrix(yaw), "scan_context", d)
+
+
+def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig) -> LoopCandidate | None:
+    """Nearest older scan within ``radius`` of scan ``i`` on the estimate ``poses`` (K, 4, 4)."""
+    last = i - cfg.min_frame_gap
+    if last < 0:
+        return None
+    d = np.linalg.norm(poses[: last + 1, :3, 3] - poses[i, :3, 3][None, :], axis=1)
+    j = int(np.argmin(d))
+    if d[j] > cfg.radius:
+        return None
+    guess = np.linalg.inv(poses[j]) @ poses[i]
+    return LoopCandidate(i, j, guess, "proximity", float(d[j]))
+
+
+# ----------------------------------------------------------------------------- verification
+
+
+def verify_loop(
+    source: Scan, target: Scan, cand: LoopCandidate, cfg: LoopConfig, graph_cfg: GraphConfig, num_threads: int = 1
+) -> RegistrationEdge:
+    """Register ``source`` (scan i) onto ``target`` (scan j) from the guess and judge it.
+
+    Returns a loop :class:`RegistrationEdge` with ``ok`` telling whether it was accepted and
+    ``reason`` why not.
+    """
+    info = {"candidate": cand.source, "score": cand.score}
+
+    def reject(reason: str, T: np.ndarray, extra: dict | None = None) -> RegistrationEdge:
+        return RegistrationEdge(cand.query, cand.match, T, np.zeros((6, 6)), np.zeros((6, 6)), 0.0,
+                                float("nan"), 0, False, reason, "loop", {**info, **(extra or {})})
+
+    if not (source.usable and target.usable):
+        return reject("unusable scan", cand.guess)
+    T = cand.guess
+    res = None
+    stages = [cfg.coarse_correspondence_distance, 0.5 * (cfg.coarse_correspondence_distance + cfg.max_correspondence_distance),
+              cfg.max_correspondence_distance]
+    for dist in stages:
+        res = small_gicp.align(target.cloud, source.cloud, target.tree, init_T_target_source=T,
+                               registration_type="GICP", max_correspondence_distance=dist,
+                               num_threads=num_threads, max_iterations=30)
+        T = np.asarray(res.T_target_source)
+        if not np.all(np.isfinite(T)):
+            return reject("non-finite registration", cand.guess)
+    src = source.points @ T[:3, :3].T + T[:3, 3]
+    idx, d2 = target.tree.batch_nearest_neighbor_search(src, num_threads=num_threads)
+    d = np.sqrt(np.asarray(d2))
+    inl = d <= cfg.max_correspondence_distance
+    ratio = float(inl.mean()) if len(d) else 0.0
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("inf")
+    correction = float(np.linalg.norm((np.linalg.inv(cand.guess) @ T)[:3, 3]))
+    extra = {"inlier_ratio": ratio, "rmse": rmse, "correction": correction}
+    if ratio < cfg.min_inlier_ratio:
+        return reject(f"inlier ratio {ratio:.2f} < {cfg.min_inlier_ratio:.2f}", T, extra)
+    max_rmse = 0.35 if cfg.max_rmse is None else cfg.max_rmse
+    if rmse > max_rmse:
+        return reject(f"rmse {rmse:.2f} > {max_rmse:.2f} m", T, extra)
+    if cand.source == "proximity" and correction > cfg.max_correction:
+        return reject(f"correction {correction:.1f} m > {cfg.max_correction:.1f} m", T, extra)
+    H = np.asarray(res.H, dtype=np.float64)
+    if not np.all(np.isfinite(H)) or res.num_inliers < 6:
+        return reject("degenerate Hessian", T, extra)
+    information = scaled_information(H, res.error, res.num_inliers, graph_cfg.hessian_scale)
+    return RegistrationEdge(cand.query, cand.match, T, H, information, ratio,
+                            float(res.error / max(res.num_inliers, 1)), int(res.iterations), True, "", "loop",
+                            {**info, **extra})
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+def true_revisits(gt_poses: np.ndarray, min_frame_gap: int, radius: float) -> np.ndarray:
+    """Boolean (K,): scan i has an older scan (gap ≥ ``min_frame_gap``) within ``radius`` in GT."""
+    pos = np.asarray(gt_poses)[:, :3, 3]
+    K = len(pos)
+    out = np.zeros(K, dtype=bool)
+    for i in range(min_frame_gap, K):
+        d = np.linalg.norm(pos[: i - min_frame_gap + 1] - pos[i], axis=1)
+        out[i] = bool(d.min() <= radius)
+    return out
+
+
+def loop_error(T_ij: np.ndarray, gt_poses: np.ndarray, i: int, j: int) -> tuple[float, float]:
+    """Translation [m] and rotation [deg] error of a loop T̂_ij against GT (T_j⁻¹ T_i)."""
+    T_gt = np.linalg.inv(gt_poses[j]) @ gt_poses[i]
+    E = np.linalg.inv(T_gt) @ T_ij
+    c = np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)
+    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(c)))
+
+
+def loop_precision_recall(
+    loops: list[tuple[int, int, np.ndarray]],
+    gt_poses: np.ndarray,
+    checked: np.ndarray,
+    min_frame_gap: int,
+    revisit_radius: float = 5.0,
+    max_t_err: float = 2.0,
+    max_r_err_deg: float = 10.0,
+) -> dict:
+    """Precision and recall of accepted loops against ground truth.
+
+    Parameters
+    ----------
+    loops : list of (i, j, T̂_ij)
+        Accepted loops.
+    gt_poses : (K, 4, 4)
+        Ground-truth poses (any common world frame).
+    checked : (K,) bool
+        Which scans were queried for loops (recall is over those).
+    revisit_radius : float
+        A checked scan is a true revisit when GT has an older scan within this radius.
+
+    Returns
+    -------
+    dict with ``n_loops``, ``n_correct`` (pose error < max_t_err / max_r_err_deg),
+    ``precision``, ``n_revisit_queries``, ``n_revisit_found``, ``recall`` (revisit queries
+    with an accepted loop), ``n_revisit_segments``, ``segments_found`` (contiguous revisit
+    stretches with at least one loop) and ``segment_recall``; ``None`` where undefined.
+    """
+    correct = []
+    for i, j, T in loops:
+        et, er = loop_error(T, gt_poses, i, j)
+        correct.append(et <= max_t_err and er <= max_r_err_deg)
+    revisit = true_revisits(gt_poses, min_frame_gap, revisit_radius)
+    q = revisit & np.asarray(checked, bool)
+    found = np.zeros_like(q)
+    for (i, _j, _T), ok in zip(loops, correct):
+        if ok:
+            found[i] = True
+    n_q = int(q.sum())
+    n_found = int((found & q).sum())
+    # contiguous revisit segments (gaps of < min_frame_gap / 2 frames merged)
+    segs: list[tuple[int, int]] = []
+    idx = np.flatnonzero(revisit)
+    for i in idx:
+        if segs and i - segs[-1][1] <= max(1, min_frame_gap // 2):
+            segs[-1] = (segs[-1][0], int(i))
+        else:
+            segs.append((int(i), int(i)))
+    seg_found = sum(1 for a, b in segs if found[a : b + 1].any())
+    n = len(loops)
+    return {
+        "n_loops": n,
+        "n_correct": int(sum(correct)),
+        "precision": (sum(correct) / n) if n else None,
+        "n_revisit_queries": n_q,
+        "n_revisit_found": n_found,
+        "recall": (n_found / n_q) if n_q else None,
+        "n_revisit_segments": len(segs),
+        "revisit_segments": segs,
+        "segments_found": seg_found,
+        "segment_recall": (seg_found / len(segs)) if segs else None,
+        "revisit_radius": revisit_radius,
+        "max_t_err": max_t_err,
+        "max_r_err_deg": max_r_err_deg,
+    }

@@ -1,0 +1,238 @@
+"""VGICP odometry front end (small_gicp) with a constant-velocity guess and failure handling.
+
+Each new scan ``k+1`` (source) is registered onto the past (target): in ``"map"`` mode a
+sliding Gaussian voxel map of the recent scans in the odometry frame, in ``"scan"`` mode
+the previous scan alone. The result is one odometry edge ``(k+1, k)`` with
+
+- ``T``: T̂_{k+1,k} = T_k⁻¹ T_{k+1}, mapping points of scan k+1 into the frame of scan k
+  (the memory convention: source P = S_{k+1}, target Q = S_k);
+- ``H_raw``: small_gicp's Gauss-Newton Hessian of its cost ½Σ dᵀΩd (gtsam order [ω, v],
+  right perturbation, so it is directly the Hessian w.r.t. T̂_{k+1,k} ∘ Exp(ξ));
+- ``information``: ``H_raw`` divided by the a-posteriori variance factor
+  σ₀² = 2·error / (3·inliers − 6) (small_gicp's covariances are unit-less plane shapes, not
+  metric noise), times ``graph.hessian_scale`` (points are spatially correlated);
+- fitness figures: inlier ratio, mean cost per inlier, iterations.
+
+A registration that returns non-finite values, has an inlier ratio below
+``min_inlier_ratio``, or ends further than ``max_deviation_*`` from the constant-velocity
+guess is *flagged* (``ok=False``, ``reason`` says why), logged, and replaced by the guess
+with a weak fallback information (``graph.fallback_sigmas``); never silently kept.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import small_gicp
+
+from gr_graph.config import GraphConfig, OdometryConfig
+from gr_graph.preprocess import Scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RegistrationEdge:
+    """One registered scan pair (odometry or loop).
+
+    Attributes
+    ----------
+    source, target : int
+        Positions (0-based, within the run) of the source scan P and target scan Q.
+    T : np.ndarray
+        ``(4, 4)`` T̂_{source,target}: maps source points into the target frame.
+    H_raw : np.ndarray
+        ``(6, 6)`` small_gicp Hessian (zeros when the registration failed).
+    information : np.ndarray
+        ``(6, 6)`` information used for the graph factor, gtsam order [ω, v].
+    inlier_ratio, error_per_inlier : float
+        Fitness figures of the registration.
+    iterations : int
+    ok : bool
+        False when the registration failed and ``T`` is a fallback guess.
+    reason : str
+        Why it failed ("" when ok).
+    kind : str
+        "odometry" or "loop".
+    info : dict
+        Extra figures (loop rmse, descriptor distance...).
+    """
+
+    source: int
+    target: int
+    T: np.ndarray
+    H_raw: np.ndarray
+    information: np.ndarray
+    inlier_ratio: float
+    error_per_inlier: float
+    iterations: int
+    ok: bool
+    reason: str = ""
+    kind: str = "odometry"
+    info: dict = field(default_factory=dict)
+
+
+def sigmas_information(sigmas: tuple[float, ...] | np.ndarray) -> np.ndarray:
+    """Diagonal information ``diag(1/σ²)`` for gtsam-ordered sigmas [ω, v]."""
+    s = np.asarray(sigmas, dtype=np.float64)
+    return np.diag(1.0 / s**2)
+
+
+def scaled_information(H: np.ndarray, error: float, num_inliers: int, scale: float) -> np.ndarray:
+    """Registration Hessian → pose information: ``scale · H / σ₀²``, σ₀² = 2·error/(3n − 6).
+
+    small_gicp's cost is e = ½Σ dᵢᵀΩᵢdᵢ with unit-less Ωᵢ; if the real residual covariance
+    is σ₀²Ωᵢ⁻¹ then E[2e] ≈ 3n − 6 σ₀², so σ₀² is estimated from the final cost.
+    """
+    dof = max(3 * int(num_inliers) - 6, 1)
+    var = max(2.0 * float(error) / dof, 1e-12)
+    Hs = 0.5 * (H + H.T)
+    return scale * Hs / var
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Rotation angle of a 3x3 rotation matrix [rad]."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def check_registration(
+    T: np.ndarray,
+    guess: np.ndarray,
+    inlier_ratio: float,
+    min_inlier_ratio: float,
+    max_dt: float,
+    max_drot_deg: float,
+) -> str:
+    """Return "" when a registration result is acceptable, else the reason it is not."""
+    if not np.all(np.isfinite(T)):
+        return "non-finite result"
+    if inlier_ratio < min_inlier_ratio:
+        return f"inlier ratio {inlier_ratio:.2f} < {min_inlier_ratio:.2f}"
+    dev = np.linalg.inv(guess) @ T
+    dt = float(np.linalg.norm(dev[:3, 3]))
+    drot = np.degrees(rotation_angle(dev[:3, :3]))
+    if dt > max_dt or drot > max_drot_deg:
+        return f"diverged: {dt:.2f} m / {drot:.1f} deg from the guess"
+    return ""
+
+
+class VgicpOdometry:
+    """Streaming VGICP odometry. Feed preprocessed scans in order with :meth:`step`.
+
+    Attributes
+    ----------
+    poses : list of (4, 4) arrays
+        Odometry poses T_odom_k (the first scan is the identity).
+    edges : list of RegistrationEdge
+        One edge (k+1, k) per step after the first.
+    """
+
+    def __init__(self, cfg: OdometryConfig, graph_cfg: GraphConfig) -> None:
+        self.cfg = cfg
+        self.graph_cfg = graph_cfg
+        self.poses: list[np.ndarray] = []
+        self.edges: list[RegistrationEdge] = []
+        self._delta = np.eye(4)
+        self._map: small_gicp.GaussianVoxelMap | None = None
+        self._prev: Scan | None = None
+
+    # ------------------------------------------------------------------ map
+    def _new_map(self) -> small_gicp.GaussianVoxelMap:
+        vm = small_gicp.GaussianVoxelMap(self.cfg.voxel_resolution)
+        vm.set_lru(horizon=self.cfg.map_horizon, clear_cycle=max(1, min(10, self.cfg.map_horizon)))
+        return vm
+
+    def _insert(self, scan: Scan, T: np.ndarray) -> None:
+        if not scan.usable:
+            return
+        if self.cfg.mode == "map":
+            if self._map is None:
+                self._map = self._new_map()
+            self._map.insert(scan.cloud, T)
+        else:
+            vm = small_gicp.GaussianVoxelMap(self.cfg.voxel_resolution)
+            vm.insert(scan.cloud)
+            self._map = vm
+
+    # ------------------------------------------------------------------ step
+    def step(self, scan: Scan) -> RegistrationEdge | None:
+        """Register ``scan`` onto the past; return its odometry edge (None for the first scan)."""
+        k = len(self.poses)
+        if k == 0:
+            self.poses.append(np.eye(4))
+            self._insert(scan, np.eye(4))
+            self._prev = scan
+            return None
+        T_prev = self.poses[-1]
+        guess_rel = self._delta
+        reason = ""
+        if not scan.usable:
+            reason = "source scan unusable (too few points)"
+        elif self._map is None or (self.cfg.mode == "scan" and not self._prev.usable):
+            reason = "no target map (previous scans unusable)"
+        if not reason:
+            init = T_prev @ guess_rel if self.cfg.mode == "map" else guess_rel
+            res = small_gicp.align(
+                self._map,
+                scan.cloud,
+                init_T_target_source=init,
+                max_correspondence_distance=self.cfg.max_correspondence_distance,
+                num_threads=self.cfg.num_threads,
+                max_iterations=self.cfg.max_iterations,
+            )
+            T_res = np.asarray(res.T_target_source)
+            T_rel = np.linalg.inv(T_prev) @ T_res if self.cfg.mode == "map" else T_res
+            n = scan.cloud.size()
+            inlier_ratio = res.num_inliers / max(n, 1)
+            reason = check_registration(
+                T_rel,
+                guess_rel,
+                inlier_ratio,
+                self.cfg.min_inlier_ratio,
+                self.cfg.max_deviation_translation,
+                self.cfg.max_deviation_rotation_deg,
+            )
+            if not reason and not np.all(np.isfinite(res.H)):
+                reason = "non-finite Hessian"
+        if reason:
+            log.warning("odometry edge (%d, %d): %s; using the constant-velocity guess (edge flagged)", k, k - 1, reason)
+            T_rel = guess_rel.copy()
+            edge = RegistrationEdge(
+                source=k,
+                target=k - 1,
+                T=T_rel,
+                H_raw=np.zeros((6, 6)),
+                information=sigmas_information(self.graph_cfg.fallback_sigmas),
+                inlier_ratio=0.0,
+                error_per_inlier=float("nan"),
+                iterations=0,
+                ok=False,
+                reason=reason,
+            )
+        else:
+            H = np.asarray(res.H, dtype=np.float64)
+            if self.graph_cfg.odometry_noise == "hessian":
+                info = scaled_information(H, res.error, res.num_inliers, self.graph_cfg.hessian_scale)
+            else:
+                info = sigmas_information(self.graph_cfg.fixed_sigmas)
+            edge = RegistrationEdge(
+                source=k,
+                target=k - 1,
+                T=T_rel,
+                H_raw=H,
+                information=info,
+                inlier_ratio=float(inlier_ratio),
+                error_per_inlier=float(res.error / max(res.num_inliers, 1)),
+                iterations=int(res.iterations),
+                ok=True,
+            )
+            self._delta = T_rel
+        T_new = T_prev @ edge.T
+        self.poses.append(T_new)
+        self.edges.append(edge)
+        self._insert(scan, T_new)
+        self._prev = scan
+        return edge

@@ -1,0 +1,602 @@
+"""The SLAM pipeline F_SLAM and the reciprocal rounds around it (Algorithm 3 of the paper).
+
+:class:`SlamPipeline` ``run()`` does everything: round 0 is SLAM on the raw scans
+(odometry, loop closures, pose graph, marginals, memory); rounds r ≥ 1 (learning rounds:
+train from the memory of round r−1, densify the scans, SLAM again) arrive with the trainer
+and raise :class:`LearningRoundsUnavailable` until it is importable.
+
+Output directory (``--out``)::
+
+    config.yaml              the resolved configuration
+    gt_poses_kitti.txt       ground truth of the run's frames, camera frame (when known)
+    metrics.json             per round: trajectory metrics, loops, runtimes (rewritten per round)
+    trajectory.png           last round against ground truth (top-down, LiDAR frame)
+    round_<r>/poses_kitti.txt    optimised poses, camera frame, KITTI format (first = identity)
+    round_<r>/poses_tum.txt      the same poses in the LiDAR frame, TUM format (timestamps)
+    round_<r>/odometry_kitti.txt odometry-only poses (before loop closure), camera frame
+    round_<r>/marginals.npz      see :data:`MARGINALS_KEYS`
+    round_<r>/loops.json         every verified loop candidate (accepted or not) with figures
+    round_<r>/memory/            the memory of the round (format: :mod:`gr_graph.memory`)
+    round_<r>/round.json         written last: the round's summary; marks the round finished
+
+Every file is written atomically (temporary sibling, then rename).
+
+``metrics.json`` = ``{"source", "n_frames", "channels", "rounds": {"<r>": summary}}``; a
+round's summary (also its ``round.json``) holds counts (frames, odometry edges, flagged
+edges, loops, loop candidates), ``slam`` and ``odometry`` (``gr_graph.metrics.
+trajectory_metrics`` of the optimised and the odometry-only poses against the ground truth,
+both in the camera frame: RPE over 300 frames mean/RMSE for consecutive and all pairs,
+ATE, KITTI devkit %), ``loop_closure`` (precision/recall against ground truth, see
+:func:`gr_graph.loop_closure.loop_precision_recall`), ``runtime_s`` per stage (``read`` is
+time spent waiting for frames), ``frames_per_second`` and ``config_fingerprint``.
+
+Memory edges: odometry edges are (k+1, k) (source P = S_{k+1}, target Q = S_k), loop edges
+(i, j) with i the newer scan; T̂ comes from the optimised trajectory, ``edge_H`` is the
+registration Hessian, correspondences are nearest stored target points within
+``odometry.corr_max_distance`` under T̂; ``info.flagged_edges`` lists failed registrations.
+
+Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` exists and
+whose ``config_fingerprint`` (a hash of every non-output option) equals the current one;
+a round with a missing or different ``round.json`` is recomputed, with everything after
+it. ``output.resume: false`` recomputes all rounds.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import tempfile
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from gr_graph.config import SlamConfig, atomic_write_text, dump_config, loop_max_rmse
+from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
+from gr_graph.loop_closure import (
+    ScanContextDatabase,
+    loop_precision_recall,
+    proximity_candidate,
+    verify_loop,
+)
+from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory
+from gr_graph.odometry import RegistrationEdge, VgicpOdometry
+from gr_graph.pose_graph import PoseGraph, position_covariance_world
+from gr_graph.preprocess import preprocess_scan, rebuild_scan
+
+log = logging.getLogger(__name__)
+
+MARGINALS_KEYS = {
+    "frame_index": "(K,) int64 frame index of each pose in the sequence",
+    "timestamps": "(K,) float64 seconds",
+    "poses": "(K, 4, 4) optimised T_w_velo (world = LiDAR frame of the first scan)",
+    "covariance": "(K, 6, 6) marginal covariance of each pose, gtsam order [omega, v], body frame, "
+    "right perturbation P*Exp(xi)",
+    "position_cov_world": "(K, 3, 3) world-frame position covariance R Sigma_vv R^T",
+    "odometry_poses": "(K, 4, 4) odometry-only T_w_velo (before loop closure)",
+    "gt_poses": "(K, 4, 4) ground-truth T_w_velo re-anchored to the first scan (absent without GT)",
+    "edges": "(E, 2) int64 graph edges (k, l) as run positions: odometry (k+1, k), loops (i, j)",
+    "edge_kind": "(E,) uint8 0 = odometry, 1 = loop",
+    "edge_ok": "(E,) bool False for flagged (fallback) odometry edges",
+    "edge_information": "(E, 6, 6) information of each graph factor (before the loop kernel), [omega, v]",
+}
+
+
+class LearningRoundsUnavailable(NotImplementedError):
+    """Rounds ≥ 1 were asked for but the trainer (or densification) is not importable."""
+
+
+# ----------------------------------------------------------------------------- I/O helpers
+
+
+def atomic_save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
+    """``np.savez_compressed`` through a temporary sibling file and ``os.replace``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buf.getvalue())
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
+    """JSON (indented) written atomically."""
+    return atomic_write_text(path, json.dumps(obj, indent=2, default=_json_default))
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+class StageTimer:
+    """Accumulates wall time per named stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - t0
+
+
+# ----------------------------------------------------------------------------- one SLAM run
+
+
+def prefetch_frames(sequence: LidarSequence, ahead: int = 4):
+    """Yield ``sequence[0..K-1]`` in order while a worker thread reads (renders) the next ones.
+
+    Reading/rendering (file I/O, open3d ray casting, numpy) releases the GIL, so it overlaps
+    with registration. ``ahead=0`` reads in the calling thread. Errors surface in order.
+    """
+    K = len(sequence)
+    if ahead <= 0:
+        for i in range(K):
+            yield sequence[i]
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gr_graph-read") as pool:
+        queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
+        nxt = len(queue)
+        while queue:
+            fut = queue.popleft()
+            if nxt < K:
+                queue.append(pool.submit(sequence.__getitem__, nxt))
+                nxt += 1
+            yield fut.result()
+
+
+@dataclass
+class SlamResult:
+    """Everything one SLAM run (one round) produced."""
+
+    frame_index: np.ndarray
+    timestamps: np.ndarray
+    poses: np.ndarray
+    odometry_poses: np.ndarray
+    covariances: np.ndarray | None
+    scans: list[np.ndarray]
+    edges: list[RegistrationEdge]
+    loop_attempts: list[dict]
+    checked: np.ndarray
+    runtime: dict[str, float]
+    graph_error: tuple[float, float] = (float("nan"), float("nan"))
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def loops(self) -> list[RegistrationEdge]:
+        return [e for e in self.edges if e.kind == "loop"]
+
+
+def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "") -> SlamResult:
+    """F_SLAM: odometry, loop closures, pose graph and marginals over ``sequence``.
+
+    Frames are read (rendered) one at a time; only the downsampled scans are kept.
+    """
+    timer = StageTimer()
+    pc, oc, lc, gc = cfg.preprocess, cfg.odometry, cfg.loops, cfg.graph
+    lc = lc.model_copy(update={"max_rmse": loop_max_rmse(lc, cfg.data.channels)})
+    odo = VgicpOdometry(oc, gc)
+    graph = PoseGraph(gc)
+    scdb = ScanContextDatabase(lc)
+    scans: list[np.ndarray] = []
+    frame_index: list[int] = []
+    edges: list[RegistrationEdge] = []
+    attempts: list[dict] = []
+    K = len(sequence)
+    checked = np.zeros(K, dtype=bool)
+    opt_poses = np.zeros((0, 4, 4))  # poses of the last optimisation (prefix of the run)
+    pending_loops = 0
+    last_opt = 0
+    cooldown = 0
+    n_flagged = 0
+    n_dropped = 0
+
+    def estimate(upto: int) -> np.ndarray:
+        """Loop-corrected estimate of poses 0..upto-1."""
+        odom = np.asarray(odo.poses[:upto])
+        n = len(opt_poses)
+        if n == 0:
+            return odom
+        if n >= upto:
+            return opt_poses[:upto]
+        corr = opt_poses[n - 1] @ np.linalg.inv(odom[n - 1])
+        return np.concatenate([opt_poses, corr[None] @ odom[n:]])
+
+    def estimate_one(i: int) -> np.ndarray:
+        """Loop-corrected estimate of pose i."""
+        n = len(opt_poses)
+        if n == 0:
+            return odo.poses[i]
+        if i < n:
+            return opt_poses[i]
+        return opt_poses[n - 1] @ np.linalg.inv(odo.poses[n - 1]) @ odo.poses[i]
+
+    frames = prefetch_frames(sequence, cfg.data.prefetch)
+    bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not cfg.output.progress, mininterval=1.0)
+    for i in bar:
+        with timer("read"):  # time spent waiting for the reader thread
+            frame = next(frames)
+        with timer("preprocess"):
+            scan = preprocess_scan(frame.points, pc, index=int(frame.index), num_threads=oc.num_threads)
+        n_dropped += scan.n_dropped
+        with timer("odometry"):
+            edge = odo.step(scan)
+        scans.append(scan.points.astype(np.float32))
+        frame_index.append(int(frame.index))
+        graph.add_pose(estimate_one(i))
+        if edge is not None:
+            edges.append(edge)
+            n_flagged += int(not edge.ok)
+            graph.add_edge(edge.source, edge.target, edge.T, edge.information, loop=False)
+        if not lc.enabled:
+            continue
+        with timer("loops"):
+            if lc.use_scan_context:
+                scdb.add(scan.points)
+            if i % lc.check_every or i < lc.min_frame_gap or not scan.usable:
+                continue
+            if cooldown > 0:
+                cooldown -= 1
+                continue
+            checked[i] = True
+            est = estimate(i + 1)
+            cands = []
+            c = proximity_candidate(est, i, lc) if lc.use_proximity else None
+            if c is not None:
+                cands.append(c)
+            if lc.use_scan_context:
+                c = scdb.query(i)
+                if c is not None and not any(abs(c.match - o.match) < 5 for o in cands):
+                    cands.append(c)
+            for cand in cands:
+                target = rebuild_scan(scans[cand.match], pc, index=frame_index[cand.match], num_threads=oc.num_threads)
+                le = verify_loop(scan, target, cand, lc, gc, num_threads=oc.num_threads)
+                attempts.append(
+                    {"query": i, "match": cand.match, "frame_query": frame_index[i],
+                     "frame_match": frame_index[cand.match], "accepted": le.ok, "reason": le.reason,
+                     "T": le.T, **le.info}
+                )
+                if le.ok:
+                    edges.append(le)
+                    graph.add_edge(le.source, le.target, le.T, le.information, loop=True)
+                    pending_loops += 1
+                    cooldown = lc.cooldown
+                    log.debug("loop (%d, %d) accepted via %s", i, cand.match, cand.source)
+                    break
+            if pending_loops and i - last_opt >= lc.reoptimize_every:
+                with timer("graph"):
+                    graph.set_estimate(est)
+                    opt_poses = graph.optimize(marginals=False).poses
+                pending_loops, last_opt = 0, i
+        bar.set_postfix(loops=sum(e.kind == "loop" for e in edges), flagged=n_flagged, refresh=False)
+    bar.close()
+    if n_flagged:
+        log.warning("%d of %d odometry edges failed and were replaced by the constant-velocity guess",
+                    n_flagged, max(K - 1, 0))
+    odom_poses = np.asarray(odo.poses)
+    with timer("graph"):
+        graph.set_estimate(estimate(K))
+        res = graph.optimize(marginals=False)
+    covs = None
+    if gc.marginals:
+        with timer("marginals"):
+            covs = graph.marginal_covariances()
+    log.info("pose graph: error %.4g -> %.4g in %d iterations; %d loops", res.initial_error, res.final_error,
+             res.iterations, sum(e.kind == "loop" for e in edges))
+    return SlamResult(
+        frame_index=np.asarray(frame_index, dtype=np.int64),
+        timestamps=np.asarray(sequence.timestamps, dtype=np.float64)[:K],
+        poses=res.poses,
+        odometry_poses=odom_poses,
+        covariances=covs,
+        scans=scans,
+        edges=edges,
+        loop_attempts=attempts,
+        checked=checked,
+        runtime=dict(timer.seconds),
+        graph_error=(res.initial_error, res.final_error),
+        info={"n_flagged_odometry": n_flagged, "n_dropped_nonfinite": n_dropped},
+    )
+
+
+# ----------------------------------------------------------------------------- memory
+
+
+def edge_correspondences(
+    source: np.ndarray, target_tree: Any, T_st: np.ndarray, max_distance: float, num_threads: int = 1
+) -> np.ndarray:
+    """Index pairs (i, j): source point i and its nearest target point j within ``max_distance``.
+
+    ``T_st`` maps source points into the target frame; ``target_tree`` is a small_gicp KdTree
+    over the target's stored points.
+    """
+    if len(source) == 0 or target_tree is None:
+        return np.zeros((0, 2), np.int32)
+    p = np.asarray(source, np.float64) @ T_st[:3, :3].T + T_st[:3, 3]
+    idx, d2 = target_tree.batch_nearest_neighbor_search(p, num_threads=num_threads)
+    idx = np.asarray(idx, np.int64)
+    ok = (idx >= 0) & (np.asarray(d2) <= max_distance**2)
+    i = np.flatnonzero(ok)
+    return np.column_stack([i, idx[ok]]).astype(np.int32)
+
+
+def build_memory(result: SlamResult, cfg: SlamConfig, info: dict[str, Any] | None = None) -> Memory:
+    """The memory of a SLAM run: stored scans, optimised poses, edges with T̂_kl from the
+    optimised trajectory, registration information and correspondences under that T̂_kl."""
+    import small_gicp
+
+    poses = result.poses
+    by_target: dict[int, list[int]] = defaultdict(list)
+    for e, edge in enumerate(result.edges):
+        by_target[edge.target].append(e)
+    E = len(result.edges)
+    Ts: list[np.ndarray] = [np.eye(4)] * E
+    corr: list[np.ndarray] = [np.zeros((0, 2), np.int32)] * E
+    for l in tqdm(sorted(by_target), desc="memory", unit="scan", disable=not cfg.output.progress, mininterval=1.0):
+        pts = np.asarray(result.scans[l], np.float64)
+        tree = small_gicp.KdTree(pts, num_threads=cfg.odometry.num_threads) if len(pts) else None
+        for e in by_target[l]:
+            edge = result.edges[e]
+            T = np.linalg.inv(poses[edge.target]) @ poses[edge.source]
+            Ts[e] = T
+            corr[e] = edge_correspondences(result.scans[edge.source], tree, T, cfg.odometry.corr_max_distance,
+                                           cfg.odometry.num_threads)
+    H = [edge.H_raw if edge.ok else edge.information for edge in result.edges]
+    return Memory.from_scans(
+        scans=result.scans,
+        poses=poses,
+        edges=[(e.source, e.target) for e in result.edges],
+        edge_kind=[EDGE_LOOP if e.kind == "loop" else EDGE_ODOMETRY for e in result.edges],
+        edge_T=Ts,
+        edge_H=H,
+        corr=corr,
+        info={"frame_index": result.frame_index.tolist(),
+              "flagged_edges": [e for e, edge in enumerate(result.edges) if not edge.ok],
+              **(info or {})},
+    )
+
+
+# ----------------------------------------------------------------------------- the pipeline
+
+
+class SlamPipeline:
+    """``python -m gr_graph.slam`` as an object: ``SlamPipeline(cfg).run()``.
+
+    Parameters
+    ----------
+    cfg : SlamConfig
+    sequence : LidarSequence, optional
+        Use this sequence instead of opening ``cfg.data`` (tests, notebooks).
+    source_description : str, optional
+        One line saying where the data come from (logged and stored in metrics.json).
+
+    See the module docstring for the outputs and the resume rule.
+    """
+
+    def __init__(self, cfg: SlamConfig, sequence: LidarSequence | None = None,
+                 source_description: str | None = None) -> None:
+        self.cfg = cfg
+        self.out = Path(cfg.output.out_dir)
+        if sequence is None:
+            from gr_graph.datasets.registry import open_sequence
+
+            sequence, source_description = open_sequence(
+                seq=cfg.data.seq, data_root=cfg.data.data_root, channels=cfg.data.channels,
+                frames=cfg.data.frames, synthetic_seed=cfg.seed,
+            )
+        self.sequence = sequence
+        self.source_description = source_description or getattr(sequence, "name", "sequence")
+        self.gt = self._anchored_gt()
+
+    # -------------------------------------------------------------- helpers
+    def _anchored_gt(self) -> np.ndarray | None:
+        gt = getattr(self.sequence, "gt_poses", None)
+        if gt is None:
+            return None
+        gt = np.asarray(gt, np.float64)[: len(self.sequence)]
+        return np.linalg.inv(gt[0]) @ gt
+
+    def round_dir(self, r: int) -> Path:
+        return self.out / f"round_{r}"
+
+    def _finished(self, r: int) -> dict | None:
+        p = self.round_dir(r) / "round.json"
+        if not (self.cfg.output.resume and p.is_file()):
+            return None
+        try:
+            summary = json.loads(p.read_text())
+        except json.JSONDecodeError:
+            return None
+        if summary.get("config_fingerprint") != self.cfg.slam_fingerprint():
+            log.info("round %d: existing results were made with another configuration; recomputing", r)
+            return None
+        return summary
+
+    def _check_learning_available(self) -> None:
+        """Fail fast (before round 0) when a learning round could not run."""
+        missing = []
+        try:
+            from training.train import train_from_memory  # noqa: F401
+        except ImportError as exc:
+            missing.append(f"the trainer training.train.train_from_memory ({exc})")
+        try:
+            from gr_graph.densify import densified_sequence  # type: ignore[import-not-found]  # noqa: F401
+        except ImportError as exc:
+            missing.append(f"densification gr_graph.densify.densified_sequence ({exc})")
+        if missing:
+            raise LearningRoundsUnavailable(
+                "learning rounds need " + " and ".join(missing) + ", which arrive with their own issues; "
+                "run with --rounds 0"
+            )
+
+    # -------------------------------------------------------------- run
+    def run(self) -> dict[str, Any]:
+        """Run round 0 and the learning rounds; write every output; return the metrics dict."""
+        cfg = self.cfg
+        rounds = cfg.training.rounds
+        if rounds > 0:
+            self._check_learning_available()
+        self.out.mkdir(parents=True, exist_ok=True)
+        dump_config(cfg, self.out / "config.yaml")
+        log.info("data: %s", self.source_description)
+        if self.gt is not None:
+            from gr_graph.trajectory import write_kitti_poses
+
+            write_kitti_poses(self.out / "gt_poses_kitti.txt", velo_to_cam_poses(self.gt, self.sequence.T_cam_velo))
+        metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
+                                   "channels": cfg.data.channels, "rounds": {}}
+        prev_poses = None
+        recompute = False
+        for r in range(rounds + 1):
+            summary = None if recompute else self._finished(r)
+            if summary is not None:
+                log.info("round %d: already finished in %s; skipped (resume)", r, self.round_dir(r))
+            else:
+                recompute = True
+                seq = self.sequence if r == 0 else self._learning_round_sequence(r)
+                summary = self.slam_round(r, seq)
+            metrics["rounds"][str(r)] = summary
+            atomic_write_json(self.out / "metrics.json", metrics)
+            poses = self._read_round_poses(r)
+            if prev_poses is not None:
+                change = float(np.mean(np.linalg.norm(poses[:, :3, 3] - prev_poses[:, :3, 3], axis=1)))
+                summary["trajectory_change"] = change
+                if change < cfg.training.convergence_delta:
+                    log.info("round %d: trajectory moved %.4f m < delta: converged", r, change)
+                    break
+            prev_poses = poses
+        atomic_write_json(self.out / "metrics.json", metrics)
+        if cfg.output.plot:
+            last = max(int(k) for k in metrics["rounds"])
+            self._plot(last)
+        return metrics
+
+    def _read_round_poses(self, r: int) -> np.ndarray:
+        with np.load(self.round_dir(r) / "marginals.npz") as z:
+            return np.array(z["poses"])
+
+    def _learning_round_sequence(self, r: int) -> LidarSequence:
+        """Algorithm 3, one iteration, up to the SLAM call: train f_θ on the memory of round
+        r−1 (Algorithm 1), then densify every scan with it (Algorithm 2, lines 3-9).
+
+        The hook's contract: ``train_from_memory(memory_dir, out_dir, config) -> checkpoint``
+        and ``densified_sequence(sequence, checkpoint, config, device) -> LidarSequence``.
+        """
+        self._check_learning_available()
+        from gr_graph.densify import densified_sequence  # type: ignore[import-not-found]
+        from training.train import train_from_memory
+
+        rd = self.round_dir(r)
+        train_cfg = {k: v for k, v in self.cfg.training.model_dump().items() if k not in ("rounds", "convergence_delta")}
+        ckpt = train_from_memory(self.round_dir(r - 1) / "memory", rd / "training", train_cfg)
+        return densified_sequence(self.sequence, ckpt, self.cfg.training, device=self.cfg.device)
+
+    def slam_round(self, r: int, sequence: LidarSequence) -> dict[str, Any]:
+        """Run F_SLAM on ``sequence`` and write round ``r``'s outputs; return its summary."""
+        from gr_graph.trajectory import write_kitti_poses, write_tum_poses
+
+        cfg = self.cfg
+        rd = self.round_dir(r)
+        rd.mkdir(parents=True, exist_ok=True)
+        (rd / "round.json").unlink(missing_ok=True)
+        t0 = time.perf_counter()
+        res = run_slam(sequence, cfg, desc=f" round {r}")
+        timer = StageTimer()
+        T_cv = np.asarray(sequence.T_cam_velo, np.float64)
+        with timer("output"):
+            write_kitti_poses(rd / "poses_kitti.txt", velo_to_cam_poses(res.poses, T_cv))
+            write_kitti_poses(rd / "odometry_kitti.txt", velo_to_cam_poses(res.odometry_poses, T_cv))
+            write_tum_poses(rd / "poses_tum.txt", res.timestamps, res.poses)
+            arrays: dict[str, np.ndarray] = {
+                "frame_index": res.frame_index,
+                "timestamps": res.timestamps,
+                "poses": res.poses,
+                "odometry_poses": res.odometry_poses,
+                "edges": np.asarray([(e.source, e.target) for e in res.edges], np.int64).reshape(-1, 2),
+                "edge_kind": np.asarray([e.kind == "loop" for e in res.edges], np.uint8),
+                "edge_ok": np.asarray([e.ok for e in res.edges], bool),
+                "edge_information": np.asarray([e.information for e in res.edges], np.float64).reshape(-1, 6, 6),
+            }
+            if res.covariances is not None:
+                arrays["covariance"] = res.covariances
+                arrays["position_cov_world"] = position_covariance_world(res.poses, res.covariances)
+            if self.gt is not None:
+                arrays["gt_poses"] = self.gt
+            atomic_save_npz(rd / "marginals.npz", **arrays)
+            atomic_write_json(rd / "loops.json", res.loop_attempts)
+        if cfg.output.write_memory:
+            with timer("memory"):
+                mem = build_memory(res, cfg, info={"round": r, "channels": cfg.data.channels,
+                                                   "source": self.source_description,
+                                                   "edge_H": "registration Hessian (small_gicp, unscaled); "
+                                                             "flagged edges (info.flagged_edges, failed "
+                                                             "registrations): the fallback information"})
+                mem.save(rd / "memory")
+                del mem
+        summary: dict[str, Any] = {
+            "round": r,
+            "config_fingerprint": cfg.slam_fingerprint(),
+            "n_frames": len(res.poses),
+            "n_odometry_edges": sum(e.kind == "odometry" for e in res.edges),
+            "n_flagged_odometry_edges": res.info["n_flagged_odometry"],
+            "n_loops": len(res.loops),
+            "n_loop_candidates": len(res.loop_attempts),
+            "graph_error": list(res.graph_error),
+            "mean_points_per_scan": float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0,
+        }
+        if self.gt is not None:
+            summary.update(self._trajectory_metrics(res, T_cv))
+        runtime = {**res.runtime, **timer.seconds}
+        runtime["total"] = time.perf_counter() - t0
+        summary["runtime_s"] = runtime
+        summary["frames_per_second"] = len(res.poses) / max(runtime["total"], 1e-9)
+        atomic_write_json(rd / "round.json", summary)
+        return summary
+
+    def _trajectory_metrics(self, res: SlamResult, T_cv: np.ndarray) -> dict[str, Any]:
+        from gr_graph.metrics import trajectory_metrics
+
+        gt_cam = velo_to_cam_poses(self.gt, T_cv)
+        out: dict[str, Any] = {}
+        if len(res.poses) >= 2:
+            out["slam"] = trajectory_metrics(velo_to_cam_poses(res.poses, T_cv), gt_cam, delta=300)
+            out["odometry"] = trajectory_metrics(velo_to_cam_poses(res.odometry_poses, T_cv), gt_cam, delta=300)
+        loops = [(e.source, e.target, e.T) for e in res.loops]
+        out["loop_closure"] = loop_precision_recall(loops, self.gt, res.checked, self.cfg.loops.min_frame_gap)
+        return out
+
+    def _plot(self, r: int) -> None:
+        from gr_graph.plots import plot_trajectory
+
+        with np.load(self.round_dir(r) / "marginals.npz") as z:
+            poses = np.array(z["poses"])
+            odom = np.array(z["odometry_poses"]) if "odometry_poses" in z.files else None
+            edges, kind = np.array(z["edges"]), np.array(z["edge_kind"])
+        loops = edges[kind == 1]
+        name = getattr(self.sequence, "name", "sequence")
+        plot_trajectory(self.out / "trajectory.png", poses, self.gt, loops=loops, odometry=odom,
+                        title=f"gr_graph round {r}: {name}, {len(poses)} frames, {self.cfg.data.channels} channels")

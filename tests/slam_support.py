@@ -1,0 +1,76 @@
+"""Helpers shared by the SLAM tests: a frame-subset view and one short synthetic run per session.
+
+The short run stitches two stretches of the synthetic KITTI 00 that pass the same street
+(frames 2330:2430 and 3290:3350; the second revisits the first in the same direction), so a
+~160-frame run contains real revisits. The jump between the stretches is a deliberate
+odometry failure: it must be flagged, and the loops (found by Scan Context, since the
+estimate is wrong after the jump) must repair the trajectory.
+"""
+
+from __future__ import annotations
+
+import atexit
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.datasets.base import LidarFrame
+
+REVISIT_RANGES = ((2330, 2430), (3290, 3350))
+_RUN_CACHE: dict[str, Path] = {}
+
+
+class FrameSubset:
+    """A LidarSequence made of selected frames of a parent sequence (keeps original indices)."""
+
+    def __init__(self, parent, indices: np.ndarray, name: str = "subset") -> None:
+        self.parent = parent
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.name = f"{getattr(parent, 'name', 'seq')}-{name}"
+        self.timestamps = np.arange(len(self.indices), dtype=np.float64) * 0.1
+        gt = getattr(parent, "gt_poses", None)
+        self.gt_poses = None if gt is None else np.asarray(gt)[self.indices]
+        self.T_cam_velo = parent.T_cam_velo
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> LidarFrame:
+        return self.parent[int(self.indices[i])]
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+
+def revisit_sequence():
+    """The stitched synthetic sequence with a revisit (see the module docstring)."""
+    from gr_graph.datasets.synthetic import SyntheticSequence
+
+    idx = np.concatenate([np.arange(a, b) for a, b in REVISIT_RANGES])
+    return FrameSubset(SyntheticSequence(seed=0), idx, "revisit")
+
+
+def revisit_config(out_dir: Path):
+    """Configuration of the short revisit run (loops allowed after 50 frames)."""
+    from gr_graph.config import load_config
+
+    return load_config(overrides={
+        "output": {"out_dir": str(out_dir), "progress": False},
+        "loops": {"min_frame_gap": 50, "check_every": 3},
+    })
+
+
+def short_revisit_run() -> Path:
+    """Run the pipeline once per process on :func:`revisit_sequence`; return the output dir."""
+    if "revisit" not in _RUN_CACHE:
+        from gr_graph.pipeline import SlamPipeline
+
+        out = Path(tempfile.mkdtemp(prefix="gr_graph_revisit_run_"))
+        atexit.register(shutil.rmtree, out, ignore_errors=True)
+        SlamPipeline(revisit_config(out), revisit_sequence(), "synthetic KITTI 00 revisit excerpt").run()
+        _RUN_CACHE["revisit"] = out
+    return _RUN_CACHE["revisit"]

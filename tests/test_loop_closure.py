@@ -1,0 +1,139 @@
+"""Loop closures: Scan Context, candidates, verification, precision/recall bookkeeping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import small_gicp
+
+from gr_graph.config import GraphConfig, LoopConfig, PreprocessConfig
+from gr_graph.loop_closure import (
+    LoopCandidate,
+    ScanContextDatabase,
+    loop_error,
+    loop_precision_recall,
+    proximity_candidate,
+    scan_context,
+    scan_context_distance,
+    true_revisits,
+    verify_loop,
+    yaw_matrix,
+)
+from gr_graph.preprocess import preprocess_scan
+
+
+@pytest.fixture(scope="module")
+def kitti0(kitti_root):
+    p = kitti_root / "sequences" / "00" / "velodyne" / "000000.bin"
+    return np.fromfile(p, np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def gicp_pair(small_gicp_pair_dir):
+    src = np.asarray(small_gicp.read_ply(str(small_gicp_pair_dir / "source.ply")).points())[:, :3]
+    tgt = np.asarray(small_gicp.read_ply(str(small_gicp_pair_dir / "target.ply")).points())[:, :3]
+    T = np.loadtxt(small_gicp_pair_dir / "T_target_source.txt")
+    return src.astype(np.float64), tgt.astype(np.float64), T
+
+
+def test_scan_context_recovers_yaw(kitti0):
+    """The same scan seen from a frame rotated by 7 sectors: distance ~0, shift 7, yaw guess exact."""
+    n_s = 60
+    psi = 7 * 2 * np.pi / n_s
+    T_old_cur = yaw_matrix(psi)
+    p_old = kitti0
+    p_cur = p_old @ T_old_cur[:3, :3]  # R(ψ)ᵀ p
+    d_same, s = scan_context_distance(scan_context(p_cur, n_sectors=n_s), scan_context(p_old, n_sectors=n_s))
+    assert s == 7 and d_same < 0.02
+    # an unrelated scan (other place) is far in descriptor space
+    rng = np.random.default_rng(0)
+    other = rng.uniform(-40, 40, size=(50000, 3)) * np.array([1, 1, 0.05])
+    d_other, _ = scan_context_distance(scan_context(other, n_sectors=n_s), scan_context(p_old, n_sectors=n_s))
+    assert d_other > 3 * d_same + 0.1
+
+
+def test_scan_context_database_respects_frame_gap(kitti0):
+    cfg = LoopConfig(min_frame_gap=3, sc_threshold=0.2)
+    db = ScanContextDatabase(cfg)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        db.add(rng.uniform(-40, 40, size=(20000, 3)) * np.array([1, 1, 0.05]))
+    db.add(kitti0)  # position 3
+    db.add(kitti0 @ yaw_matrix(0.5)[:3, :3])  # position 4: same place, rotated
+    assert db.query(2) is None  # nothing old enough
+    c = db.query(4)
+    assert c is None or c.match != 3  # gap 1 < 3: never the same place
+    db.add(rng.uniform(-40, 40, size=(20000, 3)))
+    db.add(kitti0 @ yaw_matrix(-0.3)[:3, :3])  # position 6: gap 3 to position 3
+    c = db.query(6)
+    assert c is not None and c.match == 3 and c.source == "scan_context"
+
+
+def test_proximity_candidate():
+    poses = np.repeat(np.eye(4)[None], 10, axis=0)
+    for i in range(10):
+        poses[i, 0, 3] = [0, 10, 20, 30, 40, 30.5, 20.2, 9.0, 0.1, -5][i]
+    c = proximity_candidate(poses, 8, LoopConfig(min_frame_gap=4, radius=2.0))
+    assert c is not None and c.match == 0
+    np.testing.assert_allclose(c.guess, np.linalg.inv(poses[0]) @ poses[8])
+    assert proximity_candidate(poses, 6, LoopConfig(min_frame_gap=4, radius=0.1)) is None
+
+
+def test_verify_accepts_real_overlapping_pair(gicp_pair):
+    """small_gicp's real pair: accepted; transform matches its reference (≤ 5 cm, 0.5°; the
+    reference comes from 0.1 m GICP, small_gicp itself differs by ~0.3° at 0.25-0.5 m)."""
+    src, tgt, T_ref = gicp_pair
+    pc = PreprocessConfig(voxel_size=0.5)
+    s, t = preprocess_scan(src, pc, 1), preprocess_scan(tgt, pc, 0)
+    cand = LoopCandidate(1, 0, np.eye(4), "proximity", 0.5)
+    e = verify_loop(s, t, cand, LoopConfig(), GraphConfig())
+    assert e.ok, e.reason
+    et, er = loop_error(e.T, np.stack([T_ref, np.eye(4)]), 0, 1)
+    assert et < 0.05 and er < 0.5
+    assert e.kind == "loop" and np.all(np.linalg.eigvalsh(e.information) > 0)
+
+
+def test_verify_rejects_pair_far_apart(gicp_pair, kitti0):
+    """Two scans of different places (small_gicp's data vs KITTI 00 frame 0) are rejected."""
+    src, _, _ = gicp_pair
+    pc = PreprocessConfig(voxel_size=0.5)
+    s, t = preprocess_scan(src, pc, 1), preprocess_scan(kitti0, pc, 0)
+    e = verify_loop(s, t, LoopCandidate(1, 0, np.eye(4), "scan_context", 0.1), LoopConfig(), GraphConfig())
+    assert not e.ok and e.reason
+
+
+def test_verify_rejects_wrong_offset_of_the_same_place(kitti0):
+    """The same scan with a 40 m guess error (proximity): verification must not accept."""
+    pc = PreprocessConfig(voxel_size=0.5)
+    s = preprocess_scan(kitti0, pc, 1)
+    t = preprocess_scan(kitti0 + np.array([40.0, 0, 0]), pc, 0)
+    e = verify_loop(s, t, LoopCandidate(1, 0, np.eye(4), "proximity", 1.0), LoopConfig(), GraphConfig())
+    assert not e.ok
+
+
+def test_precision_recall_bookkeeping():
+    # a path out along x and back: frames 0..9 out, 10..19 back over the same points
+    x = np.concatenate([np.arange(10), np.arange(9, -1, -1)]).astype(float)
+    gt = np.repeat(np.eye(4)[None], 20, axis=0)
+    gt[:, 0, 3] = x
+    rv = true_revisits(gt, min_frame_gap=5, radius=0.5)
+    assert rv.tolist() == [False] * 12 + [True] * 8  # frame 10, 11 are within 5 frames of 9, 8
+    checked = np.zeros(20, bool)
+    checked[[12, 14, 16, 18]] = True
+    good = (14, 5, np.linalg.inv(gt[5]) @ gt[14])
+    T_bad = np.eye(4)
+    T_bad[1, 3] = 3.0
+    bad = (16, 3, T_bad)  # frame 16 and 3 are the same place in GT: T̂ = I would be right
+    m = loop_precision_recall([good, bad], gt, checked, min_frame_gap=5, revisit_radius=0.5)
+    assert m["n_loops"] == 2 and m["n_correct"] == 1 and m["precision"] == 0.5
+    assert m["n_revisit_queries"] == 4 and m["n_revisit_found"] == 1 and m["recall"] == 0.25
+    assert m["n_revisit_segments"] == 1 and m["segment_recall"] == 1.0
+
+
+def test_loop_rmse_threshold_scales_with_sparsity():
+    from gr_graph.config import loop_max_rmse
+
+    auto = LoopConfig()
+    vals = [loop_max_rmse(auto, ch) for ch in (64, 32, 16)]
+    assert vals[0] == pytest.approx(0.35) and vals[0] < vals[1] < vals[2] < 0.5
+    assert loop_max_rmse(LoopConfig(max_rmse=0.2), 16) == 0.2
