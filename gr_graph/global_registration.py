@@ -39,7 +39,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gr_graph.trajectory import atomic_write_text, check_poses
+from gr_graph.atomic import atomic_write_text
+from gr_graph.trajectory import check_poses
 
 logger = logging.getLogger(__name__)
 

@@ -3,24 +3,11 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-
-def _atomic_savefig(fig, path: str | os.PathLike[str], dpi: int = 120) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
+from gr_graph.atomic import atomic_savefig
 
 
 def plot_trajectory(
@@ -68,6 +55,6 @@ def plot_trajectory(
     if title:
         ax.set_title(title, fontsize=10)
     try:
-        return _atomic_savefig(fig, path)
+        return atomic_savefig(fig, path, dpi=120, bbox_inches="tight")
     finally:
         plt.close(fig)

@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from gr_graph.atomic import atomic_write_text
 
 if TYPE_CHECKING:  # evo is only needed for the conversion helpers
     from evo.core.trajectory import PosePath3D, PoseTrajectory3D
@@ -110,26 +111,6 @@ def _check_timestamps(timestamps: np.ndarray, n: int, name: str = "timestamps") 
         k = int(np.argmin(np.diff(ts) > 0)) + 1
         raise ValueError(f"{name}: not strictly increasing at index {k} ({ts[k - 1]!r} -> {ts[k]!r})")
     return ts
-
-
-def atomic_write_text(path: PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` atomically (temp file in the same directory + os.replace)."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="ascii", newline="\n") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return target
 
 
 def _format_rows(mat: np.ndarray) -> str:

@@ -45,6 +45,7 @@ import torch
 from torch import nn
 
 from training.neighbors import Neighborhoods, build_neighborhoods
+from training.pose_layer import inv3
 
 __all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov"]
 
@@ -120,24 +121,6 @@ def _moments(rel: torch.Tensor) -> torch.Tensor:
     tr = S[..., 0, 0] + S[..., 1, 1] + S[..., 2, 2] + 1e-6
     iu = (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 1, 2, 1, 2, 2]))
     return torch.cat([S[..., iu[0], iu[1]] / tr[..., None], torch.log(tr)[..., None] / 5.0], -1)
-
-
-def _inv3(S: torch.Tensor) -> torch.Tensor:
-    """Batch 3x3 inverse by the adjugate (well conditioned here: ``S + kappa I``)."""
-    a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
-    d, e, f = S[..., 1, 0], S[..., 1, 1], S[..., 1, 2]
-    g, h, i = S[..., 2, 0], S[..., 2, 1], S[..., 2, 2]
-    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
-    det = a * A + b * B + c * C
-    adj = torch.stack(
-        [
-            torch.stack([A, -(b * i - c * h), b * f - c * e], -1),
-            torch.stack([B, a * i - c * g, -(a * f - c * d)], -1),
-            torch.stack([C, -(a * h - b * g), a * e - b * d], -1),
-        ],
-        -2,
-    )
-    return adj / det[..., None, None]
 
 
 def cholesky_to_cov(raw: torch.Tensor, cov_scale: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -243,7 +226,7 @@ class CovarianceNet(nn.Module):
         gamma2 = (0.03 * self.config.cov_scale) ** 2 * torch.exp(2 * a[:, 2])
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         Sk = S + kappa[:, None, None] * eye
-        M = (alpha * kappa)[:, None, None] * (S @ _inv3(Sk)) + gamma2[:, None, None] * eye
+        M = (alpha * kappa)[:, None, None] * (S @ inv3(Sk)) + gamma2[:, None, None] * eye
         M = 0.5 * (M + M.transpose(-1, -2))
         L, _ = torch.linalg.cholesky_ex(M)
         return L, M + self.config.eps * eye

@@ -38,6 +38,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from gr_graph.atomic import atomic_path, atomic_write_text
 from gr_graph.memory import Memory
 from training.dataset import PairDataset, PairSample, SkipSample
 from training.losses import LossError, corr_nll, default_gamma, pose_nll
@@ -176,20 +177,9 @@ class TrainConfig:
 
 
 def save_atomic(obj: Any, path: Path) -> None:
-    """``torch.save`` to a temporary sibling, fsync, then ``os.replace`` into ``path``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        torch.save(obj, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    """``torch.save`` to ``path`` atomically (temporary sibling, fsync, ``os.replace``)."""
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str = "cpu") -> CovarianceNet:
@@ -359,7 +349,7 @@ class Trainer:
                 continue
             if (rec.get("epoch", 0), rec.get("step", 0)) < (self.epoch, self.step):
                 keep.append(line)
-        _write_text_atomic(path, "".join(k + "\n" for k in keep))
+        atomic_write_text(path, "".join(k + "\n" for k in keep))
 
     # ------------------------------------------------------------------ main loop
     def steps_per_epoch(self) -> int:
@@ -482,5 +472,5 @@ class Trainer:
             summary = {"epochs_done": self.epoch, "skip_counts": dict(self.skip_counts),
                        "dataset": self.dataset.describe(), "config": self.config.to_dict(),
                        "model": str(path)}
-            _write_text_atomic(self.out_dir / "summary.json", json.dumps(summary, indent=2))
+            atomic_write_text(self.out_dir / "summary.json", json.dumps(summary, indent=2))
         return path

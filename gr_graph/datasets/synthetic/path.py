@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, cam_to_velo_poses
+from gr_graph.datasets.kitti import calib_T_cam_velo, read_calib, read_times
+from gr_graph.trajectory import read_kitti_poses
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "data" / "kitti00"
 N_FRAMES = 4541
@@ -44,53 +46,18 @@ class Kitti00Path:
     T_w_velo: np.ndarray
 
 
-def read_calib(path: Path) -> dict[str, np.ndarray]:
-    """Read a KITTI ``calib.txt`` into ``{key: float64 array}``; raises DatasetError naming the file."""
-    out: dict[str, np.ndarray] = {}
-    try:
-        lines = Path(path).read_text().splitlines()
-    except OSError as exc:
-        raise DatasetError(f"cannot read calibration file {path}: {exc}") from exc
-    for n, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        key, sep, rest = line.partition(":")
-        if not sep:
-            raise DatasetError(f"{path}:{n}: expected 'KEY: values', got {line[:40]!r}")
-        try:
-            out[key.strip()] = np.array(rest.split(), dtype=np.float64)
-        except ValueError as exc:
-            raise DatasetError(f"{path}:{n}: non-numeric value in {key!r}") from exc
-    return out
-
-
-def read_kitti_poses(path: Path) -> np.ndarray:
-    """Read KITTI poses (12 floats a row) as ``(K, 4, 4)`` float64."""
-    try:
-        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"cannot read poses file {path}: {exc}") from exc
-    if rows.shape[1] != 12:
-        raise DatasetError(f"{path}: expected 12 floats a row, got {rows.shape[1]}")
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :] = rows.reshape(-1, 3, 4)
-    return T
-
-
 @lru_cache(maxsize=1)
 def load_kitti00_path(data_dir: Path = DATA_DIR) -> Kitti00Path:
     """Load (once per process) the shipped KITTI 00 poses, times and calibration."""
     calib = read_calib(data_dir / "calib.txt")
-    for key, size in (("Tr", 12), ("P0", 12)):
-        if key not in calib or calib[key].size != size:
-            raise DatasetError(f"{data_dir / 'calib.txt'}: missing or malformed {key!r} line")
-    Tr = np.eye(4)
-    Tr[:3, :] = calib["Tr"].reshape(3, 4)
-    T_w_cam = read_kitti_poses(data_dir / "poses.txt")
+    if "P0" not in calib:
+        raise DatasetError(f"{data_dir / 'calib.txt'}: no 'P0' line")
+    Tr = calib_T_cam_velo(calib)
     try:
-        times = np.loadtxt(data_dir / "times.txt", dtype=np.float64, ndmin=1)
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"cannot read {data_dir / 'times.txt'}: {exc}") from exc
+        T_w_cam = read_kitti_poses(data_dir / "poses.txt")
+    except ValueError as exc:
+        raise DatasetError(str(exc)) from exc
+    times = read_times(data_dir / "times.txt")
     if len(times) != len(T_w_cam):
         raise DatasetError(
             f"{data_dir}: times.txt has {len(times)} rows but poses.txt has {len(T_w_cam)}"

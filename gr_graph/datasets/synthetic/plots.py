@@ -9,29 +9,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from gr_graph.atomic import atomic_savefig
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
 
 log = logging.getLogger(__name__)
 DEFAULT_OUT = Path(__file__).resolve().parents[3] / "docs" / "images"
-
-
-def _save(fig, path: Path) -> None:
-    """Save a figure atomically (temp file + rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _range_image(frame, n_az: int) -> np.ndarray:
@@ -76,7 +62,7 @@ def plot_scan(out: Path, index: int = 1000, seed: int = 0) -> Path:
                      "colour = range 0-60 m, white = no return)", fontsize=9)
     ax.set_xlabel("azimuth [deg] (counter-clockwise from forward)")
     path = out / "synthetic_scan.png"
-    _save(fig, path)
+    atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -130,7 +116,7 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
                       "poles, parked cars (blue)", fontsize=10)
     fig.tight_layout()
     path = out / "synthetic_town.png"
-    _save(fig, path)
+    atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 

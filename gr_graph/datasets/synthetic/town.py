@@ -439,5 +439,5 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
     )
     town.build_seconds = time.perf_counter() - t0
     log.info("built town (seed %d): %d triangles, %s in %.1f s", seed, len(tris),
-             ", ".join(f"{len(v)} {k}s" for k, v in footprints.items()), town.build_seconds)
+             ", ".join(f"{len(v)} {k}{'es' if k.endswith('sh') else 's'}" for k, v in footprints.items()), town.build_seconds)
     return town

@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from gr_graph.atomic import atomic_write_bytes
 from gr_graph.datasets.base import velo_to_cam_poses
 from gr_graph.datasets.synthetic.path import load_kitti00_path
 
@@ -45,18 +44,6 @@ def parse_frames(spec: str | None, length: int) -> range:
     if not 0 <= start < stop <= length:
         raise ValueError(f"--frames {spec!r}: need 0 <= A < B <= {length}")
     return range(start, stop)
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _fmt_rows(rows: np.ndarray) -> str:
@@ -107,12 +94,12 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
     Tr = np.asarray(seq.T_cam_velo, dtype=np.float64)
     P0 = load_kitti00_path().P0  # the rendering is of KITTI 00: its camera-0 projection
     calib = f"P0: {_fmt_rows(P0.reshape(1, 12)).strip()}\nTr: {_fmt_rows(Tr[:3].reshape(1, 12)).strip()}\n"
-    _atomic_write_bytes(seq_dir / "calib.txt", calib.encode())
+    atomic_write_bytes(seq_dir / "calib.txt", calib.encode())
     idx = np.arange(frames.start, frames.stop)
     times = np.asarray(seq.timestamps, dtype=np.float64)[idx]
-    _atomic_write_bytes(seq_dir / "times.txt", "".join(f"{t:.12e}\n" for t in times).encode())
+    atomic_write_bytes(seq_dir / "times.txt", "".join(f"{t:.12e}\n" for t in times).encode())
     T_cam = velo_to_cam_poses(np.asarray(seq.gt_poses, dtype=np.float64)[idx], Tr)
-    _atomic_write_bytes(out / "poses" / f"{seq_name}.txt", _fmt_rows(T_cam[:, :3, :].reshape(-1, 12)).encode())
+    atomic_write_bytes(out / "poses" / f"{seq_name}.txt", _fmt_rows(T_cam[:, :3, :].reshape(-1, 12)).encode())
     meta = {
         "generator": "gr_graph.datasets.synthetic",
         "sequence": getattr(seq, "name", type(seq).__name__),
@@ -124,13 +111,13 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "source": "trajectory: KITTI odometry 00 ground truth (Geiger, Lenz, Urtasun, CVPR 2012; "
                   "CC BY-NC-SA 3.0)",
     }
-    _atomic_write_bytes(seq_dir / "synthetic.json", (json.dumps(meta, indent=2) + "\n").encode())
+    atomic_write_bytes(seq_dir / "synthetic.json", (json.dumps(meta, indent=2) + "\n").encode())
 
     for k, i in enumerate(tqdm(frames, desc=f"rendering {len(frames)} frames", disable=not progress)):
         f = seq[i]
         arr = np.empty((len(f), 4), dtype=np.float32)
         arr[:, :3] = f.points
         arr[:, 3] = f.intensity
-        _atomic_write_bytes(velo / f"{k:06d}.bin", arr.tobytes())
+        atomic_write_bytes(velo / f"{k:06d}.bin", arr.tobytes())
     log.info("wrote %d frames (%d..%d) to %s", len(frames), frames.start, frames.stop - 1, seq_dir)
     return seq_dir

@@ -1,0 +1,43 @@
+"""Atomic output: complete files or the old ones, never a torn write, usual permissions."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.atomic import atomic_path, atomic_save_npz, atomic_write_json, atomic_write_text
+
+
+def test_text_json_npz_round_trip(tmp_path: Path) -> None:
+    atomic_write_text(tmp_path / "a" / "x.txt", "one\ntwo\n")
+    assert (tmp_path / "a" / "x.txt").read_text() == "one\ntwo\n"
+    atomic_write_json(tmp_path / "m.json", {"v": np.float64(1.5), "a": np.arange(3)})
+    assert (tmp_path / "m.json").read_text().count("1.5") == 1
+    atomic_save_npz(tmp_path / "z.npz", p=np.eye(3))
+    with np.load(tmp_path / "z.npz") as z:
+        np.testing.assert_array_equal(z["p"], np.eye(3))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "m.json", "z.npz"]
+
+
+def test_error_keeps_old_file_and_leaves_no_temporary(tmp_path: Path) -> None:
+    target = tmp_path / "poses.txt"
+    atomic_write_text(target, "old\n")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed mid-write")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["poses.txt"]
+
+
+def test_mode_follows_umask(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        atomic_write_text(tmp_path / "r.txt", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "r.txt").stat().st_mode) == 0o644
