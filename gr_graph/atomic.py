@@ -21,11 +21,11 @@ import numpy as np
 PathLike = str | os.PathLike[str]
 
 
-def _file_mode() -> int:
-    """The mode ``open()`` would give a new file under the current umask."""
+def default_mode(directory: bool = False) -> int:
+    """The mode ``open()`` (or ``mkdir``) would give a new file (directory) under the umask."""
     umask = os.umask(0)
     os.umask(umask)
-    return 0o666 & ~umask
+    return (0o777 if directory else 0o666) & ~umask
 
 
 @contextmanager
@@ -45,7 +45,7 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        os.chmod(tmp, _file_mode())  # mkstemp makes 0600; results get the usual mode
+        os.chmod(tmp, default_mode())  # mkstemp makes 0600; results get the usual mode
         os.replace(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)

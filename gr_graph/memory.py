@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from gr_graph.atomic import default_mode
+
 FORMAT_NAME = "gr_graph.memory"
 FORMAT_VERSION = 1
 EDGE_ODOMETRY = 0
@@ -232,6 +234,7 @@ class Memory:
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
         try:
+            tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
             for name in _ARRAYS:
                 np.save(tmp / f"{name}.npy", np.ascontiguousarray(getattr(self, name)))
             meta = {

@@ -81,3 +81,15 @@ def test_wrong_format_and_missing_parts(tmp_path: Path) -> None:
     (tmp_path / "m" / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(MemoryFormatError, match="v99"):
         load_memory(tmp_path / "m")
+
+
+def test_saved_memory_has_usual_permissions(tmp_path: Path) -> None:
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        _memory(np.random.default_rng(5)).save(tmp_path / "m")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "m").stat().st_mode) == 0o755
