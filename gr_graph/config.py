@@ -12,7 +12,7 @@ odometry    the VGICP front end (small_gicp) and its failure detection
 loops       loop-closure candidates (proximity, Scan Context) and geometric verification
 graph       the gtsam pose graph: noise models, robust kernel, optimiser, marginals
 output      what is written and where
-training    placeholder for the learning rounds (Algorithm 3), read by the trainer
+training    the learning rounds (Algorithm 3): training, densification, convergence
 """
 
 from __future__ import annotations
@@ -134,11 +134,49 @@ class OutputConfig(_Section):
 
 
 class TrainingConfig(_Section):
-    """Learning rounds (Algorithm 3); read by the trainer. Placeholder until the trainer lands."""
+    """Learning rounds (Algorithm 3): training f_theta (Algorithm 1) and densification (Algorithm 2).
 
-    model_config = ConfigDict(extra="allow")
+    ``trainer`` holds further keys of ``training.trainer.TrainConfig`` (``lr``, ``lambda_corr``,
+    ``lambda_pose``, ``max_corr``, ``num_threads``, ..., and ``net``: a mapping of
+    ``training.network.NetConfig`` keys); they are checked before round 0 and an unknown key
+    is an error. ``epochs``, ``seed``, ``device``, ``progress`` and ``init_checkpoint`` are
+    set by the pipeline and may not appear there.
+    """
+
     rounds: int = Field(0, ge=0, description="reciprocal rounds after the raw-scan SLAM (round 0)")
     convergence_delta: float = Field(0.01, ge=0.0, description="stop when poses move less than this [m, mean]")
+    tau_ani: float = Field(0.9, ge=0.0, lt=1.0, description="anisotropy filter: keep points with 1 - l_min/l_max > tau_ani")
+    samples_per_point: int = Field(4, ge=1, description="M: samples ~ N(s, C) drawn per kept point")
+    keep_original: bool = Field(False, description="also keep the filtered points themselves in S+ (paper: samples only)")
+    min_kept_points: int = Field(
+        200, ge=1, description="fewer points pass the filter: the frame falls back to its unfiltered points (logged)"
+    )
+    slam_voxel_size: float | None = Field(
+        None, gt=0.0, description="voxel size of SLAM preprocessing on densified scans [m]; None: preprocess.voxel_size"
+    )
+    seed: int = Field(0, description="seeds training (weights, sampling) and densification (per frame: (seed, index))")
+    epochs: int = Field(3, ge=0, description="training epochs per round (the paper's I)")
+    warm_start: bool = Field(True, description="rounds >= 2 start from the previous round's model.pt")
+    trainer: dict[str, Any] = Field(
+        default_factory=dict, description="more training.trainer.TrainConfig keys, e.g. {lr: 1e-3, net: {n_points: 1024}}"
+    )
+
+    @field_validator("trainer")
+    @classmethod
+    def _no_pipeline_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
+        reserved = {"epochs", "seed", "device", "progress", "init_checkpoint"} & set(v)
+        if reserved:
+            raise ValueError(f"training.trainer: {sorted(reserved)} are set by the pipeline; use training.epochs/seed "
+                             "and the top-level device")
+        return v
+
+    def trainer_config(self, device: str = "cpu", progress: bool = True, init_checkpoint: str | None = None) -> dict[str, Any]:
+        """The mapping given to ``training.train.train_from_memory`` (only TrainConfig keys)."""
+        d: dict[str, Any] = {**self.trainer, "epochs": self.epochs, "seed": self.seed, "device": device,
+                             "progress": progress}
+        if init_checkpoint is not None:
+            d["init_checkpoint"] = str(init_checkpoint)
+        return d
 
 
 class SlamConfig(_Section):

@@ -2,8 +2,9 @@
 
 :class:`SlamPipeline` ``run()`` does everything: round 0 is SLAM on the raw scans
 (odometry, loop closures, pose graph, marginals, memory); rounds r ≥ 1 (learning rounds:
-train from the memory of round r−1, densify the scans, SLAM again) arrive with the trainer
-and raise :class:`LearningRoundsUnavailable` until it is importable.
+train f_θ from the memory of round r−1 into ``round_<r>/training``, densify the scans with it
+(:mod:`gr_graph.densify`), SLAM again on the densified scans) need the trainer and raise
+:class:`LearningRoundsUnavailable` when it is not importable.
 
 Output directory (``--out``)::
 
@@ -17,6 +18,7 @@ Output directory (``--out``)::
     round_<r>/marginals.npz      see :data:`MARGINALS_KEYS`
     round_<r>/loops.json         every verified loop candidate (accepted or not) with figures
     round_<r>/memory/            the memory of the round (format: :mod:`gr_graph.memory`)
+    round_<r>/training/          rounds r >= 1: the trainer's model.pt, checkpoint.pt, log, summary
     round_<r>/round.json         written last: the round's summary; marks the round finished
 
 Every file is written atomically (temporary sibling, then rename).
@@ -34,9 +36,12 @@ Memory edges: odometry edges are (k+1, k) (source P = S_{k+1}, target Q = S_k), 
 (i, j) with i the newer scan; T̂ comes from the optimised trajectory, ``edge_H`` is the
 registration Hessian, correspondences are nearest stored target points within
 ``odometry.corr_max_distance`` under T̂; ``info.flagged_edges`` lists failed registrations.
+In rounds r ≥ 1 the memory stores round 0's raw downsampled scans (not the densified ones:
+Algorithm 2 returns M+ = (S_k, T̂+, C+)) with T̂ and correspondences from round r's trajectory.
 
 Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` exists and
-whose ``config_fingerprint`` (a hash of every non-output option) equals the current one;
+whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options the round
+depends on) equals the current one;
 a round with a missing or different ``round.json`` is recomputed, with everything after
 it. ``output.resume: false`` recomputes all rounds.
 """
@@ -383,6 +388,36 @@ def build_memory(result: SlamResult, cfg: SlamConfig, info: dict[str, Any] | Non
 # ----------------------------------------------------------------------------- the pipeline
 
 
+def _accepts(fn: Any, name: str) -> bool:
+    """Whether ``fn`` takes a keyword argument ``name``."""
+    import inspect
+
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def round_fingerprint(cfg: SlamConfig, r: int) -> str:
+    """Hash of the options round ``r``'s result depends on.
+
+    Round 0 does not depend on the ``training`` section or the device; no round depends on
+    the number of rounds or the convergence threshold (so ``--rounds 2`` after ``--rounds 1``
+    reuses both finished rounds), nor on output options.
+    """
+    import hashlib
+
+    if r == 0:
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}, "training": True,
+                                                 "device": True})
+    else:
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
+                                                 "training": {"rounds", "convergence_delta"}})
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+
 class SlamPipeline:
     """``python -m gr_graph.slam`` as an object: ``SlamPipeline(cfg).run()``.
 
@@ -431,7 +466,7 @@ class SlamPipeline:
             summary = json.loads(p.read_text())
         except json.JSONDecodeError:
             return None
-        if summary.get("config_fingerprint") != self.cfg.slam_fingerprint():
+        if summary.get("config_fingerprint") != round_fingerprint(self.cfg, r):
             log.info("round %d: existing results were made with another configuration; recomputing", r)
             return None
         return summary
@@ -452,6 +487,12 @@ class SlamPipeline:
                 "learning rounds need " + " and ".join(missing) + ", which arrive with their own issues; "
                 "run with --rounds 0"
             )
+        if not self.cfg.output.write_memory:
+            raise ValueError("learning rounds train on the memory of the previous round: output.write_memory must be true")
+        from training.trainer import TrainConfig
+
+        # unknown keys in training.trainer fail here, before round 0, not after it
+        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False), strict=True)
 
     # -------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:
@@ -476,9 +517,13 @@ class SlamPipeline:
             if summary is not None:
                 log.info("round %d: already finished in %s; skipped (resume)", r, self.round_dir(r))
             else:
-                recompute = True
-                seq = self.sequence if r == 0 else self._learning_round_sequence(r)
-                summary = self.slam_round(r, seq)
+                prev_recomputed, recompute = recompute, True
+                if r == 0:
+                    summary = self.slam_round(0, self.sequence)
+                else:
+                    t0 = time.perf_counter()
+                    seq = self._learning_round_sequence(r, resume_training=cfg.output.resume and not prev_recomputed)
+                    summary = self.slam_round(r, seq, train_seconds=time.perf_counter() - t0)
             metrics["rounds"][str(r)] = summary
             atomic_write_json(self.out / "metrics.json", metrics)
             poses = self._read_round_poses(r)
@@ -499,24 +544,49 @@ class SlamPipeline:
         with np.load(self.round_dir(r) / "marginals.npz") as z:
             return np.array(z["poses"])
 
-    def _learning_round_sequence(self, r: int) -> LidarSequence:
+    def _learning_round_sequence(self, r: int, resume_training: bool = True) -> LidarSequence:
         """Algorithm 3, one iteration, up to the SLAM call: train f_θ on the memory of round
         r−1 (Algorithm 1), then densify every scan with it (Algorithm 2, lines 3-9).
 
-        The hook's contract: ``train_from_memory(memory_dir, out_dir, config) -> checkpoint``
-        and ``densified_sequence(sequence, checkpoint, config, device) -> LidarSequence``.
+        Training goes to ``round_<r>/training`` (``model.pt``, ``checkpoint.pt``, log); rounds
+        r ≥ 2 start from round r−1's ``model.pt`` (``training.warm_start``). An existing
+        checkpoint is resumed only if round r−1 was not recomputed in this run
+        (``resume_training``); otherwise training restarts (the memory changed).
         """
         self._check_learning_available()
-        from gr_graph.densify import densified_sequence  # type: ignore[import-not-found]
+        from gr_graph.densify import densified_sequence
         from training.train import train_from_memory
 
+        tc = self.cfg.training
         rd = self.round_dir(r)
-        train_cfg = {k: v for k, v in self.cfg.training.model_dump().items() if k not in ("rounds", "convergence_delta")}
-        ckpt = train_from_memory(self.round_dir(r - 1) / "memory", rd / "training", train_cfg)
-        return densified_sequence(self.sequence, ckpt, self.cfg.training, device=self.cfg.device)
+        init = None
+        if r >= 2 and tc.warm_start:
+            init = self.round_dir(r - 1) / "training" / "model.pt"
+            if not init.is_file():
+                raise FileNotFoundError(f"round {r}: warm start needs {init} (round {r - 1}'s model)")
+        train_cfg = tc.trainer_config(self.cfg.device, self.cfg.output.progress, init)
+        # stand-ins with the bare contract (memory_dir, out_dir, config) / (sequence, ckpt, config, device) still work
+        train_kw = {"resume": resume_training} if _accepts(train_from_memory, "resume") else {}
+        try:
+            ckpt = train_from_memory(self.round_dir(r - 1) / "memory", rd / "training", train_cfg, **train_kw)
+        except RuntimeError as exc:  # training.trainer.TrainingError: a checkpoint of another configuration
+            if not (train_kw.get("resume") and "different configuration" in str(exc)):
+                raise
+            log.warning("round %d: %s; training restarts from scratch", r, exc)
+            ckpt = train_from_memory(self.round_dir(r - 1) / "memory", rd / "training", train_cfg, resume=False)
+        dens_kw = {"preprocess": self.cfg.preprocess} if _accepts(densified_sequence, "preprocess") else {}
+        return densified_sequence(self.sequence, ckpt, tc, device=self.cfg.device, **dens_kw)
 
-    def slam_round(self, r: int, sequence: LidarSequence) -> dict[str, Any]:
-        """Run F_SLAM on ``sequence`` and write round ``r``'s outputs; return its summary."""
+    def slam_round(self, r: int, sequence: LidarSequence, train_seconds: float | None = None) -> dict[str, Any]:
+        """Run F_SLAM on ``sequence`` and write round ``r``'s outputs; return its summary.
+
+        Rounds r ≥ 1 (``sequence`` densified): SLAM preprocesses with
+        ``training.slam_voxel_size`` if set, and the memory stores the raw downsampled scans of
+        round 0 (Algorithm 2 returns M+ = (S_k, T̂+, C+): the original scans, so that the next
+        training sees the same input as densification), with T̂ and correspondences recomputed
+        from this round's trajectory. The summary gets ``densify`` (fallback counts, points)
+        and ``runtime_s.training``.
+        """
         from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
         cfg = self.cfg
@@ -524,7 +594,20 @@ class SlamPipeline:
         rd.mkdir(parents=True, exist_ok=True)
         (rd / "round.json").unlink(missing_ok=True)
         t0 = time.perf_counter()
-        res = run_slam(sequence, cfg, desc=f" round {r}")
+        slam_cfg = cfg
+        if r > 0 and cfg.training.slam_voxel_size is not None:
+            slam_cfg = cfg.model_copy(update={"preprocess": cfg.preprocess.model_copy(
+                update={"voxel_size": cfg.training.slam_voxel_size})})
+        res = run_slam(sequence, slam_cfg, desc=f" round {r}")
+        mean_points = float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0
+        if r > 0 and cfg.output.write_memory:
+            from gr_graph.memory import load_memory
+
+            raw = load_memory(self.round_dir(0) / "memory")
+            if raw.n_scans != len(res.scans):
+                raise RuntimeError(f"round {r}: round 0 memory has {raw.n_scans} scans, this round {len(res.scans)}")
+            res.scans = [np.array(raw.scan(k)) for k in range(raw.n_scans)]
+            del raw
         timer = StageTimer()
         T_cv = np.asarray(sequence.T_cam_velo, np.float64)
         with timer("output"):
@@ -559,19 +642,23 @@ class SlamPipeline:
                 del mem
         summary: dict[str, Any] = {
             "round": r,
-            "config_fingerprint": cfg.slam_fingerprint(),
+            "config_fingerprint": round_fingerprint(cfg, r),
             "n_frames": len(res.poses),
             "n_odometry_edges": sum(e.kind == "odometry" for e in res.edges),
             "n_flagged_odometry_edges": res.info["n_flagged_odometry"],
             "n_loops": len(res.loops),
             "n_loop_candidates": len(res.loop_attempts),
             "graph_error": list(res.graph_error),
-            "mean_points_per_scan": float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0,
+            "mean_points_per_scan": mean_points,
         }
+        if hasattr(sequence, "stats"):
+            summary["densify"] = sequence.stats()
         if self.gt is not None:
             summary.update(self._trajectory_metrics(res, T_cv))
         runtime = {**res.runtime, **timer.seconds}
         runtime["total"] = time.perf_counter() - t0
+        if train_seconds is not None:
+            runtime["training"] = train_seconds  # not in "total" (the SLAM round); densification is in "read"
         summary["runtime_s"] = runtime
         summary["frames_per_second"] = len(res.poses) / max(runtime["total"], 1e-9)
         atomic_write_json(rd / "round.json", summary)

@@ -1,0 +1,216 @@
+"""Densified scans S+_k for the learning rounds (Algorithm 2 of the paper, lines 3-9).
+
+:func:`densified_sequence` wraps a :class:`~gr_graph.datasets.base.LidarSequence` in a lazy
+view (:class:`DensifiedSequence`): frame ``k`` is computed when it is read and nothing is
+cached. Same ``len``, ``timestamps``, ``gt_poses`` and ``T_cam_velo`` as the input. Frame
+``k`` of the view is built as follows:
+
+1. the raw frame is preprocessed exactly as SLAM preprocesses a scan
+   (:func:`gr_graph.preprocess.preprocess_scan`: non-finite points dropped, range crop,
+   voxel downsampling with ``preprocess.voxel_size``). Those downsampled points are what the
+   memory stores and what the network was trained on, so the network sees in-distribution
+   input;
+2. the network predicts a covariance ``C_i`` per point (``training.predict.
+   predict_covariances``, seeded);
+3. anisotropy filter: a point is kept if ``a_i = 1 - l_min / l_max > tau_ani``;
+4. ``M = samples_per_point`` samples ``~ N(s_i, C_i)`` are drawn per kept point
+   (``training.densify.densify``), with the generator seeded by ``(seed, frame index)``,
+   so a frame is the same whenever, and in whatever order, it is read.
+
+**The kept points themselves are not included** by default (the paper's S+ holds only the
+samples); ``training.keep_original: true`` adds them. Intensity: every output point inherits
+the intensity of its source point (the raw point nearest to the downsampled point); ``ring``
+is None.
+
+Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.fallbacks`,
+``{frame index: reason}``; :meth:`DensifiedSequence.stats` counts them):
+
+* ``"nonfinite_covariance"``: the network produced non-finite covariances for the frame (or
+  the covariances were not positive definite): the **raw frame** is returned unchanged;
+* ``"few_kept"``: fewer than ``min_kept_points`` points passed the anisotropy filter (too
+  few for registration): the **unfiltered preprocessed points** (the scan as the network saw
+  it, no sampling) are returned;
+* ``"unusable_scan"``: preprocessing left fewer than ``preprocess.min_points`` points (SLAM
+  would flag the scan anyway): the raw frame is returned.
+
+``checkpoint`` may be a ``model.pt`` / ``checkpoint.pt`` path, a
+``training.network.CovarianceNet``, or any callable ``points (N, 3) -> C (N, 3, 3)`` (tests,
+hand-made covariance models).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections import Counter
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+from gr_graph.config import PreprocessConfig, TrainingConfig
+from gr_graph.datasets.base import LidarFrame, LidarSequence
+from gr_graph.preprocess import preprocess_scan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS"]
+
+FALLBACK_REASONS = {
+    "nonfinite_covariance": "network output non-finite / not positive definite: raw frame used",
+    "few_kept": "too few points passed the anisotropy filter: unfiltered preprocessed points used",
+    "unusable_scan": "too few points after preprocessing: raw frame used",
+}
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+
+
+def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
+    """A function ``points -> C`` from a path, a CovarianceNet or a callable."""
+    if isinstance(checkpoint, (str, os.PathLike)):
+        from training.trainer import load_model
+
+        checkpoint = load_model(checkpoint, device)  # load once, not per frame
+    try:
+        from training.network import CovarianceNet
+    except ImportError:  # pragma: no cover - the trainer is part of the project
+        CovarianceNet = ()  # type: ignore[assignment,misc]
+    if isinstance(checkpoint, CovarianceNet):
+        from training.predict import predict_covariances
+
+        model = checkpoint
+
+        def predict(points: np.ndarray) -> np.ndarray:
+            return predict_covariances(model, points, device=device, seed=seed)
+
+        return predict
+    if callable(checkpoint):
+        return checkpoint
+    raise TypeError(f"densified_sequence: checkpoint must be a path, a CovarianceNet or a callable, got {type(checkpoint)}")
+
+
+class DensifiedSequence:
+    """Lazy view of ``parent`` whose frames are the densified scans S+_k (module docstring)."""
+
+    def __init__(self, parent: LidarSequence, predictor: Predictor, training_cfg: TrainingConfig,
+                 preprocess: PreprocessConfig | None = None) -> None:
+        self.parent = parent
+        self.predictor = predictor
+        self.cfg = training_cfg
+        self.preprocess = preprocess or PreprocessConfig()
+        self.name = f"{getattr(parent, 'name', 'sequence')}-densified"
+        self.timestamps = parent.timestamps
+        self.gt_poses = getattr(parent, "gt_poses", None)
+        self.T_cam_velo = parent.T_cam_velo
+        self.fallbacks: dict[int, str] = {}
+        self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self.parent)
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def _record(self, index: int, n_pre: int, n_kept: int, n_out: int, reason: str | None) -> None:
+        with self._lock:
+            self._n_points[index] = (n_pre, n_kept, n_out)
+            if reason is not None:
+                if index not in self.fallbacks:
+                    log.warning("densify frame %d: %s", index, FALLBACK_REASONS[reason])
+                self.fallbacks[index] = reason
+
+    def stats(self) -> dict[str, Any]:
+        """Counts over the frames read so far: fallbacks per reason, mean points per stage."""
+        with self._lock:
+            n = np.array(list(self._n_points.values()), dtype=np.float64).reshape(-1, 3)
+            return {
+                "frames": len(n),
+                "fallbacks": dict(Counter(self.fallbacks.values())),
+                "fallback_frames": sorted(self.fallbacks),
+                "mean_preprocessed_points": float(n[:, 0].mean()) if len(n) else 0.0,
+                "mean_kept_points": float(n[:, 1].mean()) if len(n) else 0.0,
+                "mean_output_points": float(n[:, 2].mean()) if len(n) else 0.0,
+                "kept_fraction": float(n[:, 1].sum() / max(n[:, 0].sum(), 1.0)),
+            }
+
+    def __getitem__(self, i: int) -> LidarFrame:
+        from training.densify import densify
+
+        raw = self.parent[i]
+        idx = int(raw.index)
+        cfg = self.cfg
+        scan = preprocess_scan(raw.points, self.preprocess, index=idx)
+        if not scan.usable:
+            self._record(idx, len(scan.points), 0, len(raw.points), "unusable_scan")
+            return raw
+        s = scan.points
+        try:
+            C = np.asarray(self.predictor(s), np.float64)
+            if C.shape != (len(s), 3, 3):
+                raise ValueError(f"densify frame {idx}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
+            if not np.isfinite(C).all():
+                raise FloatingPointError("non-finite covariances")
+            dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=[cfg.seed, idx],  # type: ignore[arg-type]
+                                  include_original=cfg.keep_original)
+        except (FloatingPointError, np.linalg.LinAlgError) as exc:
+            log.debug("densify frame %d: %s", idx, exc)
+            self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
+            return raw
+        except ValueError as exc:
+            if "non-finite" in str(exc) or "positive definite" in str(exc):
+                log.debug("densify frame %d: %s", idx, exc)
+                self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
+                return raw
+            raise
+        n_kept = int(kept.sum())
+        src_intensity = self._source_intensity(raw, s)
+        if n_kept < cfg.min_kept_points:
+            self._record(idx, len(s), n_kept, len(s), "few_kept")
+            return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(s, np.float64),
+                              intensity=src_intensity, ring=None, n_rings=raw.n_rings,
+                              dropped_nonfinite=raw.dropped_nonfinite)
+        ki = src_intensity[kept]
+        inten = np.repeat(ki, cfg.samples_per_point)
+        if cfg.keep_original:
+            inten = np.concatenate([ki, inten])
+        self._record(idx, len(s), n_kept, len(dense), None)
+        return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(dense, np.float64),
+                          intensity=inten.astype(np.float32), ring=None, n_rings=raw.n_rings,
+                          dropped_nonfinite=raw.dropped_nonfinite)
+
+    @staticmethod
+    def _source_intensity(raw: LidarFrame, s: np.ndarray) -> np.ndarray:
+        """Intensity of the raw point nearest to each downsampled point."""
+        if len(raw.points) == 0 or len(s) == 0:
+            return np.zeros(len(s), np.float32)
+        from scipy.spatial import cKDTree
+
+        finite = np.isfinite(raw.points).all(axis=1)
+        tree = cKDTree(raw.points[finite])
+        _, j = tree.query(s, k=1)
+        return np.asarray(raw.intensity, np.float32)[finite][j]
+
+
+def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: TrainingConfig | None = None,
+                       device: str = "cpu", preprocess: PreprocessConfig | None = None) -> DensifiedSequence:
+    """The lazy densified view of ``sequence`` (see the module docstring).
+
+    Parameters
+    ----------
+    sequence : LidarSequence
+        The raw scans.
+    checkpoint : path, CovarianceNet or callable
+        The trained f_theta (``model.pt`` from ``training.train.train_from_memory``), or a
+        callable ``points (N, 3) -> (N, 3, 3)``.
+    training_cfg : TrainingConfig
+        ``tau_ani``, ``samples_per_point``, ``seed``, ``keep_original``, ``min_kept_points``.
+    device : str
+        Device of the network.
+    preprocess : PreprocessConfig
+        Must be the preprocessing of the memory the network was trained on (default: defaults).
+    """
+    cfg = training_cfg or TrainingConfig()
+    return DensifiedSequence(sequence, _make_predictor(checkpoint, device, cfg.seed), cfg, preprocess)
