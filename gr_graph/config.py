@@ -20,12 +20,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from gr_graph.atomic import atomic_write_text
 
 
 class _Section(BaseModel):
@@ -254,21 +255,6 @@ def config_to_yaml(cfg: SlamConfig) -> str:
     """The resolved configuration as YAML text (round-trips through :func:`load_config`)."""
     d = cfg.model_dump(mode="json")
     return yaml.safe_dump(d, sort_keys=False)
-
-
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary sibling file and ``os.replace``."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
 
 
 def dump_config(cfg: SlamConfig, path: str | os.PathLike[str]) -> Path:

@@ -48,11 +48,8 @@ it. ``output.resume: false`` recomputes all rounds.
 
 from __future__ import annotations
 
-import io
 import json
 import logging
-import os
-import tempfile
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -63,7 +60,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from gr_graph.config import SlamConfig, atomic_write_text, dump_config, loop_max_rmse
+from gr_graph.atomic import atomic_save_npz, atomic_write_json
+from gr_graph.config import SlamConfig, dump_config, loop_max_rmse
 from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
 from gr_graph.loop_closure import (
     ScanContextDatabase,
@@ -96,39 +94,6 @@ MARGINALS_KEYS = {
 
 class LearningRoundsUnavailable(NotImplementedError):
     """Rounds ≥ 1 were asked for but the trainer (or densification) is not importable."""
-
-
-# ----------------------------------------------------------------------------- I/O helpers
-
-
-def atomic_save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
-    """``np.savez_compressed`` through a temporary sibling file and ``os.replace``."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.getvalue())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
-
-
-def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
-    """JSON (indented) written atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, default=_json_default))
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
 class StageTimer:
