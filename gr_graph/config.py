@@ -158,6 +158,17 @@ class TrainingConfig(_Section):
     seed: int = Field(0, description="seeds training (weights, sampling) and densification (per frame: (seed, index))")
     epochs: int = Field(3, ge=0, description="training epochs per round (the paper's I)")
     warm_start: bool = Field(True, description="rounds >= 2 start from the previous round's model.pt")
+    edge_noise: Literal["registration", "learned"] = Field(
+        "learned", description="rounds >= 1, odometry edges: 'learned' = pose-likelihood Hessian H(C) of the network's "
+        "covariances (Lambda_i = (2 C_qi)^-1); 'registration' = the VGICP information of round 0"
+    )
+    learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies H(C) before the eigenvalue floor")
+    learned_noise_min_correspondences: int = Field(
+        50, ge=3, description="fewer nearest-neighbour pairs (within odometry.corr_max_distance): registration fallback"
+    )
+    learned_noise_degeneracy_rel: float = Field(
+        1e-4, ge=0.0, lt=1.0, description="H(C) eigenvalue below this x largest (rotations as arc at 10 m): degenerate, fallback"
+    )
     trainer: dict[str, Any] = Field(
         default_factory=dict, description="more training.trainer.TrainConfig keys, e.g. {lr: 1e-3, net: {n_points: 1024}}"
     )

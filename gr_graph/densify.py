@@ -33,6 +33,11 @@ Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.f
 * ``"unusable_scan"``: preprocessing left fewer than ``preprocess.min_points`` points (SLAM
   would flag the scan anyway): the raw frame is returned.
 
+Predicted covariances: the points the network saw and its covariances are kept for the
+``keep_predictions`` most recently computed frames (default 16; more than the SLAM prefetch
+depth) and returned by :meth:`DensifiedSequence.predicted`, so that the learning rounds can
+build each odometry edge's information H(C) without running the network again.
+
 ``checkpoint`` may be a ``model.pt`` / ``checkpoint.pt`` path, a
 ``training.network.CovarianceNet``, or any callable ``points (N, 3) -> C (N, 3, 3)`` (tests,
 hand-made covariance models).
@@ -43,7 +48,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -106,6 +111,8 @@ class DensifiedSequence:
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()
+        self.keep_predictions = 16
+        self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self.parent)
@@ -136,6 +143,20 @@ class DensifiedSequence:
                 "kept_fraction": float(n[:, 1].sum() / max(n[:, 0].sum(), 1.0)),
             }
 
+    def predicted(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(points (N, 3), C (N, 3, 3))`` the network gave for frame ``index`` (the preprocessed
+        scan), if it is among the ``keep_predictions`` frames computed last and its covariances
+        were finite; else None."""
+        with self._lock:
+            return self._predicted.get(int(index))
+
+    def _keep(self, index: int, points: np.ndarray, C: np.ndarray) -> None:
+        with self._lock:
+            self._predicted[index] = (points, C)
+            self._predicted.move_to_end(index)
+            while len(self._predicted) > max(int(self.keep_predictions), 0):
+                self._predicted.popitem(last=False)
+
     def __getitem__(self, i: int) -> LidarFrame:
         from training.densify import densify
 
@@ -155,6 +176,7 @@ class DensifiedSequence:
                 raise FloatingPointError("non-finite covariances")
             dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=[cfg.seed, idx],  # type: ignore[arg-type]
                                   include_original=cfg.keep_original)
+            self._keep(idx, s, C)  # only covariances densify accepted (finite, positive definite)
         except (FloatingPointError, np.linalg.LinAlgError) as exc:
             log.debug("densify frame %d: %s", idx, exc)
             self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")

@@ -39,6 +39,14 @@ registration Hessian, correspondences are nearest stored target points within
 In rounds r ≥ 1 the memory stores round 0's raw downsampled scans (not the densified ones:
 Algorithm 2 returns M+ = (S_k, T̂+, C+)) with T̂ and correspondences from round r's trajectory.
 
+Edge noise in rounds r ≥ 1 (``training.edge_noise``): ``"learned"`` (default) gives each ok
+odometry edge the pose-likelihood Hessian H(C) of the network's covariances of the two
+preprocessed scans (:class:`LearnedEdgeNoise`, reusing the covariances densification
+predicted), floored by ``graph.min_information_eigenvalue``; fallbacks to the registration
+information (failed registration, missing covariances, too few correspondences, non-finite
+or degenerate H(C)) are logged and counted in the summary's ``edge_noise``. Loop edges and
+round 0 keep the registration information.
+
 Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` exists and
 whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options the round
 depends on) equals the current one;
@@ -70,7 +78,7 @@ from gr_graph.loop_closure import (
     verify_loop,
 )
 from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory
-from gr_graph.odometry import RegistrationEdge, VgicpOdometry
+from gr_graph.odometry import LEARNED_FALLBACK_REASONS, RegistrationEdge, VgicpOdometry, learned_information
 from gr_graph.pose_graph import PoseGraph, position_covariance_world
 from gr_graph.preprocess import preprocess_scan, rebuild_scan
 
@@ -161,10 +169,81 @@ class SlamResult:
         return [e for e in self.edges if e.kind == "loop"]
 
 
-def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "") -> SlamResult:
+class LearnedEdgeNoise:
+    """Odometry-edge information from the network's covariances (``training.edge_noise: learned``).
+
+    ``predictions(frame_index)`` returns ``(points, C)`` the network predicted for a frame
+    (:meth:`gr_graph.densify.DensifiedSequence.predicted`) or None. :meth:`apply` replaces an
+    ok odometry edge's ``information`` by ``scale * H(C)`` (floored,
+    :func:`gr_graph.odometry.learned_information`) and keeps the registration information
+    otherwise, logging the reason. :meth:`summary` counts edges with H(C), floored ones and
+    fallbacks per reason.
+    """
+
+    def __init__(self, predictions: Any, cfg: SlamConfig) -> None:
+        self.predictions = predictions
+        self.cfg = cfg
+        self.n_learned = 0
+        self.n_floored = 0
+        self.fallbacks: dict[str, int] = defaultdict(int)
+        self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
+        self._trees: dict[int, Any] = {}
+
+    def _tree(self, frame: int, points: np.ndarray) -> Any:
+        from scipy.spatial import cKDTree
+
+        if frame not in self._trees:
+            if len(self._trees) > 4:
+                self._trees.pop(next(iter(self._trees)))
+            self._trees[frame] = cKDTree(points)
+        return self._trees[frame]
+
+    def apply(self, edge: RegistrationEdge, source_frame: int, target_frame: int) -> RegistrationEdge:
+        """Set ``edge.information`` to the learned information when possible; return the edge."""
+        tc = self.cfg.training
+        reason, detail, res = "", "", None
+        if not edge.ok:
+            reason = "registration_failed"
+        else:
+            ps, pt = self.predictions(source_frame), self.predictions(target_frame)
+            if ps is None or pt is None:
+                reason = "no_covariances"
+            else:
+                res = learned_information(
+                    edge.T, ps[0], pt[0], pt[1], max_distance=self.cfg.odometry.corr_max_distance,
+                    min_correspondences=tc.learned_noise_min_correspondences,
+                    min_eigenvalue=self.cfg.graph.min_information_eigenvalue, scale=tc.learned_noise_scale,
+                    degeneracy_rel=tc.learned_noise_degeneracy_rel, target_tree=self._tree(target_frame, pt[0]),
+                )
+                reason, detail = res.reason, res.detail
+                if res.hessian is not None:
+                    self.hessians[(edge.source, edge.target)] = res.hessian
+        if reason:
+            self.fallbacks[reason] += 1
+            log.warning("edge (%d, %d): no learned information H(C), %s%s; registration information kept",
+                        edge.source, edge.target, LEARNED_FALLBACK_REASONS[reason], f" ({detail})" if detail else "")
+            edge.info["edge_noise"] = f"registration ({reason})"
+            return edge
+        assert res is not None and res.information is not None
+        self.n_learned += 1
+        self.n_floored += int(res.floored)
+        edge.information = res.information
+        edge.info["edge_noise"] = "learned"
+        edge.info["learned_noise_correspondences"] = res.n_correspondences
+        return edge
+
+    def summary(self) -> dict[str, Any]:
+        return {"mode": "learned", "n_learned": self.n_learned, "n_floored": self.n_floored,
+                "n_fallback": int(sum(self.fallbacks.values())), "fallbacks": dict(self.fallbacks)}
+
+
+def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "",
+             edge_noise: LearnedEdgeNoise | None = None) -> SlamResult:
     """F_SLAM: odometry, loop closures, pose graph and marginals over ``sequence``.
 
     Frames are read (rendered) one at a time; only the downsampled scans are kept.
+    ``edge_noise`` (learning rounds, ``training.edge_noise: learned``) replaces each odometry
+    edge's information by the learned H(C) before it enters the graph.
     """
     timer = StageTimer()
     pc, oc, lc, gc = cfg.preprocess, cfg.odometry, cfg.loops, cfg.graph
@@ -219,6 +298,9 @@ def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "") -> SlamRe
         frame_index.append(int(frame.index))
         graph.add_pose(estimate_one(i))
         if edge is not None:
+            if edge_noise is not None:
+                with timer("edge_noise"):
+                    edge_noise.apply(edge, frame_index[edge.source], frame_index[edge.target])
             edges.append(edge)
             n_flagged += int(not edge.ok)
             graph.add_edge(edge.source, edge.target, edge.T, edge.information, loop=False)
@@ -563,7 +645,15 @@ class SlamPipeline:
         if r > 0 and cfg.training.slam_voxel_size is not None:
             slam_cfg = cfg.model_copy(update={"preprocess": cfg.preprocess.model_copy(
                 update={"voxel_size": cfg.training.slam_voxel_size})})
-        res = run_slam(sequence, slam_cfg, desc=f" round {r}")
+        edge_noise = None
+        if r > 0 and cfg.training.edge_noise == "learned":
+            if hasattr(sequence, "predicted"):
+                sequence.keep_predictions = max(getattr(sequence, "keep_predictions", 0), cfg.data.prefetch + 8)
+                edge_noise = LearnedEdgeNoise(sequence.predicted, cfg)
+            else:
+                log.warning("round %d: training.edge_noise is 'learned' but the sequence has no predicted "
+                            "covariances; every odometry edge keeps its registration information", r)
+        res = run_slam(sequence, slam_cfg, desc=f" round {r}", edge_noise=edge_noise)
         mean_points = float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0
         if r > 0 and cfg.output.write_memory:
             from gr_graph.memory import load_memory
@@ -618,6 +708,19 @@ class SlamPipeline:
         }
         if hasattr(sequence, "stats"):
             summary["densify"] = sequence.stats()
+        if r > 0:
+            n_odo = summary["n_odometry_edges"]
+            if edge_noise is not None:
+                summary["edge_noise"] = edge_noise.summary()
+            elif cfg.training.edge_noise == "learned":  # no predicted covariances at all (logged above)
+                summary["edge_noise"] = {"mode": "learned", "n_learned": 0, "n_floored": 0, "n_fallback": n_odo,
+                                         "fallbacks": {"no_covariances": n_odo}}
+            else:
+                summary["edge_noise"] = {"mode": "registration", "n_learned": 0, "n_floored": 0, "n_fallback": 0,
+                                         "fallbacks": {}}
+            en = summary["edge_noise"]
+            log.info("round %d: %d odometry edges with learned information H(C) (%d floored), %d fallbacks %s",
+                     r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:
             summary.update(self._trajectory_metrics(res, T_cv))
         runtime = {**res.runtime, **timer.seconds}

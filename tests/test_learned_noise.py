@@ -1,0 +1,199 @@
+"""Learned edge noise (``training.edge_noise: learned``): odometry information = H(C) in rounds >= 1."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+import yaml
+
+from factors.noise import floored_information
+from factors.wls import solve_wls
+from gr_graph.config import GraphConfig, load_config
+from gr_graph.odometry import RegistrationEdge, learned_information
+from gr_graph.pipeline import LearnedEdgeNoise
+from gr_graph.pose_graph import edge_noise_model
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    w = rng.normal(0, 0.05, 3)
+    th = np.linalg.norm(w)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / th
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    T[:3, 3] = rng.normal(0, 0.5, 3)
+    return T
+
+
+def _spd(rng: np.random.Generator, n: int) -> np.ndarray:
+    A = rng.normal(0, 0.1, (n, 3, 3))
+    return A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
+
+
+def _synthetic_edge(seed: int = 0, n: int = 2000):
+    """Source p, target = shuffled T p plus 500 unmatched far points, covariances of the target."""
+    rng = np.random.default_rng(seed)
+    T = _pose(rng)
+    p = rng.uniform([-30, -30, -2], [30, 30, 6], (n, 3))
+    q = p @ T[:3, :3].T + T[:3, 3]
+    extra = rng.uniform([100, 100, 0], [150, 150, 5], (500, 3))
+    perm = rng.permutation(n + 500)
+    target = np.vstack([q, extra])[perm]
+    C = _spd(rng, n + 500)
+    inv = np.argsort(perm)  # target[inv[i]] == q[i] for i < n
+    return T, p, q, target, C, C[inv[:n]]
+
+
+def _edge(T: np.ndarray, info: np.ndarray, ok: bool = True) -> RegistrationEdge:
+    return RegistrationEdge(source=1, target=0, T=T, H_raw=np.eye(6), information=info.copy(), inlier_ratio=1.0,
+                            error_per_inlier=0.0, iterations=1, ok=ok)
+
+
+def test_learned_information_equals_wls_hessian_and_gtsam_information():
+    T, p, q, target, C, Cq = _synthetic_edge()
+    ref = solve_wls(p, q, Cq, T0=T)  # independent: converges to T (exact correspondences)
+    np.testing.assert_allclose(ref.T, T, atol=1e-9)
+    res = learned_information(T, p, target, C, max_distance=0.5, min_eigenvalue=None)
+    assert res.reason == "" and res.n_correspondences == len(p) and not res.floored
+    np.testing.assert_allclose(res.hessian, ref.hessian, rtol=1e-9, atol=1e-9 * np.abs(ref.hessian).max())
+    np.testing.assert_allclose(res.information, ref.hessian, rtol=1e-9, atol=1e-9 * np.abs(ref.hessian).max())
+    # with a floor between the eigenvalues: the floored H, and gtsam's model carries exactly it
+    ev = np.linalg.eigvalsh(ref.hessian)
+    floor = float(np.sqrt(ev[1] * ev[2]))
+    res = learned_information(T, p, target, C, max_distance=0.5, min_eigenvalue=floor)
+    assert res.floored
+    w, V = np.linalg.eigh(ref.hessian)
+    expect = (V * np.maximum(w, floor)) @ V.T
+    np.testing.assert_allclose(res.information, expect, rtol=1e-8, atol=1e-8 * ev[-1])
+    model = edge_noise_model(res.information, GraphConfig(min_information_eigenvalue=floor))
+    np.testing.assert_allclose(model.information(), expect, rtol=1e-7, atol=1e-7 * ev[-1])
+
+
+def test_edge_noise_apply_sets_information_and_counts():
+    T, p, q, target, C, Cq = _synthetic_edge(seed=1)
+    preds = {5: (p, np.tile(np.eye(3), (len(p), 1, 1))), 4: (target, C)}
+    cfg = load_config(overrides={"odometry": {"corr_max_distance": 0.5}})
+    en = LearnedEdgeNoise(preds.get, cfg)
+    e = en.apply(_edge(T, np.eye(6)), 5, 4)
+    np.testing.assert_allclose(e.information, solve_wls(p, q, Cq, T0=T).hessian, rtol=1e-8)
+    assert e.info["edge_noise"] == "learned"
+    e2 = en.apply(_edge(T, 7 * np.eye(6), ok=False), 5, 4)  # flagged registration: fallback kept
+    e3 = en.apply(_edge(T, 7 * np.eye(6)), 6, 5)  # frame 6 has no covariances
+    far = T.copy()
+    far[:3, 3] += 50.0
+    e4 = en.apply(_edge(far, 7 * np.eye(6)), 5, 4)  # no pair within 0.5 m
+    for x in (e2, e3, e4):
+        np.testing.assert_array_equal(x.information, 7 * np.eye(6))
+    assert en.summary() == {"mode": "learned", "n_learned": 1, "n_floored": 0, "n_fallback": 3,
+                            "fallbacks": {"registration_failed": 1, "no_covariances": 1, "few_correspondences": 1}}
+
+
+def test_planar_scene_is_degenerate_fallback_logged_and_counted(caplog):
+    rng = np.random.default_rng(2)
+    p = np.column_stack([rng.uniform(-20, 20, (3000, 2)), np.zeros(3000)])  # one plane, z = 0
+    T = np.eye(4)
+    T[:3, 3] = [0.3, 0.0, 0.0]
+    q = p @ T[:3, :3].T + T[:3, 3]
+    C_plane = np.diag([1.0, 1.0, 1e-6])  # plane-shaped: nothing constrains sliding along the plane
+    preds = {1: (p, np.tile(C_plane, (len(p), 1, 1))), 0: (q, np.tile(C_plane, (len(q), 1, 1)))}
+    en = LearnedEdgeNoise(preds.get, load_config())
+    with caplog.at_level(logging.WARNING):
+        e = en.apply(_edge(T, 3 * np.eye(6)), 1, 0)
+    np.testing.assert_array_equal(e.information, 3 * np.eye(6))
+    assert en.summary()["fallbacks"] == {"degenerate": 1} and en.n_learned == 0
+    assert "degenerate" in caplog.text and "edge (1, 0)" in caplog.text
+    # the raw H(C) was computed and is rank-deficient along x, y, yaw (relative to its largest eigenvalue)
+    ev = np.linalg.eigvalsh(en.hessians[(1, 0)])
+    assert ev[2] < 1e-4 * ev[-1]
+    # an isotropic-covariance scene far from the origin is well-posed but weak: the floor is counted
+    cfg = load_config(overrides={"graph": {"min_information_eigenvalue": 1e6}})
+    big = 0.5 * np.eye(3)
+    pts = rng.uniform(-20, 20, (500, 3))
+    en2 = LearnedEdgeNoise({1: (pts, np.tile(big, (500, 1, 1))), 0: (pts, np.tile(big, (500, 1, 1)))}.get, cfg)
+    with caplog.at_level(logging.WARNING):
+        e = en2.apply(_edge(np.eye(4), np.eye(6)), 1, 0)
+    assert en2.summary()["n_learned"] == 1 and en2.summary()["n_floored"] == 1
+    assert np.linalg.eigvalsh(e.information)[0] == pytest.approx(1e6, rel=1e-9)
+
+
+def test_densified_sequence_keeps_its_predictions():
+    from gr_graph.config import PreprocessConfig, TrainingConfig
+    from gr_graph.densify import densified_sequence
+    from gr_graph.preprocess import preprocess_scan
+    from test_learning_rounds import PlaneScenes, plane_predictor
+
+    view = densified_sequence(PlaneScenes(n=4), plane_predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
+                              preprocess=PreprocessConfig())
+    view.keep_predictions = 2
+    for i in range(4):
+        view[i]
+    assert view.predicted(0) is None and view.predicted(1) is None  # evicted
+    pts, C = view.predicted(3)
+    np.testing.assert_array_equal(C, plane_predictor(pts))
+    np.testing.assert_array_equal(pts, preprocess_scan(PlaneScenes(n=4)[3].points, PreprocessConfig(), index=3).points)
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def learned_run(tmp_path_factory):
+    """The short ``--rounds 1`` run of tests/test_learning_rounds.py (same frames and config)."""
+    from gr_graph.slam import main
+    from test_learning_rounds import E2E_CONFIG, E2E_FRAMES
+
+    out = tmp_path_factory.mktemp("learned_run")
+    cfg_path = out.parent / f"{out.name}_cfg.yaml"
+    cfg_path.write_text(yaml.safe_dump(E2E_CONFIG))
+    argv = ["--seq", "00", "--frames", E2E_FRAMES, "--channels", "16", "--rounds", "1", "--out", str(out),
+            "--config", str(cfg_path), "--quiet"]
+    assert main(argv) == 0
+    return out
+
+
+def test_round1_uses_learned_noise_end_to_end(learned_run):
+    from scipy.spatial import cKDTree
+
+    from gr_graph.pipeline import SlamPipeline
+    from gr_graph.preprocess import preprocess_scan
+    from training.predict import predict_covariances
+
+    out = learned_run
+    r1 = json.loads((out / "round_1" / "round.json").read_text())
+    en = r1["edge_noise"]
+    assert en["mode"] == "learned" and en["n_learned"] > 0
+    assert en["n_learned"] + en["n_fallback"] == r1["n_odometry_edges"]
+    assert en["n_fallback"] == sum(en["fallbacks"].values())
+    r0 = json.loads((out / "round_0" / "round.json").read_text())
+    assert "edge_noise" not in r0  # round 0 unchanged
+
+    cfg = load_config(out / "config.yaml")
+    seq = SlamPipeline(cfg).sequence
+    with np.load(out / "round_1" / "marginals.npz") as z:
+        edges, kind, info, odom = z["edges"], z["edge_kind"], z["edge_information"], z["odometry_poses"]
+    # recompute H(C) of odometry edge (k, l) = (12, 11) independently: network, NN, explicit Jacobians
+    k, l = 12, 11
+    row = int(np.flatnonzero((edges[:, 0] == k) & (edges[:, 1] == l) & (kind == 0))[0])
+    T = np.linalg.inv(odom[l]) @ odom[k]
+    model = out / "round_1" / "training" / "model.pt"
+    sk = preprocess_scan(seq[k].points, cfg.preprocess, index=k).points
+    sl = preprocess_scan(seq[l].points, cfg.preprocess, index=l).points
+    Cl = predict_covariances(model, sl, device="cpu", seed=cfg.training.seed)
+    pm = sk @ T[:3, :3].T + T[:3, 3]
+    d, j = cKDTree(sl).query(pm, k=1, distance_upper_bound=cfg.odometry.corr_max_distance)
+    ok = np.isfinite(d)
+    p, Lam = sk[ok], np.linalg.inv(2.0 * Cl[j[ok]])
+    H = np.zeros((6, 6))
+    R = T[:3, :3]
+    for pi, Li in zip(p, Lam):
+        px = np.array([[0, -pi[2], pi[1]], [pi[2], 0, -pi[0]], [-pi[1], pi[0], 0]])
+        J = -R @ np.hstack([-px, np.eye(3)])  # d(q - T Exp(xi) p)/d xi, xi = [omega, v]
+        H += J.T @ Li @ J
+    w, V = np.linalg.eigh(H)
+    expect = (V * np.maximum(w, cfg.graph.min_information_eigenvalue)) @ V.T
+    np.testing.assert_allclose(info[row], expect, rtol=1e-6, atol=1e-6 * w[-1])
+    with np.load(out / "round_0" / "marginals.npz") as z0:  # round 0 (registration information) differs
+        row0 = int(np.flatnonzero((z0["edges"][:, 0] == k) & (z0["edges"][:, 1] == l) & (z0["edge_kind"] == 0))[0])
+        assert not np.allclose(info[row], z0["edge_information"][row0], rtol=1e-2)
