@@ -550,7 +550,9 @@ class SlamPipeline:
             self._check_learning_available()
         self.out.mkdir(parents=True, exist_ok=True)
         dump_config(cfg, self.out / "config.yaml")
-        log.info("data: %s", self.source_description)
+        # One line on where the data comes from; a fallback to synthetic data is a warning.
+        is_synthetic = "synthetic" in self.source_description
+        log.log(logging.WARNING if is_synthetic else logging.INFO, "data: %s", self.source_description)
         if self.gt is not None:
             from gr_graph.trajectory import write_kitti_poses
 

@@ -93,10 +93,6 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         pipe = SlamPipeline(cfg)
-        if "synthetic" in pipe.source_description:
-            log.warning("%s", pipe.source_description)
-        else:
-            log.info("%s", pipe.source_description)
         metrics = pipe.run()
     except (DatasetError, LearningRoundsUnavailable) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -122,11 +122,14 @@ def test_bad_cli_input_is_a_clear_error(tmp_path, capsys):
     assert "max_iteratons" in capsys.readouterr().err
 
 
-def test_synthetic_fallback_without_kitti_root(tmp_path, monkeypatch):
+def test_synthetic_fallback_without_kitti_root(tmp_path, monkeypatch, caplog):
     monkeypatch.delenv("GR_GRAPH_KITTI_ROOT", raising=False)
     monkeypatch.chdir(tmp_path)  # no ./data/kitti here
     out = tmp_path / "synth"
-    assert main(["--seq", "00", "--frames", "100:115", "--out", str(out), "--quiet", "--no-memory"]) == 0
+    with caplog.at_level("INFO"):
+        assert main(["--seq", "00", "--frames", "100:115", "--out", str(out), "--quiet", "--no-memory"]) == 0
+    said = [r for r in caplog.records if "no KITTI root given or found" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelname == "WARNING"  # says so, in one line
     m = json.loads((out / "metrics.json").read_text())
     assert "synthetic" in m["source"]
     assert load_config(out / "config.yaml").data.frames == (100, 115)
