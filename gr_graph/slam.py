@@ -24,7 +24,6 @@ from typing import Any
 
 from gr_graph.config import load_config, parse_frames
 
-log = logging.getLogger("gr_graph.slam")
 
 
 def build_parser() -> argparse.ArgumentParser:
