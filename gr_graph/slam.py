@@ -25,7 +25,6 @@ from typing import Any
 from gr_graph.config import load_config, parse_frames
 
 
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m gr_graph.slam",
