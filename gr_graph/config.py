@@ -222,15 +222,19 @@ def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
 
 
 def parse_frames(text: str) -> tuple[int, int]:
-    """Parse ``"A:B"`` into ``(A, B)``; raise ``ValueError`` naming the problem."""
-    parts = text.split(":")
-    if len(parts) != 2:
-        raise ValueError(f"frames must look like A:B, got {text!r}")
-    try:
-        a = int(parts[0]) if parts[0] else 0
-        b = int(parts[1])
-    except ValueError as exc:
-        raise ValueError(f"frames must look like A:B with integers, got {text!r}") from exc
+    """Parse ``"A:B"`` into ``(A, B)`` (A may be empty: 0); the sequence length is checked later.
+
+    Raises
+    ------
+    ValueError
+        Naming the problem (B missing, not integers, empty or negative range).
+    """
+    from gr_graph.datasets.registry import split_frame_spec
+
+    a, b = split_frame_spec(text)
+    a = 0 if a is None else a
+    if b is None:
+        raise ValueError(f"frames {text!r}: B is needed here (A:B, B exclusive)")
     if a < 0 or b <= a:
         raise ValueError(f"frames {text!r}: need 0 <= A < B")
     return a, b

@@ -61,5 +61,18 @@ def test_bad_channels() -> None:
 
 
 def test_bad_range(kitti_root: Path) -> None:
-    with pytest.raises(DatasetError, match="outside"):
+    with pytest.raises(DatasetError, match=r"frames 4:4: need 0 <= A < B <= 6"):
         open_sequence("00", data_root=kitti_root, frames="4:4")
+    with pytest.raises(DatasetError, match=r"frames 2:9: need 0 <= A < B <= 6"):
+        open_sequence("00", data_root=kitti_root, frames="2:9")
+
+
+def test_out_of_range_frames_are_an_error_not_clipped() -> None:
+    with pytest.raises(DatasetError, match="need 0 <= A < B <= 10"):
+        parse_frames("0:99", 10)
+    with pytest.raises(DatasetError, match="need 0 <= A < B <= 10"):
+        parse_frames((-3, 5), 10)
+    with pytest.raises(DatasetError, match="need 0 <= A < B <= 10"):
+        parse_frames("6:6", 10)
+    with pytest.raises(DatasetError, match="steps"):
+        parse_frames(slice(0, 10, 2), 10)

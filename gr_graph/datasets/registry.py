@@ -72,23 +72,43 @@ class SequenceView:
             yield self[i]
 
 
+def split_frame_spec(text: str) -> tuple[int | None, int | None]:
+    """Read the syntax of ``"A:B"``: two integers, either side may be empty (None).
+
+    Raises
+    ------
+    DatasetError
+        (a ``ValueError``) if the text is not of that form.
+    """
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise DatasetError(f"frames {text!r}: expected 'A:B' (B exclusive)")
+    try:
+        return tuple(int(p) if p.strip() else None for p in parts)  # type: ignore[return-value]
+    except ValueError as exc:
+        raise DatasetError(f"frames {text!r}: A and B must be integers") from exc
+
+
 def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[int, int]:
-    """Turn ``"A:B"`` / ``slice`` / ``(A, B)`` / None into a half-open range within ``n`` frames."""
+    """Turn ``"A:B"`` / ``slice`` / ``(A, B)`` / None into a half-open range ``(A, B)`` of ``n`` frames.
+
+    Empty sides mean the start and the end. A range that is empty or reaches outside
+    ``0..n`` is an error, not silently clipped.
+    """
     if spec is None:
         return 0, n
     if isinstance(spec, str):
-        parts = spec.split(":")
-        if len(parts) != 2:
-            raise DatasetError(f"frames {spec!r}: expected 'A:B'")
-        try:
-            spec = slice(int(parts[0]) if parts[0] else None, int(parts[1]) if parts[1] else None)
-        except ValueError as exc:
-            raise DatasetError(f"frames {spec!r}: A and B must be integers") from exc
-    if isinstance(spec, tuple):
-        spec = slice(*spec)
-    start, stop, step = spec.indices(n)
-    if step != 1:
-        raise DatasetError("frames: steps other than 1 are not supported")
+        start, stop = split_frame_spec(spec)
+    elif isinstance(spec, slice):
+        if spec.step not in (None, 1):
+            raise DatasetError("frames: steps other than 1 are not supported")
+        start, stop = spec.start, spec.stop
+    else:
+        start, stop = spec
+    start = 0 if start is None else int(start)
+    stop = n if stop is None else int(stop)
+    if not 0 <= start < stop <= n:
+        raise DatasetError(f"frames {start}:{stop}: need 0 <= A < B <= {n} (the sequence has {n} frames)")
     return start, stop
 
 

@@ -24,26 +24,15 @@ import numpy as np
 
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.datasets.base import velo_to_cam_poses
+from gr_graph.datasets.registry import parse_frames as registry_parse_frames
 from gr_graph.datasets.synthetic.path import load_kitti00_path
 
 log = logging.getLogger(__name__)
 
 
 def parse_frames(spec: str | None, length: int) -> range:
-    """Parse ``"A:B"`` (B exclusive; either side may be empty) into a range within ``length``."""
-    if spec is None or spec.strip() in ("", ":"):
-        return range(length)
-    a, sep, b = spec.partition(":")
-    if not sep:
-        raise ValueError(f"--frames must look like A:B (B exclusive), got {spec!r}")
-    try:
-        start = int(a) if a.strip() else 0
-        stop = int(b) if b.strip() else length
-    except ValueError as exc:
-        raise ValueError(f"--frames {spec!r}: A and B must be integers") from exc
-    if not 0 <= start < stop <= length:
-        raise ValueError(f"--frames {spec!r}: need 0 <= A < B <= {length}")
-    return range(start, stop)
+    """Frames ``"A:B"`` (B exclusive; either side may be empty) as a range within ``length``."""
+    return range(*registry_parse_frames(spec, length))
 
 
 def _fmt_rows(rows: np.ndarray) -> str:
