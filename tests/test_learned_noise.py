@@ -7,7 +7,6 @@ import logging
 
 import numpy as np
 import pytest
-import yaml
 
 from factors.noise import floored_information
 from factors.wls import solve_wls
@@ -138,19 +137,12 @@ def test_densified_sequence_keeps_its_predictions():
 # ----------------------------------------------------------------------------- end to end
 
 
-@pytest.fixture(scope="module")
-def learned_run(tmp_path_factory):
-    """The short ``--rounds 1`` run of tests/test_learning_rounds.py (same frames and config)."""
-    from gr_graph.slam import main
-    from test_learning_rounds import E2E_CONFIG, E2E_FRAMES
+@pytest.fixture()
+def learned_run():
+    """The short ``--rounds 1`` run shared with tests/test_learning_rounds.py."""
+    from slam_support import short_learning_run
 
-    out = tmp_path_factory.mktemp("learned_run")
-    cfg_path = out.parent / f"{out.name}_cfg.yaml"
-    cfg_path.write_text(yaml.safe_dump(E2E_CONFIG))
-    argv = ["--seq", "00", "--frames", E2E_FRAMES, "--channels", "16", "--rounds", "1", "--out", str(out),
-            "--config", str(cfg_path), "--quiet"]
-    assert main(argv) == 0
-    return out
+    return short_learning_run()[0]
 
 
 def test_round1_uses_learned_noise_end_to_end(learned_run):

@@ -14,7 +14,7 @@ from gr_graph.datasets.base import LidarFrame
 from gr_graph.densify import densified_sequence
 from gr_graph.preprocess import preprocess_scan
 
-from slam_support import FrameSubset
+from slam_support import LEARNING_RUN_CONFIG, FrameSubset, short_learning_run
 
 GROUND_Z = -1.73
 # a tilted planar covariance with correlations: eigenvalues 0.09, 0.04, 4e-4 -> a = 0.9956
@@ -195,32 +195,15 @@ def test_trainer_keys_checked_before_round_zero(tmp_path):
 
 # ----------------------------------------------------------------------------- end to end
 
-E2E_FRAMES = "0:30"
-E2E_CONFIG = {
-    "training": {
-        "epochs": 4,  # 1 epoch leaves f_theta near its isotropic start: only ground passes the filter
-        "tau_ani": 0.9,
-        "trainer": {"max_corr": 300, "num_threads": 1, "lr": 3e-3,
-                    "net": {"n_points": 512, "k0": 8, "k1": 8, "k2": 8, "c0": 16, "c1": 32, "c2": 32, "kw": 8}},
-    },
-}
-# 30 frames (~26 m). Measured: round 0 ATE 0.019 m / RPE10 0.036 m, round 1 ATE 0.012 m / RPE10 0.019 m;
-# a densified scan that lost its walls (only ground kept) drifts by metres, far above these bounds.
+# Bounds for the shared run (slam_support.short_learning_run); a densified scan that lost its
+# walls (only ground kept) drifts by metres, far above these.
 RPE10_BOUND_M = 0.1  # translation error over 10 frames (~8 m driven)
 ATE_BOUND_M = 0.1
 
 
-@pytest.fixture(scope="module")
-def rounds_run(tmp_path_factory):
-    from gr_graph.slam import main
-
-    out = tmp_path_factory.mktemp("rounds_run")
-    cfg_path = out.parent / f"{out.name}_cfg.yaml"
-    cfg_path.write_text(yaml.safe_dump(E2E_CONFIG))
-    argv = ["--seq", "00", "--frames", E2E_FRAMES, "--channels", "16", "--rounds", "1", "--out", str(out),
-            "--config", str(cfg_path), "--quiet"]
-    assert main(argv) == 0
-    return out, argv
+@pytest.fixture()
+def rounds_run():
+    return short_learning_run()
 
 
 def test_rounds_end_to_end(rounds_run):
@@ -301,9 +284,14 @@ def test_changed_training_config_retrains(rounds_run, caplog, tmp_path):
 
     from gr_graph.slam import main
 
-    out, argv = rounds_run
+    import shutil
+
+    shared, argv = rounds_run
+    out = tmp_path / "run"  # a copy: the shared run stays as it was made
+    shutil.copytree(shared, out)
+    argv[argv.index("--out") + 1] = str(out)
     r0 = (out / "round_0" / "round.json").stat().st_mtime_ns
-    cfg = json.loads(json.dumps(E2E_CONFIG))
+    cfg = json.loads(json.dumps(LEARNING_RUN_CONFIG))
     cfg["training"]["trainer"]["lr"] = 2e-3
     y = tmp_path / "other.yaml"
     y.write_text(yaml.safe_dump(cfg))
