@@ -133,44 +133,23 @@ def speed(args) -> dict:
     }
 
 
-def pca_cov(pts: np.ndarray, k: int) -> np.ndarray:
-    _, j = cKDTree(pts).query(pts, k=k)
-    nb = pts[j]
-    c = nb - nb.mean(1, keepdims=True)
-    return np.einsum("nki,nkj->nij", c, c) / (k - 1)
-
-
 def geometry_metrics(C: np.ndarray, normals: np.ndarray, sigma: float) -> dict[str, float]:
-    w, v = np.linalg.eigh(C)
-    ang = np.degrees(np.arccos(np.clip(np.abs((v[:, :, 0] * normals).sum(1)), 0, 1)))
+    from training.toy_scenes import normal_angles_deg
+
+    ang, w = normal_angles_deg(C, normals)
     return {"angle_median_deg": float(np.median(ang)), "angle_p75_deg": float(np.percentile(ang, 75)),
             "frac_below_10deg": float(np.mean(ang < 10)), "lambda_min_ratio_median": float(np.median(w[:, 0]) / sigma**2)}
 
 
 def learning(args) -> dict:
     from training.predict import predict_covariances
-    from training.toy_scenes import make_memory, pose_xy_yaw, render_scan, street_scene
-
-    from scipy.spatial.transform import Rotation
+    from training.toy_scenes import pca_covariances, street_learning_problem
 
     torch.set_num_threads(args.threads)
     sigma = 0.02
-    scene = street_scene(seed=1, radius_range=(0.3, 1.0))
-    rng = np.random.default_rng(11)
-
-    def _poses(rng, xs):  # same scene, poses and held-out scan as tests/training/test_learns_geometry.py
-        out = []
-        for x in xs:
-            T = pose_xy_yaw(x, rng.uniform(-1, 1), 1.73 + rng.uniform(-0.15, 0.15), rng.uniform(-0.2, 0.2))
-            T[:3, :3] = T[:3, :3] @ Rotation.from_euler("xy", rng.uniform(-0.03, 0.03, 2)).as_matrix()
-            out.append(T)
-        return out
-
-    poses = _poses(rng, [k - 3.0 for k in range(6)])
-    edges = [(k, k + 1) for k in range(5)] + [(k, k + 2) for k in range(4)]
-    mem, _ = make_memory(scene, poses, edges, seed=0, n_corr=1500, max_dist=1.0, sigma_normal=sigma, n_azimuth=720)
-    pts, nrm, ids = render_scan(scene, _poses(rng, [0.5])[0], np.random.default_rng(5), sigma_normal=sigma,
-                                n_azimuth=720, return_ids=True)
+    # the same scene, memory and held-out scan as tests/training/test_learns_geometry.py
+    prob = street_learning_problem(sigma=sigma)
+    scene, mem, edges, pts, nrm, ids = prob.scene, prob.memory, prob.edges, prob.points, prob.normals, prob.ids
     groups = {"all": np.ones(len(pts), bool), "ground": ids == 0, "walls": (ids == 1) | (ids == 2),
               "cylinders": ids >= len(scene.planes)}
     out = {"sigma": sigma, "n_points_eval": len(pts), "train_s": {}, "epochs": args.learn_epochs}
@@ -193,7 +172,7 @@ def learning(args) -> dict:
             for g, m in groups.items():
                 out[f"net-{ep}ep/{g}"] = geometry_metrics(C[m], nrm[m], sigma)
     for k in (10, 16, 30):
-        Cp = pca_cov(pts, k)
+        Cp = pca_covariances(pts, k)
         for g, m in groups.items():
             out[f"pca{k}/{g}"] = geometry_metrics(Cp[m], nrm[m], sigma)
     return out

@@ -21,7 +21,10 @@ from scipy.spatial import cKDTree
 
 from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory
 
-__all__ = ["Plane", "Cylinder", "Scene", "street_scene", "render_scan", "correspondences", "make_memory", "pose_xy_yaw"]
+__all__ = [
+    "Plane", "Cylinder", "Scene", "street_scene", "render_scan", "correspondences", "make_memory", "pose_xy_yaw",
+    "random_street_poses", "pca_covariances", "normal_angles_deg", "LearningProblem", "street_learning_problem",
+]
 
 
 @dataclass
@@ -184,3 +187,71 @@ def make_memory(
         kinds.append(EDGE_ODOMETRY if l == k + 1 else EDGE_LOOP)
     mem = Memory.from_scans(scans, np.stack(poses), edges, kinds, eT, eH, corr, info={"toy_scene": True})
     return mem, normals
+
+
+def random_street_poses(rng: np.random.Generator, xs: list[float]) -> list[np.ndarray]:
+    """Sensor poses along a street at positions ``xs``: lateral +-1 m, height 1.73 +- 0.15 m,
+    yaw +-0.2 rad and roll/pitch +-0.03 rad drawn from ``rng`` (in that order, per pose)."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for x in xs:
+        T = pose_xy_yaw(x, rng.uniform(-1, 1), 1.73 + rng.uniform(-0.15, 0.15), rng.uniform(-0.2, 0.2))
+        T[:3, :3] = T[:3, :3] @ Rotation.from_euler("xy", rng.uniform(-0.03, 0.03, 2)).as_matrix()
+        out.append(T)
+    return out
+
+
+def pca_covariances(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """``(N, 3, 3)`` sample covariance of each point's ``k`` nearest neighbours (the hand-crafted
+    estimate the learned covariances are compared with)."""
+    _, j = cKDTree(points).query(points, k=k)
+    nb = points[j]
+    c = nb - nb.mean(1, keepdims=True)
+    return np.einsum("nki,nkj->nij", c, c) / (k - 1)
+
+
+def normal_angles_deg(C: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angle (deg) between each covariance's smallest eigenvector and the true normal, and the
+    ``(N, 3)`` ascending eigenvalues."""
+    w, v = np.linalg.eigh(C)
+    return np.degrees(np.arccos(np.clip(np.abs((v[:, :, 0] * normals).sum(1)), 0, 1))), w
+
+
+@dataclass(frozen=True)
+class LearningProblem:
+    """A self-supervised learning problem with known answers (see :func:`street_learning_problem`).
+
+    ``memory`` holds the training scans and pairs; ``points``, ``normals`` and ``ids``
+    (surface index: planes first, ``ids < n_planes``) describe a held-out scan.
+    """
+
+    scene: Scene
+    memory: Memory
+    edges: list[tuple[int, int]]
+    points: np.ndarray
+    normals: np.ndarray
+    ids: np.ndarray
+    sigma: float
+
+    @property
+    def n_planes(self) -> int:
+        return len(self.scene.planes)
+
+
+def street_learning_problem(sigma: float = 0.02, n_azimuth: int = 720) -> LearningProblem:
+    """The 16-channel street used to show what f_theta learns (tests and benchmark share it).
+
+    Ground, two walls and cylinders of radius 0.3-1 m; 6 training scans from random street
+    poses, 9 pairs (k, k+1) and (k, k+2) with true T̂ and 1,500 nearest-neighbour
+    correspondences each; one held-out scan from a new pose. Normal noise ``sigma``.
+    """
+    scene = street_scene(seed=1, radius_range=(0.3, 1.0))
+    rng = np.random.default_rng(11)
+    poses = random_street_poses(rng, [k - 3.0 for k in range(6)])
+    edges = [(k, k + 1) for k in range(5)] + [(k, k + 2) for k in range(4)]
+    mem, _ = make_memory(scene, poses, edges, seed=0, n_corr=1500, max_dist=1.0, sigma_normal=sigma,
+                         n_azimuth=n_azimuth)
+    pts, nrm, ids = render_scan(scene, random_street_poses(rng, [0.5])[0], np.random.default_rng(5),
+                                sigma_normal=sigma, n_azimuth=n_azimuth, return_ids=True)
+    return LearningProblem(scene, mem, edges, pts, nrm, ids, sigma)

@@ -27,53 +27,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from training.predict import predict_covariances
-from training.toy_scenes import make_memory, pose_xy_yaw, render_scan, street_scene
+from training.toy_scenes import normal_angles_deg as _angles
+from training.toy_scenes import pca_covariances as _pca
+from training.toy_scenes import street_learning_problem
 from training.trainer import TrainConfig, Trainer
 
 torch.set_num_threads(1)
 SIGMA = 0.02
-N_AZ = 720
-
-
-def _poses(rng, xs):
-    out = []
-    for x in xs:
-        T = pose_xy_yaw(x, rng.uniform(-1, 1), 1.73 + rng.uniform(-0.15, 0.15), rng.uniform(-0.2, 0.2))
-        T[:3, :3] = T[:3, :3] @ Rotation.from_euler("xy", rng.uniform(-0.03, 0.03, 2)).as_matrix()
-        out.append(T)
-    return out
-
-
-def _angles(C, normals):
-    w, v = np.linalg.eigh(C)
-    return np.degrees(np.arccos(np.clip(np.abs((v[:, :, 0] * normals).sum(1)), 0, 1))), w
-
-
-def _pca(pts, k=16):
-    _, j = cKDTree(pts).query(pts, k=k)
-    nb = pts[j]
-    c = nb - nb.mean(1, keepdims=True)
-    return np.einsum("nki,nkj->nij", c, c) / (k - 1)
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    scene = street_scene(seed=1, radius_range=(0.3, 1.0))
-    rng = np.random.default_rng(11)
-    poses = _poses(rng, [k - 3.0 for k in range(6)])
-    edges = [(k, k + 1) for k in range(5)] + [(k, k + 2) for k in range(4)]
-    mem, _ = make_memory(scene, poses, edges, seed=0, n_corr=1500, max_dist=1.0, sigma_normal=SIGMA, n_azimuth=N_AZ)
+    prob = street_learning_problem(sigma=SIGMA)
     cfg = TrainConfig.from_dict({"epochs": 20, "lr": 3e-3, "max_corr": 1024, "progress": False, "net": {"n_points": 4096}})
     out = tmp_path_factory.mktemp("learn")
-    path = Trainer(mem, out, cfg).fit(resume=False)
-    pts, nrm, ids = render_scan(scene, _poses(rng, [0.5])[0], np.random.default_rng(5), sigma_normal=SIGMA,
-                                n_azimuth=N_AZ, return_ids=True)
-    C = predict_covariances(path, pts, n_points=4096)
-    return {"pts": pts, "nrm": nrm, "ids": ids, "C": C, "n_planes": len(scene.planes)}
+    path = Trainer(prob.memory, out, cfg).fit(resume=False)
+    C = predict_covariances(path, prob.points, n_points=4096)
+    return {"pts": prob.points, "nrm": prob.normals, "ids": prob.ids, "C": C, "n_planes": prob.n_planes}
 
 
 def test_planes_normal_and_noise_level_are_learned(trained):
