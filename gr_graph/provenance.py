@@ -1,0 +1,95 @@
+"""Provenance of a result: which code, which packages, which seeds, threads and device made it.
+
+Every run's ``metrics.json`` and every training ``summary.json`` carry the dict of
+:func:`provenance` under the key ``"provenance"``, so that a figure can be traced back to a
+commit and an environment, and a run can be repeated.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+# Distributions whose versions decide the numbers (names as pip knows them).
+TRACKED_DISTRIBUTIONS = (
+    "gr-graph", "numpy", "scipy", "torch", "gtsam", "small_gicp", "open3d-cpu", "open3d",
+    "evo", "kiss-matcher", "kiss-icp", "pydantic", "matplotlib",
+)
+
+
+def git_state(repo: Path = REPO_ROOT) -> dict[str, Any]:
+    """``{"commit": sha or None, "dirty": bool or None}`` of the checkout holding the code.
+
+    Both are None when the code is not in a git checkout (an installed wheel) or git is absent.
+    ``dirty`` ignores untracked files (run outputs under the checkout are common).
+    """
+    def run(*args: str) -> str | None:
+        try:
+            out = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return out.stdout if out.returncode == 0 else None
+
+    commit = run("rev-parse", "HEAD")
+    if commit is None:
+        return {"commit": None, "dirty": None}
+    status = run("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit.strip(), "dirty": None if status is None else bool(status.strip())}
+
+
+def package_versions(names: tuple[str, ...] = TRACKED_DISTRIBUTIONS) -> dict[str, str]:
+    """Installed version of each distribution in ``names`` that is installed."""
+    versions: dict[str, str] = {}
+    for name in names:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
+
+
+def thread_count() -> int | None:
+    """Threads torch computes with (``torch.get_num_threads``); None when torch is not imported."""
+    torch = sys.modules.get("torch")
+    return int(torch.get_num_threads()) if torch is not None else None
+
+
+def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
+               num_threads: int | None = None) -> dict[str, Any]:
+    """Everything needed to trace and repeat a result.
+
+    Parameters
+    ----------
+    seeds : dict of str to int, optional
+        The seeds of the run by role (e.g. ``{"training": 0, "world": 0}``).
+    device : str
+        ``"cpu"`` or ``"cuda[:k]"``.
+    num_threads : int, optional
+        Threads used; defaults to torch's thread count when torch is loaded.
+
+    Returns
+    -------
+    dict
+        ``git`` (commit, dirty), ``packages`` (name -> version), ``python``, ``platform``,
+        ``seeds``, ``num_threads``, ``cpu_count``, ``device`` and the thread-related
+        environment variables that were set.
+    """
+    env_keys = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "CUBLAS_WORKSPACE_CONFIG")
+    return {
+        "git": git_state(),
+        "packages": package_versions(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "seeds": dict(seeds or {}),
+        "num_threads": num_threads if num_threads is not None else thread_count(),
+        "cpu_count": os.cpu_count(),
+        "device": device,
+        "environment": {k: os.environ[k] for k in env_keys if k in os.environ},
+    }
