@@ -30,7 +30,7 @@ from gr_graph.datasets.base import (
     check_index,
     velo_to_cam_poses,
 )
-from gr_graph.datasets.channels import RingRecoveryError, recover_rings
+from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +123,11 @@ class KittiSequence:
     seq : str
         Sequence name, e.g. ``"00"``.
     recover_ring_index : bool
-        Recover each point's laser ring (needed for channel subsampling). When recovery
-        fails for a frame, the frame is returned with ``ring=None`` and a warning.
+        Recover each point's laser ring (needed for channel subsampling) with a
+        :class:`gr_graph.datasets.channels.RingIndexer`: frames whose lines are not found in
+        order are matched to per-ring elevations of probe frames, and as a last resort get
+        approximate rings from per-point elevation; every fallback is logged and counted
+        (:attr:`ring_recovery_counts`), every frame has a ring index.
     n_rings : int
         Rings of the sensor (64 for KITTI's HDL-64E; 32 or 16 for subsampled exports).
 
@@ -145,6 +148,7 @@ class KittiSequence:
         self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
         self.name = f"kitti-{self.seq}"
         self.recover_ring_index = recover_ring_index
+        self.ring_indexer = RingIndexer(n_rings, reference_source=self._probe_points)
         seq_dir = self.root / "sequences" / self.seq
         velo_dir = seq_dir / "velodyne"
         if not velo_dir.is_dir():
@@ -186,6 +190,21 @@ class KittiSequence:
     def __len__(self) -> int:
         return len(self.files)
 
+    def _probe_points(self, k: int) -> np.ndarray | None:
+        """Points of the k-th frame spread evenly over the sequence (ring reference probes)."""
+        n = len(self.files)
+        if k >= min(PROBE_FRAMES, n):
+            return None
+        i = (k * n) // min(PROBE_FRAMES, n)
+        raw = read_velodyne_bin(self.files[i])
+        raw = raw[np.all(np.isfinite(raw), axis=1)]
+        return raw[:, :3].astype(np.float64)
+
+    @property
+    def ring_recovery_counts(self) -> dict[str, int]:
+        """Frames indexed per method so far: ``storage_order``, ``reference``, ``elevation``."""
+        return dict(self.ring_indexer.counts)
+
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
         raw = read_velodyne_bin(self.files[i])
@@ -197,10 +216,10 @@ class KittiSequence:
         points = raw[:, :3].astype(np.float64)
         ring = None
         if self.recover_ring_index and len(points):
-            try:
-                ring = recover_rings(points, self.n_rings)
-            except RingRecoveryError as exc:
-                log.warning("%s: ring recovery failed (%s); frame has no ring index", self.files[i], exc)
+            ring, method, problem = self.ring_indexer(points)
+            if method != "storage_order":
+                log.warning("%s: rings by %s (%s)%s", self.files[i], method, problem,
+                            "; approximate: per-point elevation" if method == "elevation" else "")
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),
