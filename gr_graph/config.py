@@ -41,6 +41,9 @@ class DataConfig(_Section):
     channels: Literal[64, 32, 16] = 64
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
+    point_format: Literal["xyzi", "xyz"] = Field(
+        "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
+    )
 
     @field_validator("frames", mode="before")
     @classmethod

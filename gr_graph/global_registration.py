@@ -30,6 +30,7 @@ import argparse
 import json
 import logging
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -40,6 +41,17 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gr_graph.atomic import atomic_write_text
+from gr_graph.cli_common import (
+    add_channels,
+    add_data_root,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_point_format,
+    add_seed,
+    make_parser,
+    setup_logging,
+)
 from gr_graph.trajectory import check_poses
 
 logger = logging.getLogger(__name__)
@@ -407,29 +419,54 @@ def write_results(path: str | os.PathLike[str], results: dict[str, Any]) -> Path
 # ----------------------------------------------------------------------------- CLI
 
 
+EXAMPLES = (
+    "python -m gr_graph.global_registration --seq 00 --n-pairs 100 --seed 0 --out runs/greg_64",
+    "python -m gr_graph.global_registration --seq 00 --channels 16 --solvers fpfh_ransac --out runs/greg_16",
+    "python -m gr_graph.global_registration --seq 00 --data-root /data/kitti --pairs runs/greg_64/pairs.json "
+    "--out runs/greg_kitti",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m gr_graph.global_registration``."""
+    ap = make_parser("python -m gr_graph.global_registration",
+                     __doc__.split("\n\n")[0] + " Writes DIR/pairs.json and DIR/results.json.", EXAMPLES)
+    add_out(ap, "output directory", required=True)
+    ap.add_argument("--seq", default="00", help="KITTI sequence")
+    add_data_root(ap)
+    add_point_format(ap)
+    add_channels(ap)
+    ap.add_argument("--n-pairs", type=int, default=100, metavar="N", help="scan pairs sampled")
+    ap.add_argument("--max-distance", type=float, default=10.0, metavar="M",
+                    help="largest ground-truth distance between the scans of a pair [m]")
+    add_seed(ap, "seed of the pair sampling and of RANSAC")
+    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL, metavar="M", help="voxel size of the FPFH scans [m]")
+    ap.add_argument("--min-frame", type=int, default=None, metavar="K",
+                    help="first frame sampled (default: 14 for seq 00, whose GT of frames 0-13 is extrapolated; else 0)")
+    ap.add_argument("--pairs", default=None, metavar="FILE", help="reuse a pairs.json instead of sampling")
+    ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES,
+                    help="solvers to run (default: all available)")
+    add_no_progress(ap)
+    add_log_level(ap)
+    return ap
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: sample pairs on a sequence, register them, write pairs.json and results.json."""
+    from gr_graph.datasets.base import DatasetError
     from gr_graph.datasets.registry import open_sequence
 
-    ap = argparse.ArgumentParser(prog="python -m gr_graph.global_registration", description=__doc__.split("\n")[0])
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", default=None)
-    ap.add_argument("--channels", type=int, default=64)
-    ap.add_argument("--n-pairs", type=int, default=100)
-    ap.add_argument("--max-distance", type=float, default=10.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL)
-    ap.add_argument("--min-frame", type=int, default=None, help="default 14 for seq 00 (GT of 0-13 is extrapolated)")
-    ap.add_argument("--pairs", default=None, help="reuse a pairs.json instead of sampling")
-    ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES)
-    ap.add_argument("--out", required=True)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-
-    seq, desc = open_sequence(args.seq, args.data_root, args.channels)
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        seq, desc = open_sequence(args.seq, args.data_root, args.channels, point_format=args.point_format)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     logger.info("%s", desc)
     if seq.gt_poses is None:
-        raise SystemExit(f"{desc}: no ground-truth poses, cannot evaluate global registration")
+        print(f"error: {desc}: no ground-truth poses, cannot evaluate global registration", file=sys.stderr)
+        return 2
     poses = np.asarray(seq.gt_poses)
     out = Path(args.out)
     if args.pairs:
@@ -446,7 +483,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             "convention": "rows are (source, target); T_target_source = inv(T_w_target) @ T_w_source",
         }
     save_pairs(out / "pairs.json", pairs, meta)
-    res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed)
+    try:
+        res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed,
+                             progress=not args.no_progress)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     res["settings"].update(sequence=desc, channels=args.channels, pairs_file=str(out / "pairs.json"))
     write_results(out / "results.json", res)
     for s, v in res["summary"].items():

@@ -2,7 +2,7 @@
 
 Layout (the official odometry benchmark)::
 
-    ROOT/sequences/XX/velodyne/000000.bin ...   float32 x, y, z, reflectance
+    ROOT/sequences/XX/velodyne/000000.bin ...   float32 x, y, z, reflectance (or x, y, z: point_format="xyz")
     ROOT/sequences/XX/calib.txt                 P0..P3 and Tr (velodyne -> cam0), 12 floats
     ROOT/sequences/XX/times.txt                 one timestamp (s) per frame
     ROOT/poses/XX.txt                           optional ground truth, camera-0 frame
@@ -31,11 +31,11 @@ from gr_graph.datasets.base import (
     velo_to_cam_poses,
 )
 from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
+from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, size_error
 
 log = logging.getLogger(__name__)
 
 KITTI_SCAN_PERIOD_S = 0.1037  # mean frame spacing of the odometry sequences (~10 Hz)
-_BYTES_PER_POINT = 16
 
 
 def read_calib(path: str | Path) -> dict[str, np.ndarray]:
@@ -92,25 +92,42 @@ def read_times(path: str | Path) -> np.ndarray:
     return np.asarray(rows, np.float64)
 
 
-def read_velodyne_bin(path: str | Path) -> np.ndarray:
-    """Read one KITTI ``.bin`` as an ``(N, 4)`` float32 array (x, y, z, reflectance).
+def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarray:
+    """Read one KITTI-style ``.bin`` as an ``(N, 4)`` float32 array (x, y, z, intensity).
+
+    Parameters
+    ----------
+    path : path
+    point_format : {"xyzi", "xyz"}
+        ``"xyzi"``: 16 bytes a point (KITTI); ``"xyz"``: 12 bytes a point, no intensity (the
+        intensity column of the result is 0).
 
     Raises
     ------
     DatasetError
-        If the file is missing or its size is not a multiple of 16 bytes (truncated).
+        If the file is missing, its size is not a multiple of the point size (the message
+        suggests the other format when the size fits it), or its contents do not look like
+        ``point_format`` points (e.g. a 12-byte x,y,z file read as x,y,z,intensity; see
+        :mod:`gr_graph.datasets.point_layout`).
     """
+    if point_format not in POINT_FORMATS:
+        raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
     path = Path(path)
     try:
         size = path.stat().st_size
     except FileNotFoundError as exc:
         raise DatasetError(f"{path}: scan file not found") from exc
-    if size % _BYTES_PER_POINT:
-        raise DatasetError(
-            f"{path}: size {size} bytes is not a multiple of {_BYTES_PER_POINT} "
-            "(4 float32 per point); the file is truncated or not a KITTI scan"
-        )
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    stride = POINT_FORMATS[point_format]
+    if size % (4 * stride):
+        values = np.fromfile(path, dtype=np.float32) if size % 4 == 0 else None
+        raise size_error(path, size, point_format, values)
+    values = np.fromfile(path, dtype=np.float32)
+    check_point_layout(values, point_format, path)
+    if stride == 4:
+        return values.reshape(-1, 4)
+    out = np.zeros((len(values) // 3, 4), dtype=np.float32)
+    out[:, :3] = values.reshape(-1, 3)
+    return out
 
 
 class KittiSequence:
@@ -130,6 +147,10 @@ class KittiSequence:
         (:attr:`ring_recovery_counts`), every frame has a ring index.
     n_rings : int
         Rings of the sensor (64 for KITTI's HDL-64E; 32 or 16 for subsampled exports).
+    point_format : {"xyzi", "xyz"}
+        ``"xyzi"``: float32 x, y, z, intensity a point (KITTI); ``"xyz"``: float32 x, y, z
+        (12 bytes a point; frames get intensity 0). Every file is checked against it when
+        read: a file that looks like the other layout is refused, naming the file.
 
     Attributes
     ----------
@@ -141,8 +162,12 @@ class KittiSequence:
     """
 
     def __init__(
-        self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64
+        self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64,
+        point_format: str = "xyzi",
     ) -> None:
+        if point_format not in POINT_FORMATS:
+            raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
+        self.point_format = point_format
         self.root = Path(root)
         self.n_rings = n_rings
         self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
@@ -196,7 +221,7 @@ class KittiSequence:
         if k >= min(PROBE_FRAMES, n):
             return None
         i = (k * n) // min(PROBE_FRAMES, n)
-        raw = read_velodyne_bin(self.files[i])
+        raw = read_velodyne_bin(self.files[i], self.point_format)
         raw = raw[np.all(np.isfinite(raw), axis=1)]
         return raw[:, :3].astype(np.float64)
 
@@ -207,7 +232,7 @@ class KittiSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        raw = read_velodyne_bin(self.files[i])
+        raw = read_velodyne_bin(self.files[i], self.point_format)
         finite = np.all(np.isfinite(raw), axis=1)
         dropped = int(len(raw) - finite.sum())
         if dropped:

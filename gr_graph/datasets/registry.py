@@ -11,11 +11,15 @@ import logging
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
+
+if TYPE_CHECKING:
+    from gr_graph.config import DataConfig
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +143,7 @@ def open_sequence(
     channels: int = 64,
     frames: str | slice | tuple[int, int] | None = None,
     synthetic_seed: int = 0,
+    point_format: str = "xyzi",
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: KITTI if a root is given or found, else synthetic KITTI 00.
 
@@ -154,6 +159,9 @@ def open_sequence(
         Frame range.
     synthetic_seed : int
         Seed of the synthetic rendering.
+    point_format : {"xyzi", "xyz"}
+        Layout of the KITTI ``.bin`` files: float32 x, y, z, intensity (KITTI) or x, y, z
+        (12 bytes a point). Unused by the synthetic sequence.
 
     Returns
     -------
@@ -168,8 +176,8 @@ def open_sequence(
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
-        base = KittiSequence(root, seq)
-        source = f"KITTI sequence {seq} from {root}"
+        base = KittiSequence(root, seq, point_format=point_format)
+        source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
     else:
         if seq != "00":
             raise DatasetError(
@@ -178,6 +186,8 @@ def open_sequence(
             )
         from gr_graph.datasets.synthetic import SyntheticSequence
 
+        if point_format != "xyzi":
+            log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect", point_format)
         base = SyntheticSequence(seed=synthetic_seed)
         source = (
             "no KITTI root given or found: using the synthetic KITTI 00 (ray cast along the real "
@@ -188,3 +198,13 @@ def open_sequence(
     label = "" if channels == 64 else f"-{channels}ch"
     view = SequenceView(base, start, stop, transform, label)
     return view, f"{source}, frames {start}:{stop}, {channels} channels"
+
+
+def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple[LidarSequence, str]:
+    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``).
+
+    The one place that maps the ``data`` config section to a sequence, so that a key added
+    there (e.g. ``point_format``) reaches the loader from every caller.
+    """
+    return open_sequence(seq=data.seq, data_root=data.data_root, channels=data.channels, frames=data.frames,
+                         synthetic_seed=synthetic_seed, point_format=data.point_format)
