@@ -21,6 +21,7 @@ for each declared format; the summary gives the margins to the thresholds.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -126,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Wrong decisions: {len(errors)}" + ("" if not errors else ": " + "; ".join(errors)),
         f"Cost of the check on a valid xyzi frame: median {1e3 * np.median(times):.1f} ms.",
     ]
-    source = f"real frames from `{root}` and synthetic frames" if root else "synthetic frames only (no KITTI root)"
+    shown = os.path.relpath(root, REPO) if root else ""
+    source = f"real KITTI 00 frames from `{shown}` and synthetic frames" if root else "synthetic frames only (no KITTI root)"
     text = "\n".join([
         "# Point-layout test: 12-byte x,y,z vs 16-byte x,y,z,intensity",
         "",
