@@ -109,6 +109,19 @@ def test_rendered_12_byte_file_is_refused_and_reads_as_xyz(synthetic_xyzi: np.nd
     assert not raw[:, 3].any()
 
 
+def test_rendered_12_byte_file_whose_size_is_not_a_multiple_of_16(synthetic_xyzi: np.ndarray,
+                                                                  tmp_path: Path) -> None:
+    xyz = _xyz_multiple_of_16(synthetic_xyzi)[:-1]
+    path = _write(tmp_path / "000007.bin", xyz)
+    with pytest.raises(DatasetError, match=r"000007\.bin: size \d+ bytes is not a multiple of 16 .* multiple of 12, "
+                                           r"and read that way it looks like a LiDAR scan .*" + SUGGEST_XYZ):
+        read_velodyne_bin(path)
+    np.testing.assert_array_equal(read_velodyne_bin(path, "xyz")[:, :3], xyz)
+    path.write_bytes(path.read_bytes()[:-2])  # fits neither layout
+    with pytest.raises(DatasetError, match=r"000007\.bin: size \d+ bytes is not a multiple of 16 .*truncated"):
+        read_velodyne_bin(path)
+
+
 def test_shuffled_files_are_judged_by_their_columns_alone(synthetic_xyzi: np.ndarray, tmp_path: Path) -> None:
     shuffled = synthetic_xyzi[np.random.default_rng(0).permutation(len(synthetic_xyzi))]
     assert not stride_evidence(shuffled.ravel(), 4).ordered

@@ -42,8 +42,10 @@ CANDIDATE_STRIDES: tuple[int, ...] = (3, 4, 5)
 MIXED_KS = 0.15
 #: Consecutive-step / far-pair distance ratio below which rows count as in scan order.
 ORDERED_LOCALITY = 0.1
-#: Fewer usable rows than this: too few to judge, the declared layout is trusted.
-MIN_ROWS = 1000
+#: Fewer usable rows than this: too few to judge, the declared layout is trusted. (On excerpts
+#: of 400 points of real and synthetic frames the test refused no valid file and caught every
+#: contiguous and about 98% of shuffled 12-byte excerpts; see the benchmark.)
+MIN_ROWS = 256
 _BLOCKS = 4
 _BLOCK_ROWS = 1024
 
@@ -64,7 +66,7 @@ class StrideEvidence:
     stride : int
         Float32 values per point assumed.
     n_rows : int
-        Rows examined (finite, not all-zero coordinates), up to ``4 x 1024``.
+        Rows examined (finite, not x = y = z = 0), up to ``4 x 1024``.
     locality : float
         Median distance between consecutive rows / median distance between rows half the
         sample apart (x,y,z of each row). Small: the rows are in scan order.
@@ -115,7 +117,7 @@ def stride_evidence(values: np.ndarray, stride: int) -> StrideEvidence:
     """Measure :class:`StrideEvidence` of the flat float32 ``values`` read ``stride`` values a point.
 
     Four evenly spaced blocks of 1024 consecutive rows are examined (a few milliseconds for
-    any file size). Rows with a non-finite value among their first three or with x = y = z = 0
+    any file size). Rows with a non-finite value or with x = y = z = 0
     (no-return padding of organised clouds) are left out.
     """
     flat = np.asarray(values, dtype=np.float32).ravel()
