@@ -155,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Cost of the check on a valid xyzi frame: median {1e3 * np.median(times):.1f} ms.",
     ]
     shown = os.path.relpath(root, REPO) if root else ""
-    source = f"real KITTI 00 frames from `{shown}` and synthetic frames" if root else "synthetic frames only (no KITTI root)"
+    source = (f"real KITTI 00 frames from `{shown}` and synthetic frames" if root
+              else "synthetic frames only (no KITTI root)")
     text = "\n".join([
         "# Point-layout test: 12-byte x,y,z vs 16-byte x,y,z,intensity",
         "",

@@ -93,8 +93,8 @@ def _log_level(text: str) -> str:
 
 
 def add_log_level(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--log-level", type=_log_level, choices=LOG_LEVELS, default="INFO", metavar="{" + ",".join(LOG_LEVELS) + "}",
-                   help="logging threshold, any case")
+    p.add_argument("--log-level", type=_log_level, choices=LOG_LEVELS, default="INFO",
+                   metavar="{" + ",".join(LOG_LEVELS) + "}", help="logging threshold, any case")
 
 
 class _DeprecatedAlias(argparse.Action):

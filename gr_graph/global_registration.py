@@ -442,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_seed(ap, "seed of the pair sampling and of RANSAC")
     ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL, metavar="M", help="voxel size of the FPFH scans [m]")
     ap.add_argument("--min-frame", type=int, default=None, metavar="K",
-                    help="first frame sampled (default: 14 for seq 00, whose GT of frames 0-13 is extrapolated; else 0)")
+                    help="first frame sampled "
+                         "(default: 14 for seq 00, whose GT of frames 0-13 is extrapolated; else 0)")
     ap.add_argument("--pairs", default=None, metavar="FILE", help="reuse a pairs.json instead of sampling")
     ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES,
                     help="solvers to run (default: all available)")

@@ -57,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
                                            f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
     add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
-    p.add_argument("--rounds", type=int, default=None, metavar="N", help=f"learning rounds after round 0 (default: {d.training.rounds})")
+    p.add_argument("--rounds", type=int, default=None, metavar="N",
+                   help=f"learning rounds after round 0 (default: {d.training.rounds})")
     add_out(p, f"output directory (default: {d.output.out_dir})")
     add_seed(p, f"seed of the synthetic data and of the learning rounds: sets seed and training.seed "
                 f"(default: {d.seed})", default=None)

@@ -169,3 +169,20 @@ def test_slam_refuses_12_byte_scans_and_runs_them_as_xyz(kitti_root: Path, tmp_p
     assert slam.main(["--data-root", str(kitti_root), "--out", str(tmp_path / "xyzi")] + common) == 0
     np.testing.assert_array_equal(read_kitti_poses(tmp_path / "xyz/round_0/poses_kitti.txt"),
                                   read_kitti_poses(tmp_path / "xyzi/round_0/poses_kitti.txt"))
+
+
+def test_slam_on_exported_12_byte_scans(tmp_path: Path, capsys) -> None:
+    """The same on the synthetic exporter's output (no real data needed): the x,y,z export is
+    refused by default and gives the x,y,z,intensity export's poses with --point-format xyz."""
+    frames = ["--frames", "100:104", "--no-progress"]
+    assert synthetic_export.main(["--out", str(tmp_path / "xyzi")] + frames) == 0
+    assert synthetic_export.main(["--out", str(tmp_path / "xyz"), "--point-format", "xyz"] + frames) == 0
+    common = ["--channels", "16", "--no-loops", "--no-memory", "--no-progress"]
+    assert slam.main(["--data-root", str(tmp_path / "xyz"), "--out", str(tmp_path / "refused")] + common) == 2
+    err = capsys.readouterr().err
+    assert "000000.bin" in err and "point_format='xyz'" in err
+    for fmt in ("xyz", "xyzi"):
+        assert slam.main(["--data-root", str(tmp_path / fmt), "--point-format", fmt,
+                          "--out", str(tmp_path / f"run_{fmt}")] + common) == 0
+    np.testing.assert_array_equal(read_kitti_poses(tmp_path / "run_xyz/round_0/poses_kitti.txt"),
+                                  read_kitti_poses(tmp_path / "run_xyzi/round_0/poses_kitti.txt"))

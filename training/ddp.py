@@ -55,7 +55,8 @@ def train_distributed(memory_dir: str | os.PathLike[str], out_dir: str | os.Path
 EXAMPLES = (
     "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp",
     "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp --epochs 3 --seed 1",
-    "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp_gpu --device cuda --backend nccl",
+    "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp_gpu "
+    "--device cuda --backend nccl",
 )
 
 

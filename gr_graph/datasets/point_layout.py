@@ -52,7 +52,8 @@ _BLOCK_ROWS = 1024
 _LAYOUT_NAMES = {3: "12-byte x,y,z", 4: "16-byte x,y,z,intensity", 5: "20-byte (5 float32, e.g. x,y,z,intensity,ring)"}
 
 _HOW_TO_READ = {
-    "xyz": "read x,y,z-only files with point_format='xyz' (command line --point-format xyz, config data.point_format: xyz)",
+    "xyz": "read x,y,z-only files with point_format='xyz' "
+           "(command line --point-format xyz, config data.point_format: xyz)",
     "xyzi": "read x,y,z,intensity files with point_format='xyzi' (the default; --point-format xyzi)",
 }
 

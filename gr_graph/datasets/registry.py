@@ -187,7 +187,8 @@ def open_sequence(
         from gr_graph.datasets.synthetic import SyntheticSequence
 
         if point_format != "xyzi":
-            log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect", point_format)
+            log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect",
+                        point_format)
         base = SyntheticSequence(seed=synthetic_seed)
         source = (
             "no KITTI root given or found: using the synthetic KITTI 00 (ray cast along the real "
