@@ -2,11 +2,11 @@
 examples and defaults, and logging setup.
 
 Commands: ``gr_graph.slam``, ``gr_graph.global_registration``, ``gr_graph.datasets.synthetic``
-(and ``.plots``), ``training.train``, ``training.ddp``. A flag that means the same thing is
+(and ``.plots``), ``gr_graph.datasets.realism``, ``training.train``, ``training.ddp``. A flag that means the same thing is
 spelled the same everywhere:
 
 ==================  ===================================================================
-``--out DIR``       output directory
+``--out DIR``       output directory (realism: the JSON file)
 ``--config FILE``   YAML file of settings
 ``--seed N``        random seed
 ``--device D``      ``cpu`` or ``cuda``
@@ -92,8 +92,8 @@ def _log_level(text: str) -> str:
     return text.strip().upper()
 
 
-def add_log_level(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--log-level", type=_log_level, choices=LOG_LEVELS, default="INFO",
+def add_log_level(p: argparse.ArgumentParser, default: str = "INFO") -> None:
+    p.add_argument("--log-level", type=_log_level, choices=LOG_LEVELS, default=default,
                    metavar="{" + ",".join(LOG_LEVELS) + "}", help="logging threshold, any case")
 
 

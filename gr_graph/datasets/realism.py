@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gr_graph.atomic import atomic_write_json
+from gr_graph.cli_common import add_log_level, add_no_progress, add_point_format, make_parser, setup_logging
 from gr_graph.datasets.base import DatasetError
 
 log = logging.getLogger(__name__)
@@ -136,8 +137,9 @@ def chosen_frames(n_frames: int, max_frames: int) -> np.ndarray:
 
 
 def folder_statistics(root: str | Path, seq: str = "00", max_frames: int = 50,
-                      progress: bool = True) -> dict[str, object]:
-    """Mean (and spread) of every statistic over frames of one KITTI-layout folder.
+                      progress: bool = True, point_format: str = "xyzi") -> dict[str, object]:
+    """Mean (and spread) of every statistic over frames of one KITTI-layout folder
+    (``point_format``: layout of its ``.bin`` files, see :class:`gr_graph.datasets.kitti.KittiSequence`).
 
     Returns
     -------
@@ -149,7 +151,7 @@ def folder_statistics(root: str | Path, seq: str = "00", max_frames: int = 50,
 
     from gr_graph.datasets.kitti import KittiSequence
 
-    seq_obj = KittiSequence(root, seq, recover_ring_index=False)
+    seq_obj = KittiSequence(root, seq, recover_ring_index=False, point_format=point_format)
     frames = chosen_frames(len(seq_obj), max_frames)
     rows: list[dict[str, float]] = []
     for i in tqdm(frames, desc=f"realism {Path(root).name}", unit="frame", disable=not progress):
@@ -185,30 +187,37 @@ def format_table(results: list[dict[str, object]]) -> str:
     return "\n".join(lines)
 
 
+EXAMPLES = (
+    "python -m gr_graph.datasets.realism ../shared/data/kitti runs/synthetic_kitti --max-frames 50 --out realism.json",
+    "python -m gr_graph.datasets.realism /data/kitti /data/xyz_only --point-format xyz --no-progress",
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m gr_graph.datasets.realism",
-        description="Local-geometry statistics of KITTI-layout LiDAR folders (the first is the reference).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        epilog="example:\n  python -m gr_graph.datasets.realism ../shared/data/kitti runs/synthetic_kitti "
-               "--max-frames 50 --out realism.json",
-    )
+    """The argument parser of ``python -m gr_graph.datasets.realism``."""
+    parser = make_parser("python -m gr_graph.datasets.realism",
+                         "Local-geometry statistics of KITTI-layout LiDAR folders (the first is the reference).",
+                         EXAMPLES)
     parser.add_argument("folders", nargs="+", type=Path, help="KITTI odometry roots (sequences/<seq>/velodyne)")
     parser.add_argument("--seq", default="00", help="sequence inside every folder")
-    parser.add_argument("--max-frames", type=int, default=50, help="frames per folder, spread evenly")
-    parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_point_format(parser, help="layout of the .bin files of every folder: float32 x,y,z,intensity "
+                                  "(16 bytes a point) or x,y,z (12 bytes a point)")
+    parser.add_argument("--max-frames", type=int, default=50, metavar="N", help="frames per folder, spread evenly")
+    parser.add_argument("--out", default=None, metavar="FILE", help="write the results as JSON here")
+    add_no_progress(parser)
+    add_log_level(parser, default="WARNING")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args.log_level)
     if args.max_frames < 1:
         print("error: --max-frames must be >= 1", file=sys.stderr)
         return 2
     try:
-        results = [folder_statistics(f, args.seq, args.max_frames, not args.no_progress) for f in args.folders]
+        results = [folder_statistics(f, args.seq, args.max_frames, not args.no_progress, args.point_format)
+                   for f in args.folders]
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
