@@ -17,8 +17,6 @@ training    the learning rounds (Algorithm 3): training, densification, converge
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -203,11 +201,6 @@ class SlamConfig(_Section):
     training: TrainingConfig = TrainingConfig()
     device: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
-
-    def slam_fingerprint(self) -> str:
-        """Hash of everything that changes the SLAM result (not output/progress options)."""
-        d = self.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}})
-        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def loop_max_rmse(loops: LoopConfig, channels: int) -> float:

@@ -147,6 +147,67 @@ def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig) -> LoopCandi
     return LoopCandidate(i, j, guess, "proximity", float(d[j]))
 
 
+def loop_candidates(estimate: np.ndarray, i: int, scan_context_db: ScanContextDatabase | None,
+                    cfg: LoopConfig) -> list[LoopCandidate]:
+    """Candidates for query scan ``i``: proximity on ``estimate`` (poses 0..i) first, then Scan
+    Context (``scan_context_db``, None when disabled) unless it names a scan within 5 frames
+    of the proximity match."""
+    cands: list[LoopCandidate] = []
+    c = proximity_candidate(estimate, i, cfg) if cfg.use_proximity else None
+    if c is not None:
+        cands.append(c)
+    if scan_context_db is not None:
+        c = scan_context_db.query(i)
+        if c is not None and not any(abs(c.match - o.match) < 5 for o in cands):
+            cands.append(c)
+    return cands
+
+
+# ----------------------------------------------------------------------------- schedule
+
+
+class LoopClosureSchedule:
+    """When a SLAM run looks for loops and when it re-optimises the graph.
+
+    Scan ``i`` is checked when ``i`` is a multiple of ``check_every``, at least
+    ``min_frame_gap``, its scan is usable, and no cooldown is running; a cooldown of
+    ``cooldown`` such checks follows each accepted loop (the check is skipped and the cooldown
+    counts down). After new loops the graph is re-optimised at a check at least
+    ``reoptimize_every`` frames after the last re-optimisation.
+
+    Use: ``if schedule.should_check(i, usable): ...; schedule.loop_accepted(); ...;
+    if schedule.should_reoptimize(i): optimise; schedule.reoptimized(i)``.
+    """
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        self.cfg = cfg
+        self.cooldown = 0  # checks still to skip
+        self.pending_loops = 0  # loops accepted since the last re-optimisation
+        self.last_optimisation = 0  # frame of the last re-optimisation
+
+    def should_check(self, i: int, usable: bool) -> bool:
+        """Whether to look for a loop at scan ``i`` (counts the cooldown down on a skipped check)."""
+        if i % self.cfg.check_every or i < self.cfg.min_frame_gap or not usable:
+            return False
+        if self.cooldown > 0:
+            self.cooldown -= 1
+            return False
+        return True
+
+    def loop_accepted(self) -> None:
+        """A loop entered the graph: start the cooldown, ask for a re-optimisation."""
+        self.pending_loops += 1
+        self.cooldown = self.cfg.cooldown
+
+    def should_reoptimize(self, i: int) -> bool:
+        """Whether to re-optimise after the check at scan ``i``."""
+        return self.pending_loops > 0 and i - self.last_optimisation >= self.cfg.reoptimize_every
+
+    def reoptimized(self, i: int) -> None:
+        """The graph was re-optimised at scan ``i``."""
+        self.pending_loops, self.last_optimisation = 0, i
+
+
 # ----------------------------------------------------------------------------- verification
 
 

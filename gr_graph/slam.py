@@ -87,12 +87,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from gr_graph.datasets.base import DatasetError
-    from gr_graph.pipeline import LearningRoundsUnavailable, SlamPipeline
+    from gr_graph.pipeline import SlamPipeline
 
     try:
         pipe = SlamPipeline(cfg)
         metrics = pipe.run()
-    except (DatasetError, LearningRoundsUnavailable) as exc:
+    except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     last = metrics["rounds"][max(metrics["rounds"], key=int)]

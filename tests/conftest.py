@@ -1,4 +1,5 @@
-"""Shared fixtures: the real LiDAR files in ``../shared/data`` (skipped when absent)."""
+"""Shared fixtures: the real LiDAR files in ``../shared/data`` (skipped when absent) and the
+short synthetic SLAM runs that several test modules read (made once per session)."""
 
 from __future__ import annotations
 
@@ -32,3 +33,19 @@ def kitti00_gt_dir() -> Path:
 def small_gicp_pair_dir() -> Path:
     """Folder with small_gicp's real scan pair and its reference transform."""
     return _require(SHARED_DATA / "small_gicp_pair")
+
+
+@pytest.fixture(scope="session")
+def revisit_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Output directory of the short synthetic revisit run (``slam_support.run_revisit``)."""
+    from slam_support import run_revisit
+
+    return run_revisit(tmp_path_factory.mktemp("revisit_run"))
+
+
+@pytest.fixture(scope="session")
+def learning_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, tuple[str, ...]]:
+    """(run dir, argv) of the short ``--rounds 1`` run (``slam_support.run_learning``)."""
+    from slam_support import run_learning
+
+    return run_learning(tmp_path_factory.mktemp("learning_run"))
