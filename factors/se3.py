@@ -20,6 +20,7 @@ __all__ = [
     "vee",
     "exp_so3",
     "log_so3",
+    "rotation_angle",
     "exp_se3",
     "log_se3",
     "inverse_se3",
@@ -151,6 +152,29 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     if float(n @ axis_sin) < 0.0:
         n = -n
     return theta * n
+
+
+def rotation_angle(R: np.ndarray) -> float | np.ndarray:
+    """Angle ``theta`` in ``[0, pi]`` of rotation matrices ``R`` (``(3, 3)`` or ``(..., 3, 3)``).
+
+    ``theta = atan2(|vee(R - R^T)| / 2, (trace R - 1) / 2)``: the sine from the skew part and
+    the cosine from the trace. For a rotation this is ``acos((trace R - 1) / 2)`` (KITTI's
+    devkit formula), but accurate over the whole range, where ``acos`` loses half the digits
+    near 0 and ``pi`` (it reports ~1e-8 rad for an exact match).
+
+    Returns
+    -------
+    float or np.ndarray
+        A float for one matrix, else an array of shape ``R.shape[:-2]``.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.ndim < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {R.shape}")
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    s = 0.5 * np.linalg.norm(skew, axis=-1)
+    theta = np.arctan2(s, c)
+    return float(theta) if theta.ndim == 0 else theta
 
 
 def exp_se3(xi: np.ndarray) -> np.ndarray:

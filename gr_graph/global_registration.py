@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from factors.se3 import rotation_angle
 from gr_graph.atomic import atomic_write_text
 from gr_graph.trajectory import check_poses
 
@@ -133,10 +134,7 @@ def load_pairs(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, Any]
 
 def rotation_error_deg(T_est: np.ndarray, T_ref: np.ndarray) -> float:
     """Angle (deg) of ``R_est^T R_ref``."""
-    R = T_est[:3, :3].T @ T_ref[:3, :3]
-    c = 0.5 * (np.trace(R) - 1.0)
-    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.degrees(np.arctan2(s, c)))
+    return float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_ref[:3, :3])))
 
 
 def translation_error_m(T_est: np.ndarray, T_ref: np.ndarray) -> float:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
+from factors.se3 import rotation_angle
 from gr_graph.config import GraphConfig, LoopConfig
 from gr_graph.odometry import RegistrationEdge, scaled_information
 from gr_graph.preprocess import Scan
@@ -280,8 +281,7 @@ def loop_error(T_ij: np.ndarray, gt_poses: np.ndarray, i: int, j: int) -> tuple[
     """Translation [m] and rotation [deg] error of a loop T̂_ij against GT (T_j⁻¹ T_i)."""
     T_gt = np.linalg.inv(gt_poses[j]) @ gt_poses[i]
     E = np.linalg.inv(T_gt) @ T_ij
-    c = np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)
-    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(c)))
+    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
 
 
 def loop_precision_recall(

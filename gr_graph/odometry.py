@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import small_gicp
 
+from factors.se3 import rotation_angle
 from gr_graph.config import GraphConfig, OdometryConfig
 from gr_graph.preprocess import Scan
 
@@ -92,12 +93,6 @@ def scaled_information(H: np.ndarray, error: float, num_inliers: int, scale: flo
     var = max(2.0 * float(error) / dof, 1e-12)
     Hs = 0.5 * (H + H.T)
     return scale * Hs / var
-
-
-def rotation_angle(R: np.ndarray) -> float:
-    """Rotation angle of a 3x3 rotation matrix [rad]."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
 def check_registration(
