@@ -43,9 +43,13 @@ class DataConfig(_Section):
     @field_validator("frames", mode="before")
     @classmethod
     def _parse_frames(cls, v: Any) -> Any:
+        from gr_graph.datasets.registry import parse_frames
+
         if isinstance(v, str):
             return parse_frames(v)
-        return v
+        if isinstance(v, (list, tuple)) and len(v) == 2:
+            return parse_frames(tuple(v))
+        return v  # None, or a type pydantic rejects
 
 
 class PreprocessConfig(_Section):
@@ -212,25 +216,6 @@ def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     if loops.max_rmse is not None:
         return loops.max_rmse
     return 0.35 * (64.0 / channels) ** 0.25
-
-
-def parse_frames(text: str) -> tuple[int, int]:
-    """Parse ``"A:B"`` into ``(A, B)`` (A may be empty: 0); the sequence length is checked later.
-
-    Raises
-    ------
-    ValueError
-        Naming the problem (B missing, not integers, empty or negative range).
-    """
-    from gr_graph.datasets.registry import split_frame_spec
-
-    a, b = split_frame_spec(text)
-    a = 0 if a is None else a
-    if b is None:
-        raise ValueError(f"frames {text!r}: B is needed here (A:B, B exclusive)")
-    if a < 0 or b <= a:
-        raise ValueError(f"frames {text!r}: need 0 <= A < B")
-    return a, b
 
 
 def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:

@@ -22,7 +22,8 @@ import logging
 import sys
 from typing import Any
 
-from gr_graph.config import load_config, parse_frames
+from gr_graph.config import load_config
+from gr_graph.datasets.registry import parse_frames
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
-from gr_graph.datasets.synthetic.writer import parse_frames, write_kitti_layout
+from gr_graph.datasets.registry import parse_frames
+from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.n_rings, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads)
-        frames = parse_frames(args.frames, len(seq))
+        frames = range(*parse_frames(args.frames, len(seq)))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
