@@ -39,9 +39,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from factors.se3 import rotation_angle
+from factors.se3 import check_poses, rotation_angle
 from gr_graph.atomic import atomic_write_text
-from gr_graph.trajectory import check_poses
 
 logger = logging.getLogger(__name__)
 

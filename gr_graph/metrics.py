@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from factors.se3 import rotation_angle
-from gr_graph.trajectory import Trajectory, check_poses, to_evo_path
+from factors.se3 import check_poses, rotation_angle
+from gr_graph.trajectory import Trajectory, to_evo_path
 
 logger = logging.getLogger(__name__)
 

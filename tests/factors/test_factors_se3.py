@@ -6,7 +6,20 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.se3 import adjoint_se3, exp_se3, exp_so3, hat, inverse_se3, log_se3, log_so3, rotation_angle, vee
+from factors.se3 import (
+    adjoint_se3,
+    check_pose,
+    check_poses,
+    check_rotation,
+    exp_se3,
+    exp_so3,
+    hat,
+    inverse_se3,
+    log_se3,
+    log_so3,
+    rotation_angle,
+    vee,
+)
 
 # Tolerance of agreement with gtsam away from theta = pi (both are closed forms in float64).
 TOL = 1e-12
@@ -116,3 +129,28 @@ def test_rotation_angle_batch_equals_single_and_acos_away_from_the_ends():
     np.testing.assert_allclose(batch, acos, atol=1e-12)
     with pytest.raises(ValueError, match="3, 3"):
         rotation_angle(np.eye(4))
+
+
+def test_pose_validator_one_and_many():
+    rng = np.random.default_rng(3)
+    T = exp_se3(_xi(rng, 1.0))
+    np.testing.assert_array_equal(check_pose(T), T)
+    np.testing.assert_array_equal(check_poses(np.stack([T, T])), np.stack([T, T]))
+    reflection = np.diag([1.0, 1.0, -1.0, 1.0])  # orthogonal, det -1: not a rotation
+    sheared = T.copy()
+    sheared[0, 1] += 1e-3
+    bottom = T.copy()
+    bottom[3, 0] = 0.1
+    nan = T.copy()
+    nan[1, 3] = np.nan
+    for bad, msg in ((reflection, "not orthonormal"), (sheared, r"defect [0-9.e-]+ > tolerance 0.0001"), (bottom, "bottom row"),
+                     (nan, "non-finite"), (np.eye(3), "(4, 4)")):
+        with pytest.raises(ValueError, match=msg):
+            check_pose(bad, "X")
+    with pytest.raises(ValueError, match="X: pose 1 rotation is not orthonormal"):
+        check_poses(np.stack([T, sheared]), "X")
+    check_pose(sheared, rot_tol=1e-2)  # within a looser tolerance
+    with pytest.raises(ValueError, match="not orthonormal"):
+        check_rotation(reflection[:3, :3])
+    with pytest.raises(ValueError, match=r"\(3, 3\)"):
+        check_rotation(np.eye(4))
