@@ -8,7 +8,6 @@ import logging
 import numpy as np
 import pytest
 
-from factors.noise import floored_information
 from factors.wls import solve_wls
 from gr_graph.config import GraphConfig, load_config
 from gr_graph.edge_noise import LearnedEdgeNoise, learned_information

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from gr_graph.datasets.base import LidarFrame
 from gr_graph.densify import densified_sequence
 from gr_graph.preprocess import preprocess_scan
 
-from slam_support import LEARNING_RUN_CONFIG, FrameSubset
+from slam_support import LEARNING_RUN_CONFIG
 
 GROUND_Z = -1.73
 # a tilted planar covariance with correlations: eigenvalues 0.09, 0.04, 4e-4 -> a = 0.9956
