@@ -37,7 +37,7 @@ import numpy as np
 
 from gr_graph.config import SlamConfig, dump_config
 from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
-from gr_graph.densify import DensifiedSequence
+from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
 from gr_graph.memory import load_memory
@@ -199,8 +199,7 @@ class SlamPipeline:
         checkpoint is resumed only if ``resume_training`` (round r−1 was not recomputed in
         this run); a checkpoint of another configuration restarts training.
         """
-        from gr_graph.densify import densified_sequence
-        from training.train import train_from_memory
+        from training.train import train_from_memory  # imports torch: only when a learning round runs
 
         tc = self.cfg.training
         init = None

@@ -217,7 +217,7 @@ def test_learning_round_structure_with_stub_trainer(kitti_root, tmp_path, monkey
         return IdentityDensified(sequence, lambda p: None, config, preprocess, keep_predictions)
 
     monkeypatch.setattr("training.train.train_from_memory", train_from_memory)
-    monkeypatch.setattr("gr_graph.densify.densified_sequence", densified_sequence)
+    monkeypatch.setattr("gr_graph.pipeline.densified_sequence", densified_sequence)
     out = tmp_path / "rounds"
     assert main(["--data-root", str(kitti_root), "--out", str(out), "--rounds", "3", "--quiet"]) == 0
     assert calls[0][0] == str(out / "round_0" / "memory") and calls[0][1] == 5
