@@ -15,8 +15,9 @@ See the README and the paper for the method. Modules, one concern each:
   :mod:`gr_graph.correspondences`: nearest-neighbour pairs of an edge under T̂.
 - :mod:`gr_graph.densify`: scans densified with the learned covariances (Algorithm 2);
   :mod:`gr_graph.edge_noise`: odometry-edge information H(C) from those covariances.
-- :mod:`gr_graph.trajectory`, :mod:`gr_graph.metrics`, :mod:`gr_graph.global_registration`:
-  trajectory files, evo-backed metrics, the global-registration benchmark.
+- :mod:`gr_graph.trajectory`, :mod:`gr_graph.metrics`, :mod:`gr_graph.loop_evaluation`,
+  :mod:`gr_graph.global_registration` (solvers: :mod:`gr_graph.global_solvers`): trajectory
+  files, evo-backed metrics, loops against ground truth, the global-registration benchmark.
 - :mod:`gr_graph.plots`, :mod:`gr_graph.atomic`: figures and atomic file output.
 """
 

@@ -23,7 +23,7 @@ odometry edges, flagged edges, loops, loop candidates), ``slam`` and ``odometry`
 (:func:`gr_graph.metrics.trajectory_metrics` of the optimised and the odometry-only poses
 against the ground truth, both in the camera frame: RPE over 300 frames mean/RMSE for
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
-ground truth, :func:`gr_graph.loop_closure.loop_precision_recall`), ``runtime_s`` per stage
+ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
 ``config_fingerprint``; learning rounds add ``edge_noise``, ``densify`` and
 ``runtime_s.training``, and every round after the first ``trajectory_change``.
@@ -113,7 +113,7 @@ def trajectory_summary(res: SlamResult, gt: np.ndarray, T_cam_velo: np.ndarray,
                        min_frame_gap: int) -> dict[str, Any]:
     """``slam``, ``odometry`` (trajectory metrics in the camera frame) and ``loop_closure``
     (precision/recall) of a round against the re-anchored ground truth ``gt``."""
-    from gr_graph.loop_closure import loop_precision_recall
+    from gr_graph.loop_evaluation import loop_precision_recall
     from gr_graph.metrics import trajectory_metrics
 
     gt_cam = velo_to_cam_poses(gt, T_cam_velo)

@@ -11,15 +11,13 @@ from gr_graph.loop_closure import (
     LoopCandidate,
     LoopClosureSchedule,
     ScanContextDatabase,
-    loop_error,
-    loop_precision_recall,
     proximity_candidate,
     scan_context,
     scan_context_distance,
-    true_revisits,
     verify_loop,
     yaw_matrix,
 )
+from gr_graph.loop_evaluation import loop_error, loop_precision_recall, true_revisits
 from gr_graph.preprocess import preprocess_scan
 
 
