@@ -17,8 +17,6 @@ training    the learning rounds (Algorithm 3): training, densification, converge
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -48,9 +46,13 @@ class DataConfig(_Section):
     @field_validator("frames", mode="before")
     @classmethod
     def _parse_frames(cls, v: Any) -> Any:
+        from gr_graph.datasets.registry import parse_frames
+
         if isinstance(v, str):
             return parse_frames(v)
-        return v
+        if isinstance(v, (list, tuple)) and len(v) == 2:
+            return parse_frames(tuple(v))
+        return v  # None, or a type pydantic rejects
 
 
 class PreprocessConfig(_Section):
@@ -207,11 +209,6 @@ class SlamConfig(_Section):
     device: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
 
-    def slam_fingerprint(self) -> str:
-        """Hash of everything that changes the SLAM result (not output/progress options)."""
-        d = self.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}})
-        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
-
 
 def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     """Loop verification RMSE threshold: explicit, or scaled with ring sparsity (0.35 m at 64).
@@ -222,25 +219,6 @@ def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     if loops.max_rmse is not None:
         return loops.max_rmse
     return 0.35 * (64.0 / channels) ** 0.25
-
-
-def parse_frames(text: str) -> tuple[int, int]:
-    """Parse ``"A:B"`` into ``(A, B)`` (A may be empty: 0); the sequence length is checked later.
-
-    Raises
-    ------
-    ValueError
-        Naming the problem (B missing, not integers, empty or negative range).
-    """
-    from gr_graph.datasets.registry import split_frame_spec
-
-    a, b = split_frame_spec(text)
-    a = 0 if a is None else a
-    if b is None:
-        raise ValueError(f"frames {text!r}: B is needed here (A:B, B exclusive)")
-    if a < 0 or b <= a:
-        raise ValueError(f"frames {text!r}: need 0 <= A < B")
-    return a, b
 
 
 def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:

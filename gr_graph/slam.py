@@ -29,7 +29,8 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.config import SlamConfig, load_config, parse_frames
+from gr_graph.config import SlamConfig, load_config
+from gr_graph.datasets.registry import parse_frames
 
 
 EXAMPLES = (
@@ -117,13 +118,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from gr_graph.datasets.base import DatasetError
     from gr_graph.datasets.registry import open_configured_sequence
-    from gr_graph.pipeline import LearningRoundsUnavailable, SlamPipeline
+    from gr_graph.pipeline import SlamPipeline
 
     try:
         sequence, source = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
         pipe = SlamPipeline(cfg, sequence, source)
         metrics = pipe.run()
-    except (DatasetError, LearningRoundsUnavailable) as exc:
+    except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     last = metrics["rounds"][max(metrics["rounds"], key=int)]

@@ -7,6 +7,9 @@ every other test generates its data.
 The tests never write into the user's home: ``HOME`` (and with it evo's settings folder
 ``~/.evo`` and matplotlib's cache) points to a temporary directory for the whole session,
 also for the subprocesses the tests start.
+
+The short synthetic SLAM runs that several test modules read are made once per session
+(fixtures ``revisit_run`` and ``learning_run``).
 """
 
 from __future__ import annotations
@@ -58,3 +61,19 @@ def kitti00_gt_dir() -> Path:
 def small_gicp_pair_dir() -> Path:
     """Folder with small_gicp's real scan pair and its reference transform."""
     return _require(SHARED_DATA / "small_gicp_pair")
+
+
+@pytest.fixture(scope="session")
+def revisit_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Output directory of the short synthetic revisit run (``slam_support.run_revisit``)."""
+    from slam_support import run_revisit
+
+    return run_revisit(tmp_path_factory.mktemp("revisit_run"))
+
+
+@pytest.fixture(scope="session")
+def learning_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, tuple[str, ...]]:
+    """(run dir, argv) of the short ``--rounds 1`` run (``slam_support.run_learning``)."""
+    from slam_support import run_learning
+
+    return run_learning(tmp_path_factory.mktemp("learning_run"))

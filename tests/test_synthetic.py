@@ -19,7 +19,6 @@ from gr_graph.datasets.synthetic.__main__ import main as cli_main
 from gr_graph.datasets.synthetic.sensor import BeamModel, hdl64_elevations_deg
 from gr_graph.datasets.synthetic.sequence import clear_scene_cache
 from gr_graph.datasets.synthetic.town import build_town
-from gr_graph.datasets.synthetic.writer import parse_frames
 
 DATA = Path(__file__).resolve().parents[1] / "gr_graph" / "data" / "kitti00"
 
@@ -240,15 +239,6 @@ def test_frames_register_onto_their_ground_truth(seq, i, j, from_identity):
 
 
 # ---------------------------------------------------------------- writer / CLI ----------
-def test_parse_frames():
-    assert parse_frames("3:7", 10) == range(3, 7)
-    assert parse_frames(":4", 10) == range(0, 4) and parse_frames("8:", 10) == range(8, 10)
-    assert parse_frames(None, 10) == range(10)
-    for bad in ("5", "7:3", "0:11", "a:b"):
-        with pytest.raises(ValueError):
-            parse_frames(bad, 10)
-
-
 def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
     out = tmp_path / "synth"
     assert cli_main(["--out", str(out), "--frames", "20:23", "--seed", "0"]) == 0

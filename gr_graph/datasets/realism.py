@@ -28,7 +28,6 @@ on it optimistic.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from dataclasses import asdict, dataclass

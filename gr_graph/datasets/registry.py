@@ -76,14 +76,8 @@ class SequenceView:
             yield self[i]
 
 
-def split_frame_spec(text: str) -> tuple[int | None, int | None]:
-    """Read the syntax of ``"A:B"``: two integers, either side may be empty (None).
-
-    Raises
-    ------
-    DatasetError
-        (a ``ValueError``) if the text is not of that form.
-    """
+def _split_frame_spec(text: str) -> tuple[int | None, int | None]:
+    """The two integers of ``"A:B"``, None for an empty side."""
     parts = text.split(":")
     if len(parts) != 2:
         raise DatasetError(f"frames {text!r}: expected 'A:B' (B exclusive)")
@@ -93,16 +87,33 @@ def split_frame_spec(text: str) -> tuple[int | None, int | None]:
         raise DatasetError(f"frames {text!r}: A and B must be integers") from exc
 
 
-def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[int, int]:
-    """Turn ``"A:B"`` / ``slice`` / ``(A, B)`` / None into a half-open range ``(A, B)`` of ``n`` frames.
+def parse_frames(spec: str | slice | tuple[int, int] | None, n: int | None = None) -> tuple[int, int]:
+    """The one frame-range parser: ``"A:B"`` / ``slice`` / ``(A, B)`` / None -> half-open ``(A, B)``.
 
-    Empty sides mean the start and the end. A range that is empty or reaches outside
-    ``0..n`` is an error, not silently clipped.
+    Empty sides mean the start and the end (A may be empty: 0). A range that is empty or
+    reaches outside ``0..n`` is an error, never silently clipped.
+
+    Parameters
+    ----------
+    spec : str, slice, (int, int) or None
+        The range; None is the whole sequence.
+    n : int, optional
+        Frames in the sequence. Without it (a configuration read before the sequence is
+        opened) B must be given and only ``0 <= A < B`` is checked; the length is checked
+        when the sequence is opened.
+
+    Raises
+    ------
+    DatasetError
+        (a ``ValueError``) naming the problem: not ``A:B``, not integers, a step, B missing
+        without ``n``, an empty range or one outside the sequence.
     """
     if spec is None:
+        if n is None:
+            raise DatasetError("frames: None needs the sequence length")
         return 0, n
     if isinstance(spec, str):
-        start, stop = split_frame_spec(spec)
+        start, stop = _split_frame_spec(spec)
     elif isinstance(spec, slice):
         if spec.step not in (None, 1):
             raise DatasetError("frames: steps other than 1 are not supported")
@@ -110,8 +121,13 @@ def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[in
     else:
         start, stop = spec
     start = 0 if start is None else int(start)
+    if stop is None and n is None:
+        raise DatasetError(f"frames {spec!r}: B is needed here (A:B, B exclusive)")
     stop = n if stop is None else int(stop)
-    if not 0 <= start < stop <= n:
+    if n is None:
+        if not 0 <= start < stop:
+            raise DatasetError(f"frames {start}:{stop}: need 0 <= A < B")
+    elif not 0 <= start < stop <= n:
         raise DatasetError(f"frames {start}:{stop}: need 0 <= A < B <= {n} (the sequence has {n} frames)")
     return start, stop
 

@@ -24,7 +24,8 @@ from gr_graph.cli_common import (
     setup_logging,
 )
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
-from gr_graph.datasets.synthetic.writer import parse_frames, write_kitti_layout
+from gr_graph.datasets.registry import parse_frames
+from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
 EXAMPLES = (
     "python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0",
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.channels, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads)
-        frames = parse_frames(args.frames, len(seq))
+        frames = range(*parse_frames(args.frames, len(seq)))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite, progress=not args.no_progress,
                                  point_format=args.point_format)
     except (ValueError, FileExistsError) as exc:

@@ -26,15 +26,9 @@ import numpy as np
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.datasets.base import velo_to_cam_poses
 from gr_graph.datasets.point_layout import POINT_FORMATS
-from gr_graph.datasets.registry import parse_frames as registry_parse_frames
 from gr_graph.datasets.synthetic.path import load_kitti00_path
 
 log = logging.getLogger(__name__)
-
-
-def parse_frames(spec: str | None, length: int) -> range:
-    """Frames ``"A:B"`` (B exclusive; either side may be empty) as a range within ``length``."""
-    return range(*registry_parse_frames(spec, length))
 
 
 def _fmt_rows(rows: np.ndarray) -> str:
