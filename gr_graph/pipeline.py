@@ -102,11 +102,20 @@ class SlamPipeline:
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
 
+    def provenance(self) -> dict[str, Any]:
+        """Commit, packages, seeds, threads and device of this run (``metrics.json["provenance"]``)."""
+        from gr_graph.provenance import provenance
+
+        cfg = self.cfg
+        return provenance(seeds={"world": cfg.seed, "training": cfg.training.seed}, device=cfg.device,
+                          num_threads=cfg.odometry.num_threads)
+
     def run(self) -> dict[str, Any]:
         """Run round 0 and the learning rounds; write every output; return the metrics dict."""
         self.prepare()
         metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
-                                   "channels": self.cfg.data.channels, "rounds": {}}
+                                   "channels": self.cfg.data.channels, "provenance": self.provenance(),
+                                   "rounds": {}}
         previous_poses, recomputed = None, False
         for r in range(self.cfg.training.rounds + 1):
             summary = None if recomputed else self.finished_round(r)

@@ -242,3 +242,20 @@ def test_deterministic(kitti_root):
     np.testing.assert_array_equal(a.covariances, b.covariances)
     assert [(x["query"], x["match"], x["accepted"]) for x in a.loop_attempts] == \
         [(x["query"], x["match"], x["accepted"]) for x in b.loop_attempts]
+
+
+@pytest.mark.slow
+def test_metrics_record_provenance(revisit_run):
+    """metrics.json says which code, packages, seeds, threads and device made it."""
+    import subprocess
+
+    from gr_graph.provenance import REPO_ROOT
+
+    prov = json.loads((revisit_run / "metrics.json").read_text())["provenance"]
+    head = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0:
+        assert prov["git"]["commit"] == head.stdout.strip() and isinstance(prov["git"]["dirty"], bool)
+    assert prov["packages"]["numpy"] == np.__version__
+    assert {"gtsam", "small_gicp", "scipy"} <= set(prov["packages"])
+    assert prov["seeds"] == {"world": 0, "training": 0}
+    assert prov["device"] == "cpu" and prov["num_threads"] >= 1 and prov["cpu_count"] >= 1
