@@ -539,7 +539,7 @@ class SlamPipeline:
         from training.trainer import TrainConfig
 
         # unknown keys in training.trainer fail here, before round 0, not after it
-        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False), strict=True)
+        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False))
 
     # -------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:
