@@ -116,6 +116,13 @@ def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     assert path.name == "model.pt" and path.is_file()
     summary = json.loads((tmp_path / "lib" / "summary.json").read_text())
     assert summary["epochs_done"] == 1 and summary["dataset"]["n_edges"] == 5
+    prov = summary["provenance"]  # what made these weights
+    assert prov["seeds"] == {"training": 0} and prov["device"] == "cpu"
+    assert prov["num_threads"] == torch.get_num_threads() == 1  # set at the top of this module
+    assert prov["packages"]["torch"] == torch.__version__ and prov["packages"]["numpy"] == np.__version__
+    assert set(prov["git"]) == {"commit", "dirty"}
+    assert summary["runtime_s"]["steps"] == 5 and summary["runtime_s"]["total"] > 0
+    assert all("time_s" not in r for r in _log(tmp_path / "lib"))  # wall time never in the log
     pts = np.asarray(load_memory(memory_dir).scan(0))[:1500]
     C = predict_covariances(path, pts)
     assert C.shape == (1500, 3, 3) and np.all(np.linalg.eigvalsh(C) > 0)
