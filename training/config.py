@@ -143,10 +143,6 @@ class TrainConfig(TrainOptions):
         """Plain JSON-serialisable dict."""
         return self.model_dump()
 
-    def options(self) -> TrainOptions:
-        """The hyper-parameters without the run settings."""
-        return TrainOptions.model_validate(self.model_dump(exclude=set(RUN_KEYS)))
-
     def resume_key(self) -> dict[str, Any]:
         """Settings that must match for a checkpoint to be resumed."""
         d = self.to_dict()

@@ -143,6 +143,11 @@ class Trainer:
         self.world_size = world_size
         if config.device.startswith("cuda") and not torch.cuda.is_available():
             raise TrainingError("device 'cuda' requested but torch.cuda.is_available() is False")
+        if config.device.startswith("cuda") and "CUBLAS_WORKSPACE_CONFIG" not in os.environ:
+            # cuBLAS is deterministic only with a fixed workspace (torch raises in deterministic
+            # mode otherwise); read when the first cuBLAS handle is made, i.e. after this point
+            os.environ["CUBLAS_WORKSPACE_CONFIG"] = ":4096:8"
+            log.info("CUBLAS_WORKSPACE_CONFIG=:4096:8 set for deterministic cuBLAS")
         self.device = torch.device(config.device)
         self.dataset = PairDataset(memory, config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
         torch.manual_seed(config.seed)
