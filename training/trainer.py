@@ -81,9 +81,8 @@ def save_atomic(obj: Any, path: Path) -> None:
     would be the random temporary name; writing through an open file gives the fixed name
     ``archive``, so the same object gives the same bytes in every run.
     """
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            torch.save(obj, fh)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
 
 
 @contextlib.contextmanager
@@ -418,7 +417,7 @@ class Trainer:
             "config": self.config.to_dict(),
             "model": str(model_path),
             "world_size": self.world_size,
-            "runtime_s": {"steps": int(len(steps)), "total": float(steps.sum()),
+            "runtime_s": {"steps": len(steps), "total": float(steps.sum()),
                           "step_median": float(np.median(steps)) if len(steps) else None},
             "provenance": provenance(seeds={"training": self.config.seed}, device=str(self.device),
                                      num_threads=torch.get_num_threads()),
