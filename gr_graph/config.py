@@ -22,9 +22,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from gr_graph.atomic import atomic_write_text
+from gr_graph.config_errors import describe_validation_error
+from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
 
 class _Section(BaseModel):
@@ -142,11 +144,12 @@ class OutputConfig(_Section):
 class TrainingConfig(_Section):
     """Learning rounds (Algorithm 3): training f_theta (Algorithm 1) and densification (Algorithm 2).
 
-    ``trainer`` holds further keys of ``training.trainer.TrainConfig`` (``lr``, ``lambda_corr``,
-    ``lambda_pose``, ``max_corr``, ``num_threads``, ..., and ``net``: a mapping of
-    ``training.network.NetConfig`` keys); they are checked before round 0 and an unknown key
-    is an error. ``epochs``, ``seed``, ``device``, ``progress`` and ``init_checkpoint`` are
-    set by the pipeline and may not appear there.
+    ``trainer`` holds the trainer's hyper-parameters, :class:`training.config.TrainOptions`
+    (``lr``, ``lambda_corr``, ``lambda_pose``, ``max_corr``, ``num_threads``, ..., and ``net``:
+    :class:`training.config.NetConfig`), validated when the configuration is loaded; an
+    unknown key at any level is an error. The run settings of ``training.config.TrainConfig``
+    (``epochs``, ``seed``, ``device``, ``progress``, ``init_checkpoint``) are set by the
+    pipeline (:meth:`trainer_config`) and may not appear there.
     """
 
     rounds: int = Field(0, ge=0, description="reciprocal rounds after the raw-scan SLAM (round 0)")
@@ -174,26 +177,26 @@ class TrainingConfig(_Section):
     learned_noise_degeneracy_rel: float = Field(
         1e-4, ge=0.0, lt=1.0, description="H(C) eigenvalue below this x largest (rotations as arc at 10 m): degenerate, fallback"
     )
-    trainer: dict[str, Any] = Field(
-        default_factory=dict, description="more training.trainer.TrainConfig keys, e.g. {lr: 1e-3, net: {n_points: 1024}}"
+    trainer: TrainOptions = Field(
+        default_factory=TrainOptions, description="trainer hyper-parameters, e.g. {lr: 1e-3, net: {n_points: 1024}}"
     )
 
-    @field_validator("trainer")
+    @field_validator("trainer", mode="before")
     @classmethod
-    def _no_pipeline_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
-        reserved = {"epochs", "seed", "device", "progress", "init_checkpoint"} & set(v)
+    def _no_pipeline_keys(cls, v: Any) -> Any:
+        reserved = set(RUN_KEYS) & set(v) if isinstance(v, dict) else set()
         if reserved:
-            raise ValueError(f"training.trainer: {sorted(reserved)} are set by the pipeline; use training.epochs/seed "
-                             "and the top-level device")
+            raise ValueError(f"{sorted(reserved)} are set by the pipeline; use training.epochs/seed and the "
+                             "top-level device")
         return v
 
-    def trainer_config(self, device: str = "cpu", progress: bool = True, init_checkpoint: str | None = None) -> dict[str, Any]:
-        """The mapping given to ``training.train.train_from_memory`` (only TrainConfig keys)."""
-        d: dict[str, Any] = {**self.trainer, "epochs": self.epochs, "seed": self.seed, "device": device,
-                             "progress": progress}
-        if init_checkpoint is not None:
-            d["init_checkpoint"] = str(init_checkpoint)
-        return d
+    def trainer_config(self, device: str = "cpu", progress: bool = True,
+                       init_checkpoint: str | os.PathLike[str] | None = None) -> TrainConfig:
+        """The trainer's configuration of a learning round: ``trainer`` plus the run settings."""
+        return TrainConfig.model_validate({
+            **self.trainer.model_dump(), "epochs": self.epochs, "seed": self.seed, "device": device,
+            "progress": progress, "init_checkpoint": None if init_checkpoint is None else str(init_checkpoint),
+        })
 
 
 class SlamConfig(_Section):
@@ -221,8 +224,23 @@ def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     return 0.35 * (64.0 / channels) ** 0.25
 
 
+class ConfigError(ValueError):
+    """The configuration is invalid; the message names each bad key (an unknown one with the
+    valid keys of its section) and where the configuration came from."""
+
+
 def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:
-    """Defaults, then a YAML file, then ``overrides`` (nested dict, e.g. ``{"data": {"channels": 32}}``)."""
+    """Defaults, then a YAML file, then ``overrides`` (nested dict, e.g. ``{"data": {"channels": 32}}``).
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ConfigError
+        If a key is unknown (at any level) or a value invalid.
+    ValueError
+        If the file does not hold a mapping.
+    """
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)
@@ -234,7 +252,11 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         data = loaded
     if overrides:
         data = _merge(data, overrides)
-    return SlamConfig.model_validate(data)
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as exc:
+        source = f"configuration ({path} and command line)" if path is not None else "configuration"
+        raise ConfigError(describe_validation_error(exc, SlamConfig, what=source)) from None
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:

@@ -153,7 +153,7 @@ class SlamPipeline:
         from training.trainer import TrainConfig
 
         # unknown keys in training.trainer fail here, before round 0, not after it
-        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False), strict=True)
+        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False))
 
     def finished_round(self, r: int) -> dict[str, Any] | None:
         """The summary of round ``r`` if it is finished with the current configuration (resume)."""

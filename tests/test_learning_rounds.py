@@ -181,15 +181,18 @@ def test_real_network_checkpoint_is_accepted(tmp_path):
 
 
 def test_trainer_keys_checked_before_round_zero(tmp_path):
+    """The trainer section is validated when the configuration is loaded, before any round."""
     from gr_graph.config import load_config
-    from gr_graph.pipeline import SlamPipeline
 
     with pytest.raises(ValueError, match="set by the pipeline"):
         TrainingConfig(trainer={"epochs": 3})
-    cfg = load_config(overrides={"output": {"out_dir": str(tmp_path)}, "training": {"rounds": 1, "trainer": {"lrr": 1}}})
-    with pytest.raises(Exception, match="lrr"):
-        SlamPipeline(cfg, PlaneScenes(n=2)).run()
-    assert not (tmp_path / "round_0").exists()
+    with pytest.raises(ValueError, match="unknown key 'training.trainer.lrr'"):
+        load_config(overrides={"output": {"out_dir": str(tmp_path)}, "training": {"rounds": 1, "trainer": {"lrr": 1}}})
+    cfg = load_config(overrides={"training": {"rounds": 1, "trainer": {"lr": 2e-3, "net": {"n_points": 256}}}})
+    tc = cfg.training.trainer_config("cpu", progress=False)
+    assert (tc.lr, tc.net.n_points, tc.epochs, tc.seed) == (2e-3, 256, cfg.training.epochs, cfg.training.seed)
+    with pytest.raises(ValueError, match="lr"):
+        cfg.training.trainer.lr = -1.0  # validated on assignment too
 
 
 # ----------------------------------------------------------------------------- end to end

@@ -35,7 +35,8 @@ from gr_graph.cli_common import (
     setup_logging,
 )
 from gr_graph.memory import load_memory
-from training.trainer import TrainConfig, Trainer
+from training.config import TrainConfig, load_train_config
+from training.trainer import Trainer
 
 log = logging.getLogger(__name__)
 
@@ -59,10 +60,9 @@ def train_from_memory(
         ``training.predict.predict_covariances``), ``checkpoint.pt``, ``train_log.jsonl``,
         ``summary.json``.
     config : TrainConfig, dict or pydantic model, optional
-        Training hyper-parameters (keys as :class:`training.trainer.TrainConfig`, with
-        ``"net"`` a dict of :class:`training.network.NetConfig`); keys the trainer does not
-        know (e.g. ``rounds``) are logged and ignored. Use ``init_checkpoint`` to continue
-        from the previous round's ``model.pt``.
+        Training hyper-parameters (keys as :class:`training.config.TrainConfig`, with
+        ``"net"`` a dict of :class:`training.config.NetConfig`); an unknown key is an error.
+        Use ``init_checkpoint`` to continue from the previous round's ``model.pt``.
     resume : bool
         Continue from ``out_dir/checkpoint.pt`` if it exists (same configuration required).
 
@@ -70,10 +70,12 @@ def train_from_memory(
     ------
     gr_graph.memory.MemoryFormatError
         If the memory cannot be read.
+    training.config.TrainConfigError
+        On a bad configuration (unknown key, value out of range).
     training.trainer.TrainingError
-        On a bad configuration, an incompatible checkpoint or too many unusable pairs.
+        On an incompatible checkpoint or too many unusable pairs.
     """
-    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config, strict=False)
+    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config)
     memory = load_memory(memory_dir)
     log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
     return Trainer(memory, out_dir, cfg).fit(resume=resume)
@@ -92,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = make_parser("python -m training.train", __doc__.split("\n\n")[0] + " Options override --config.", EXAMPLES)
     ap.add_argument("--memory", required=True, metavar="DIR", help="memory directory (written by gr_graph.slam)")
     add_out(ap, "output directory (default: <memory>/../training)")
-    add_config(ap, "YAML/JSON file with TrainConfig keys")
+    add_config(ap, "YAML/JSON file with TrainConfig keys (an unknown key is an error)")
     ap.add_argument("--epochs", type=int, default=None, metavar="N", help=f"epochs (default: {d.epochs})")
     add_seed(ap, f"seed of the weights and of all sampling (default: {d.seed})", default=None)
     add_device(ap, f"torch device (default: {d.device})", default=None)
@@ -111,18 +113,15 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry; returns the exit code."""
     args = _parse(argv)
     setup_logging(args.log_level)
-    cfg: dict[str, Any] = {}
-    if args.config:
-        import yaml
-
-        cfg = yaml.safe_load(Path(args.config).read_text()) or {}
+    overrides: dict[str, Any] = {}
     for key, val in (("epochs", args.epochs), ("device", args.device), ("seed", args.seed), ("num_threads", args.threads)):
         if val is not None:
-            cfg[key] = val
+            overrides[key] = val
     if args.no_progress:
-        cfg["progress"] = False
+        overrides["progress"] = False
     out = Path(args.out) if args.out else Path(args.memory).resolve().parent / "training"
     try:
+        cfg = load_train_config(args.config, overrides)
         path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)
     except (ValueError, RuntimeError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
