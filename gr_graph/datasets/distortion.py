@@ -39,7 +39,7 @@ from gr_graph.deskew import deskew, distort, sweep_motion_from_velocity, times_f
 
 __all__ = ["MotionDistortedSequence", "distort_with_trajectory"]
 
-_AZIMUTH_ITERATIONS = 3
+_AZIMUTH_ITERATIONS = 5
 
 
 def _segment_motion(poses: np.ndarray, stamps: np.ndarray, a: int, b: int, scan_period: float) -> np.ndarray:
