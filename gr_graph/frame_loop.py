@@ -46,6 +46,8 @@ from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
 
+MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
+
 __all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "prefetch_frames", "run_slam"]
 
 
@@ -249,6 +251,7 @@ class _FrameLoop:
             scan_period = float(sequence.scan_period)
         self.deskewer = FrameDeskewer(scan_period)
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
+        self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
         if self.deskew_on:
             log.info("deskewing every frame to mid-sweep (%s)", self.deskew_reason)
 
@@ -289,9 +292,16 @@ class _FrameLoop:
         with self.timer("deskew"):
             out = self.deskewer(frame, increment, frame_period)
         if out is frame and self.deskewer.n_deskewed == 0:
-            self.startup_frames.append(frame)
+            if len(self.startup_frames) < MAX_STARTUP_FRAMES:
+                self.startup_frames.append(frame)
+            elif not self.startup_given_up:
+                log.warning("deskew: no motion known after %d frames; the first frames stay in the map as they are",
+                            MAX_STARTUP_FRAMES)
+                self.startup_given_up = True
         elif self.startup_frames:
-            self.redo_startup_frames(increment, frame_period)
+            if not self.startup_given_up:
+                self.redo_startup_frames(increment, frame_period)
+            self.startup_frames = []
         return out
 
     def redo_startup_frames(self, increment: np.ndarray, frame_period: float | None) -> None:
@@ -305,7 +315,6 @@ class _FrameLoop:
         with self.timer("odometry"):
             self.odometry.rebuild_map(scans)
         log.debug("deskewed the %d startup frames and rebuilt the odometry map", len(scans))
-        self.startup_frames = []
 
     def preprocess(self, frame: LidarFrame) -> Scan:
         with self.timer("preprocess"):
