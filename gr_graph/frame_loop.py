@@ -6,7 +6,8 @@
 0. deskews it when ``odometry.deskew`` says so (:class:`FrameDeskewer`): every raw point
    is moved to the sensor frame at mid-sweep, assuming the sensor keeps the velocity of the
    last frame-to-frame motion (the odometry's constant-velocity increment, as KISS-ICP
-   does); per-point times come from the frame (``LidarFrame.time``) or else the azimuth;
+   does); per-point times come from the frame (``LidarFrame.time``) or else the azimuth
+   (densified frames of the learning rounds carry no times: azimuth);
 1. preprocesses it (:func:`gr_graph.preprocess.preprocess_scan`); only the downsampled
    scan is kept;
 2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`) and adds the pose
