@@ -44,6 +44,11 @@ class DataConfig(_Section):
     point_format: Literal["xyzi", "xyz"] = Field(
         "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
     )
+    kitti_vertical_correction_deg: float = Field(
+        0.0, ge=-2.0, le=2.0, description="KITTI folders: raise every point's elevation by this angle (HDL-64E "
+        "vertical-angle error; KISS-ICP 1.3.0 uses 0.205, published values 0.195-0.22); 0: off (any KITTI-layout folder, "
+        "synthetic exports included, is read unchanged)"
+    )
 
     @field_validator("frames", mode="before")
     @classmethod
@@ -84,6 +89,14 @@ class OdometryConfig(_Section):
     )
     max_deviation_rotation_deg: float = Field(15.0, gt=0.0)
     corr_max_distance: float = Field(1.0, gt=0.0, description="memory correspondences: max NN distance [m]")
+    deskew: Literal["auto", "on", "off"] = Field(
+        "auto", description="constant-velocity motion compensation of each raw scan to mid-sweep before "
+        "preprocessing; 'auto': on for sequences whose scans are not motion-compensated (motion_compensated=False: "
+        "raw drives, data with per-point times, the synthetic 'raw' variant), off for KITTI odometry folders"
+    )
+    deskew_scan_period: float | None = Field(
+        None, gt=0.0, description="sweep duration [s]; None: the sequence's scan_period, else the frame spacing"
+    )
 
 
 class LoopConfig(_Section):

@@ -106,6 +106,9 @@ class DensifiedSequence:
         self.timestamps = parent.timestamps
         self.gt_poses = parent.gt_poses
         self.T_cam_velo = parent.T_cam_velo
+        self.motion_compensated = bool(getattr(parent, "motion_compensated", True))
+        if getattr(parent, "scan_period", None) is not None:
+            self.scan_period = float(parent.scan_period)
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()

@@ -3,6 +3,11 @@
 :func:`run_slam` reads (renders) the frames one at a time in a worker thread
 (:func:`prefetch_frames`), and for each frame
 
+0. deskews it when ``odometry.deskew`` says so (:class:`FrameDeskewer`): every raw point
+   is moved to the sensor frame at mid-sweep, assuming the sensor keeps the velocity of the
+   last frame-to-frame motion (the odometry's constant-velocity increment, as KISS-ICP
+   does); per-point times come from the frame (``LidarFrame.time``) or else the azimuth
+   (densified frames of the learning rounds carry no times: azimuth);
 1. preprocesses it (:func:`gr_graph.preprocess.preprocess_scan`); only the downsampled
    scan is kept;
 2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`) and adds the pose
@@ -25,7 +30,7 @@ from collections import defaultdict, deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -33,6 +38,7 @@ from tqdm import tqdm
 
 from gr_graph.config import SlamConfig, loop_max_rmse
 from gr_graph.datasets.base import LidarFrame, LidarSequence
+from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
@@ -41,7 +47,9 @@ from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SlamResult", "StageTimer", "prefetch_frames", "run_slam"]
+MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
+
+__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "prefetch_frames", "run_slam"]
 
 
 class StageTimer:
@@ -79,6 +87,86 @@ def prefetch_frames(sequence: LidarSequence, ahead: int = 4) -> Iterator[LidarFr
                 queue.append(pool.submit(sequence.__getitem__, nxt))
                 nxt += 1
             yield fut.result()
+
+
+def deskew_enabled(mode: str, sequence: LidarSequence) -> tuple[bool, str]:
+    """Whether ``odometry.deskew = mode`` deskews ``sequence``, and why (for the run summary).
+
+    ``auto`` deskews sequences that say ``motion_compensated = False``; a sequence without
+    the attribute counts as compensated (no change to its results).
+    """
+    if mode == "on":
+        return True, "odometry.deskew: on"
+    if mode == "off":
+        return False, "odometry.deskew: off"
+    compensated = bool(getattr(sequence, "motion_compensated", True))
+    if compensated:
+        return False, "auto: the sequence's scans are motion-compensated"
+    return True, "auto: the sequence's scans are not motion-compensated"
+
+
+class FrameDeskewer:
+    """Constant-velocity motion compensation of raw frames to mid-sweep (before preprocessing).
+
+    The sweep motion is the last frame-to-frame increment scaled to the sweep duration:
+    ``Exp(Log(increment) * scan_period / frame_period)``, where ``frame_period`` is the time
+    between the two frames of the increment. Without a ``scan_period`` the sweep is taken to
+    last exactly one frame period (a spinning LiDAR sweeping continuously; KISS-ICP's model).
+
+    Parameters
+    ----------
+    scan_period : float, optional
+        Sweep duration [s].
+
+    Attributes
+    ----------
+    n_deskewed : int
+        Frames moved (with a non-identity sweep motion).
+    n_without_motion : int
+        Frames left as they are because no motion was known yet (the first two frames).
+    time_sources : dict
+        Frames deskewed with times from the data (``"data"``) or the azimuth (``"azimuth"``).
+    """
+
+    def __init__(self, scan_period: float | None = None) -> None:
+        self.scan_period = scan_period
+        self.n_deskewed = 0
+        self.n_without_motion = 0
+        self.time_sources: dict[str, int] = {"data": 0, "azimuth": 0}
+
+    def sweep_motion(self, increment: np.ndarray, frame_period: float | None) -> np.ndarray:
+        """The sensor's motion over one sweep predicted from the last frame-to-frame increment."""
+        if self.scan_period is None or frame_period is None or not frame_period > 0.0:
+            return np.asarray(increment, np.float64)
+        return sweep_motion_from_velocity(increment, frame_period, self.scan_period)
+
+    def __call__(self, frame: LidarFrame, increment: np.ndarray, frame_period: float | None) -> LidarFrame:
+        """``frame`` with its points moved to mid-sweep (the same frame when there is no motion)."""
+        motion = self.sweep_motion(increment, frame_period)
+        if np.allclose(motion, np.eye(4), rtol=0.0, atol=1e-12) or len(frame) == 0:
+            self.n_without_motion += 1
+            return frame
+        if frame.time is not None:
+            times, source = frame.time, "data"
+        else:
+            times, source = times_from_azimuth(frame.points), "azimuth"
+        self.n_deskewed += 1
+        self.time_sources[source] += 1
+        return replace(frame, points=deskew(frame.points, times, motion))
+
+    def redo(self, frame: LidarFrame, increment: np.ndarray, frame_period: float | None) -> LidarFrame:
+        """Deskew a frame that was first left as it is (no motion known then); moves it from
+        the ``frames_without_motion`` count to the deskewed ones."""
+        out = self(frame, increment, frame_period)
+        if out is not frame:
+            self.n_without_motion -= 1
+        return out
+
+    def summary(self, enabled: bool, mode: str, reason: str) -> dict[str, Any]:
+        """What the run summary records about deskewing."""
+        return {"mode": mode, "enabled": enabled, "reason": reason, "scan_period": self.scan_period,
+                "frames_deskewed": self.n_deskewed, "frames_without_motion": self.n_without_motion,
+                "time_source": dict(self.time_sources)}
 
 
 @dataclass
@@ -158,6 +246,15 @@ class _FrameLoop:
         self.checked = np.zeros(len(sequence), dtype=bool)
         self.n_flagged = 0
         self.n_dropped = 0
+        self.deskew_on, self.deskew_reason = deskew_enabled(cfg.odometry.deskew, sequence)
+        scan_period = cfg.odometry.deskew_scan_period
+        if scan_period is None and getattr(sequence, "scan_period", None) is not None:
+            scan_period = float(sequence.scan_period)
+        self.deskewer = FrameDeskewer(scan_period)
+        self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
+        self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
+        if self.deskew_on:
+            log.info("deskewing every frame to mid-sweep (%s)", self.deskew_reason)
 
     @property
     def n_loops(self) -> int:
@@ -171,6 +268,8 @@ class _FrameLoop:
         for i in bar:
             with self.timer("read"):  # time spent waiting for the reader thread
                 frame = next(frames)
+            if self.deskew_on:
+                frame = self.deskew(i, frame)
             scan = self.preprocess(frame)
             self.add_odometry(i, scan)
             if self.loop_cfg.enabled:
@@ -179,6 +278,44 @@ class _FrameLoop:
             bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
         bar.close()
         return self.finish()
+
+    def deskew(self, i: int, frame: LidarFrame) -> LidarFrame:
+        """Frame ``i`` (position in the run) moved to mid-sweep with the odometry's last increment.
+
+        The frames seen before any motion was known (the first two, which stay as they are)
+        are deskewed with the first known motion when it comes, and the odometry's map is
+        rebuilt from them, so that no distorted scan stays in the map (a car already driving
+        at frame 0 would otherwise see its first deskewed scan jump against them).
+        """
+        ts = self.sequence.timestamps
+        frame_period = float(ts[i - 1] - ts[i - 2]) if i >= 2 else None
+        increment = self.odometry.last_increment
+        with self.timer("deskew"):
+            out = self.deskewer(frame, increment, frame_period)
+        if out is frame and self.deskewer.n_deskewed == 0:
+            if len(self.startup_frames) < MAX_STARTUP_FRAMES:
+                self.startup_frames.append(frame)
+            elif not self.startup_given_up:
+                log.warning("deskew: no motion known after %d frames; the first frames stay in the map as they are",
+                            MAX_STARTUP_FRAMES)
+                self.startup_given_up = True
+        elif self.startup_frames:
+            if not self.startup_given_up:
+                self.redo_startup_frames(increment, frame_period)
+            self.startup_frames = []
+        return out
+
+    def redo_startup_frames(self, increment: np.ndarray, frame_period: float | None) -> None:
+        """Deskew the startup frames with ``increment``, re-preprocess them, rebuild the map."""
+        with self.timer("deskew"):
+            frames = [self.deskewer.redo(f, increment, frame_period) for f in self.startup_frames]
+        scans = [self.preprocess(f) for f in frames]
+        for j, scan in enumerate(scans):
+            self.n_dropped -= scan.n_dropped  # counted when the frame was first preprocessed
+            self.scans[j] = scan.points.astype(np.float32)
+        with self.timer("odometry"):
+            self.odometry.rebuild_map(scans)
+        log.debug("deskewed the %d startup frames and rebuilt the odometry map", len(scans))
 
     def preprocess(self, frame: LidarFrame) -> Scan:
         with self.timer("preprocess"):
@@ -261,7 +398,8 @@ class _FrameLoop:
             checked=self.checked,
             runtime=dict(self.timer.seconds),
             graph_error=(res.initial_error, res.final_error),
-            info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped},
+            info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
+                  "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason)},
         )
 
 

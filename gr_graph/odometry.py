@@ -136,6 +136,24 @@ class VgicpOdometry:
         self._map: small_gicp.GaussianVoxelMap | None = None
         self._prev: Scan | None = None
 
+    @property
+    def last_increment(self) -> np.ndarray:
+        """The last accepted frame-to-frame motion T_{k-1}^-1 T_k (identity before the second
+        scan); the constant-velocity guess of the next step and the frame loop's deskew motion."""
+        return self._delta.copy()
+
+    def rebuild_map(self, scans: list[Scan]) -> None:
+        """Replace the target map by ``scans`` (the first ``len(scans)`` scans, re-preprocessed)
+        inserted at their current poses; the frame loop calls it once, when deskewing starts,
+        so that the scans taken before any motion was known enter the map deskewed too."""
+        if len(scans) > len(self.poses):
+            raise ValueError(f"rebuild_map: {len(scans)} scans for {len(self.poses)} poses")
+        self._map = None
+        for scan, T in zip(scans, self.poses):
+            self._insert(scan, T)
+        if scans and len(scans) == len(self.poses):
+            self._prev = scans[-1]
+
     # ------------------------------------------------------------------ map
     def _new_map(self) -> small_gicp.GaussianVoxelMap:
         vm = small_gicp.GaussianVoxelMap(self.cfg.voxel_resolution)

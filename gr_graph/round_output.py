@@ -106,6 +106,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "n_loop_candidates": len(res.loop_attempts),
         "graph_error": list(res.graph_error),
         "mean_points_per_scan": mean_points_per_scan,
+        "deskew": res.info.get("deskew"),
     }
 
 

@@ -65,6 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
                 f"(default: {d.seed})", default=None)
     add_device(p, f"device of the learning rounds (default: {d.device})", default=None)
     p.add_argument("--no-loops", action="store_true", help="odometry only (no loop closures)")
+    p.add_argument("--deskew", choices=("auto", "on", "off"), default=None,
+                   help="constant-velocity motion compensation of each scan to mid-sweep; auto: on for sequences "
+                        f"that are not motion-compensated, off for KITTI odometry folders (default: {d.odometry.deskew})")
+    p.add_argument("--kitti-vertical-correction", type=float, default=None, metavar="DEG",
+                   help="KITTI folders: raise every point's elevation by DEG degrees (KISS-ICP: 0.205) "
+                        f"(default: {d.data.kitti_vertical_correction_deg})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     add_no_progress(p, deprecated=("--quiet",))
@@ -74,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Command-line options as a nested config override (only the options that were given)."""
-    o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}}
+    o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}, "odometry": {}}
     if args.seq is not None:
         o["data"]["seq"] = args.seq
     if args.data_root is not None:
@@ -98,6 +104,10 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["training"]["seed"] = args.seed
     if args.no_loops:
         o["loops"]["enabled"] = False
+    if args.deskew is not None:
+        o["odometry"]["deskew"] = args.deskew
+    if args.kitti_vertical_correction is not None:
+        o["data"]["kitti_vertical_correction_deg"] = args.kitti_vertical_correction
     if args.no_resume:
         o["output"]["resume"] = False
     if args.no_memory:

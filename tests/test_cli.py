@@ -97,7 +97,7 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 
 
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
-               "--backend": "tcp", "--solvers": "icp"}
+               "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 
@@ -149,6 +149,8 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o["data"] == {"point_format": "xyz", "channels": 16}
     assert o["output"] == {"progress": False}
     assert slam.overrides_from_args(slam.build_parser().parse_args([])) == {}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--deskew", "on", "--kitti-vertical-correction", "0.205"]))
+    assert o == {"odometry": {"deskew": "on"}, "data": {"kitti_vertical_correction_deg": 0.205}}
     # the old spelling still works, hidden, and says which one to use
     assert slam.build_parser().parse_args(["--quiet"]).no_progress is True
     assert "--quiet is deprecated, use --no-progress" in capsys.readouterr().err

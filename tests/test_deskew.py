@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from factors.se3 import exp_se3, inverse_se3
-from gr_graph.deskew import deskew, normalise_times, sweep_motion_from_velocity, times_from_azimuth
+from gr_graph.deskew import deskew, distort, normalise_times, sweep_motion_from_velocity, times_from_azimuth
 
 
 def _scene(n: int, seed: int) -> np.ndarray:
@@ -60,3 +60,16 @@ def test_normalise_times_units_and_errors() -> None:
 def test_sweep_motion_scales_the_frame_motion() -> None:
     xi = np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0])
     np.testing.assert_allclose(sweep_motion_from_velocity(exp_se3(xi), 0.1, 0.05), exp_se3(0.5 * xi), atol=1e-12)
+
+
+@pytest.mark.parametrize("xi", [np.array([0.3, -0.2, 1.5, 4.0, -1.0, 0.5]),   # > 0.05 rad per half sweep
+                                np.array([0.0, 0.0, 0.08, 1.3, 0.0, 0.0])])   # Taylor branch
+def test_closed_form_matches_per_point_matrices_and_distort_inverts(xi: np.ndarray) -> None:
+    """Both coefficient branches against one exp_se3 product per point; distort is the inverse."""
+    p = _scene(500, 3)
+    t = np.random.default_rng(4).uniform(0, 1, len(p))
+    expected = np.array([exp_se3((ti - 0.5) * xi)[:3, :3] @ pi + exp_se3((ti - 0.5) * xi)[:3, 3]
+                         for pi, ti in zip(p, t)])
+    np.testing.assert_allclose(deskew(p, t, exp_se3(xi)), expected, atol=1e-9)
+    np.testing.assert_allclose(deskew(distort(p, t, exp_se3(xi)), t, exp_se3(xi)), p, atol=1e-9)
+    assert np.abs(distort(p, t, exp_se3(xi)) - p).max() > 0.1

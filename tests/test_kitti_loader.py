@@ -123,3 +123,53 @@ def test_missing_times_falls_back_to_10hz(kitti_copy: Path, caplog: pytest.LogCa
     seq = KittiSequence(kitti_copy, "00")
     assert "times.txt missing" in caplog.text
     assert np.all(np.diff(seq.timestamps) > 0.09)
+
+
+def _spherical(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r = np.linalg.norm(p, axis=1)
+    return r, np.arctan2(p[:, 1], p[:, 0]), np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+
+
+@pytest.mark.parametrize("angle", [0.205, -0.5, 1.7])
+def test_vertical_correction_raises_elevation_only(angle: float) -> None:
+    """Closed form: elevation + angle, range and azimuth unchanged; the vertical axis stays put."""
+    from gr_graph.datasets.kitti import correct_vertical_angle
+
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(2000, 3)) * [30, 30, 3]
+    q = correct_vertical_angle(p, angle)
+    r0, az0, el0 = _spherical(p)
+    r1, az1, el1 = _spherical(q)
+    np.testing.assert_allclose(r1, r0, rtol=1e-12)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (az1 - az0))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(el1 - el0, np.radians(angle), atol=1e-12)
+    np.testing.assert_array_equal(correct_vertical_angle(np.array([[0.0, 0.0, 5.0]]), angle), [[0.0, 0.0, 5.0]])
+    assert correct_vertical_angle(p, 0.0) is p
+
+
+def test_vertical_correction_matches_kiss_icp() -> None:
+    """KISS-ICP 1.3.0's own KITTI correction (0.205 degrees) as an independent reference."""
+    pybind = pytest.importorskip("kiss_icp.pybind.kiss_icp_pybind")
+    from gr_graph.datasets.kitti import correct_vertical_angle
+
+    p = np.random.default_rng(1).normal(size=(500, 3)) * [30, 30, 3]
+    ref = np.asarray(pybind._correct_kitti_scan(pybind._Vector3dVector(p)))
+    np.testing.assert_allclose(correct_vertical_angle(p, 0.205), ref, atol=1e-9)
+
+
+def test_loader_applies_the_configured_correction(kitti_root: Path) -> None:
+    from gr_graph.config import load_config
+    from gr_graph.datasets.kitti import correct_vertical_angle
+    from gr_graph.datasets.registry import open_configured_sequence
+
+    plain = KittiSequence(kitti_root, "00")
+    assert plain.motion_compensated is True and plain.vertical_correction_deg == 0.0
+    cfg = load_config(overrides={"data": {"data_root": str(kitti_root), "kitti_vertical_correction_deg": 0.205,
+                                          "frames": "1:3"}})
+    seq, source = open_configured_sequence(cfg.data)
+    assert "vertical-angle correction 0.205 deg" in source and seq.motion_compensated is True
+    f, ref = seq[1], plain[2]
+    np.testing.assert_array_equal(f.points, correct_vertical_angle(ref.points, 0.205))
+    np.testing.assert_array_equal(f.ring, ref.ring)  # rings recovered before the correction
+    with pytest.raises(ValueError, match="vertical_correction_deg"):
+        KittiSequence(kitti_root, "00", vertical_correction_deg=5.0)

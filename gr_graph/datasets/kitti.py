@@ -12,6 +12,18 @@ world being the LiDAR frame of frame 0; estimates go back to the camera frame wi
 :meth:`KittiSequence.to_camera_frame`. Frames are read on demand; nothing but the file
 list, timestamps and poses is held in memory.
 
+Motion distortion: KITTI's odometry scans were motion-compensated with the vehicle's GPS/IMU
+(its devkit readme), so a :class:`KittiSequence` says ``motion_compensated = True`` and the
+odometry's ``deskew: auto`` leaves it alone.
+
+Vertical-angle correction: the HDL-64E of KITTI measures elevations slightly too low; IMLS-SLAM
+(Deschaud, ICRA 2018), CT-ICP (Dellenbach et al., ICRA 2022) and KISS-ICP (Vizzo et al., RA-L
+2023; 0.205 in its 1.3.0 ``_correct_kitti_scan``) rotate every point up about the horizontal axis
+perpendicular to its ray, by 0.195-0.22 degrees (:func:`correct_vertical_angle`). It is off by default (``vertical_correction_deg=0``):
+the loader reads any KITTI-layout folder, including synthetic renders written in that layout
+(:mod:`gr_graph.datasets.synthetic.writer`) and exports of other sensors, for which the
+correction would be an error; pass the angle for real KITTI scans.
+
 KITTI is licensed CC BY-NC-SA 3.0 (Geiger, Lenz, Urtasun, CVPR 2012).
 """
 
@@ -36,6 +48,40 @@ from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, si
 log = logging.getLogger(__name__)
 
 KITTI_SCAN_PERIOD_S = 0.1037  # mean frame spacing of the odometry sequences (~10 Hz)
+
+
+def correct_vertical_angle(points: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Raise every point's elevation by ``angle_deg``, keeping its range and azimuth.
+
+    The point is rotated by ``angle_deg`` about the horizontal axis ``p x z`` (perpendicular
+    to its ray); points on the vertical axis (no horizontal component) are unchanged. In closed
+    form: with ``r = |p|``, ``rho = |(x, y)|``, elevation ``e = atan2(z, rho)``, the result has
+    elevation ``e + angle`` and the same ``r`` and ``atan2(y, x)``.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+    angle_deg : float
+        Degrees; positive raises.
+
+    Returns
+    -------
+    np.ndarray
+        ``(N, 3)`` float64 (a copy; ``points`` itself when the angle is 0).
+    """
+    if angle_deg == 0.0:
+        return points
+    p = np.asarray(points, np.float64)
+    rho = np.hypot(p[:, 0], p[:, 1])
+    a = np.radians(angle_deg)
+    ca, sa = np.cos(a), np.sin(a)
+    new_rho = rho * ca - p[:, 2] * sa
+    scale = np.divide(new_rho, rho, out=np.ones_like(rho), where=rho > 0)
+    out = np.empty_like(p)
+    out[:, 0] = p[:, 0] * scale
+    out[:, 1] = p[:, 1] * scale
+    out[:, 2] = np.where(rho > 0, rho * sa + p[:, 2] * ca, p[:, 2])
+    return out
 
 
 def read_calib(path: str | Path) -> dict[str, np.ndarray]:
@@ -151,6 +197,10 @@ class KittiSequence:
         ``"xyzi"``: float32 x, y, z, intensity a point (KITTI); ``"xyz"``: float32 x, y, z
         (12 bytes a point; frames get intensity 0). Every file is checked against it when
         read: a file that looks like the other layout is refused, naming the file.
+    vertical_correction_deg : float
+        Raise every point's elevation by this angle (:func:`correct_vertical_angle`) after
+        ring recovery; 0 (default, see the module docstring) reads the scans unchanged.
+        KISS-ICP 1.3.0 uses 0.205 for KITTI (its ``_correct_kitti_scan``).
 
     Attributes
     ----------
@@ -163,11 +213,15 @@ class KittiSequence:
 
     def __init__(
         self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64,
-        point_format: str = "xyzi",
+        point_format: str = "xyzi", vertical_correction_deg: float = 0.0,
     ) -> None:
         if point_format not in POINT_FORMATS:
             raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
         self.point_format = point_format
+        if not (np.isfinite(vertical_correction_deg) and abs(vertical_correction_deg) <= 2.0):
+            raise ValueError(f"vertical_correction_deg must be within +-2 degrees, got {vertical_correction_deg}")
+        self.vertical_correction_deg = float(vertical_correction_deg)
+        self.motion_compensated = True  # KITTI odometry scans: compensated with the GPS/IMU
         self.root = Path(root)
         self.n_rings = n_rings
         self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
@@ -245,6 +299,7 @@ class KittiSequence:
             if method != "storage_order":
                 log.warning("%s: rings by %s (%s)%s", self.files[i], method, problem,
                             "; approximate: per-point elevation" if method == "elevation" else "")
+        points = correct_vertical_angle(points, self.vertical_correction_deg)
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),

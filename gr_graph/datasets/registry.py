@@ -63,6 +63,9 @@ class SequenceView:
         self.timestamps = np.asarray(parent.timestamps)[start:stop]
         self.gt_poses = None if parent.gt_poses is None else np.asarray(parent.gt_poses)[start:stop]
         self.T_cam_velo = parent.T_cam_velo
+        self.motion_compensated = bool(getattr(parent, "motion_compensated", True))
+        if getattr(parent, "scan_period", None) is not None:
+            self.scan_period = float(parent.scan_period)
 
     def __len__(self) -> int:
         return self.stop - self.start
@@ -160,6 +163,7 @@ def open_sequence(
     frames: str | slice | tuple[int, int] | None = None,
     synthetic_seed: int = 0,
     point_format: str = "xyzi",
+    kitti_vertical_correction_deg: float = 0.0,
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: KITTI if a root is given or found, else synthetic KITTI 00.
 
@@ -178,6 +182,9 @@ def open_sequence(
     point_format : {"xyzi", "xyz"}
         Layout of the KITTI ``.bin`` files: float32 x, y, z, intensity (KITTI) or x, y, z
         (12 bytes a point). Unused by the synthetic sequence.
+    kitti_vertical_correction_deg : float
+        KITTI only: elevation correction of every point (see
+        :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
 
     Returns
     -------
@@ -192,8 +199,11 @@ def open_sequence(
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
-        base = KittiSequence(root, seq, point_format=point_format)
+        base = KittiSequence(root, seq, point_format=point_format,
+                             vertical_correction_deg=kitti_vertical_correction_deg)
         source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
+        if kitti_vertical_correction_deg:
+            source += f", vertical-angle correction {kitti_vertical_correction_deg:g} deg"
     else:
         if seq != "00":
             raise DatasetError(
@@ -205,6 +215,9 @@ def open_sequence(
         if point_format != "xyzi":
             log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect",
                         point_format)
+        if kitti_vertical_correction_deg:
+            log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
+                        "no effect", kitti_vertical_correction_deg)
         base = SyntheticSequence(seed=synthetic_seed)
         source = (
             "no KITTI root given or found: using the synthetic KITTI 00 (ray cast along the real "
@@ -224,4 +237,5 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple
     there (e.g. ``point_format``) reaches the loader from every caller.
     """
     return open_sequence(seq=data.seq, data_root=data.data_root, channels=data.channels, frames=data.frames,
-                         synthetic_seed=synthetic_seed, point_format=data.point_format)
+                         synthetic_seed=synthetic_seed, point_format=data.point_format,
+                         kitti_vertical_correction_deg=data.kitti_vertical_correction_deg)

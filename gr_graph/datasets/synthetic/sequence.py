@@ -95,6 +95,7 @@ class SyntheticSequence:
         self.timestamps = path.times.copy()
         self.T_cam_velo = path.T_cam_velo.copy()
         self.gt_poses = path.T_w_velo.copy()
+        self.motion_compensated = True  # every ray is cast from the frame's (mid-sweep) pose
 
     @property
     def n_rings(self) -> int:
