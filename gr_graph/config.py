@@ -41,6 +41,9 @@ class DataConfig(_Section):
     channels: Literal[64, 32, 16] = 64
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
+    route_seed: int = Field(0, ge=0, description="synthetic sequence: seed of the generated route")
+    trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
+                                   "pose file or KITTI root instead of the generated route")
 
     @field_validator("frames", mode="before")
     @classmethod

@@ -489,6 +489,7 @@ class SlamPipeline:
             sequence, source_description = open_sequence(
                 seq=cfg.data.seq, data_root=cfg.data.data_root, channels=cfg.data.channels,
                 frames=cfg.data.frames, synthetic_seed=cfg.seed,
+                route_seed=cfg.data.route_seed, trajectory=cfg.data.trajectory,
             )
         self.sequence = sequence
         self.source_description = source_description or getattr(sequence, "name", "sequence")

@@ -1,7 +1,8 @@
 """The main command: ``python -m gr_graph.slam --seq 00 [options]``.
 
 Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algorithm 3;
-they need the trainer). Without a KITTI root it runs on the synthetic KITTI 00 and says so.
+they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
+project's generated route through a procedural town) and says so.
 Outputs (see :mod:`gr_graph.pipeline`) go to ``--out``; rerunning with the same ``--out``
 skips finished rounds.
 
@@ -34,6 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-root", default=None, help="KITTI odometry root (default: $GR_GRAPH_KITTI_ROOT, else synthetic)")
     p.add_argument("--channels", type=int, choices=(64, 32, 16), default=None)
     p.add_argument("--frames", default=None, help="frame range A:B (half-open)")
+    p.add_argument("--route-seed", type=int, default=None, help="synthetic: seed of the generated route (default 0)")
+    p.add_argument("--trajectory", default=None,
+                   help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
     p.add_argument("--rounds", type=int, default=None, help="learning rounds after round 0 (default 0)")
     p.add_argument("--out", default=None, help="output directory (default runs/slam)")
     p.add_argument("--config", default=None, help="YAML file with config sections (see gr_graph/config.py)")
@@ -57,6 +61,10 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["channels"] = args.channels
     if args.frames is not None:
         o["data"]["frames"] = parse_frames(args.frames)
+    if args.route_seed is not None:
+        o["data"]["route_seed"] = args.route_seed
+    if args.trajectory is not None:
+        o["data"]["trajectory"] = args.trajectory
     if args.rounds is not None:
         if args.rounds < 0:
             raise ValueError("--rounds must be >= 0")

@@ -1,11 +1,15 @@
-"""Render the synthetic KITTI-00 sequence to disk in KITTI layout.
+"""Render the synthetic sequence to disk in KITTI layout.
 
-Example::
+Examples::
 
     python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0
+    python -m gr_graph.datasets.synthetic --out /tmp/synth --route-seed 3
+    python -m gr_graph.datasets.synthetic --out /tmp/synth --trajectory poses.txt
 
-writes ``/tmp/synth/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt}`` and
-``/tmp/synth/poses/00.txt`` (camera frame), readable by the KITTI loader.
+write ``/tmp/synth/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt}`` and
+``/tmp/synth/poses/00.txt`` (camera frame), readable by the KITTI loader. By default the
+sensor drives the project's generated route (``--route-seed``); ``--trajectory`` renders
+along a KITTI (12 floats a row, camera frame) or TUM pose file, or the poses of a KITTI root.
 """
 
 from __future__ import annotations
@@ -23,8 +27,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m gr_graph.datasets.synthetic", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="dataset root DIR")
-    ap.add_argument("--frames", default=None, help="A:B, frames A..B-1 (default: all 4541)")
+    ap.add_argument("--frames", default=None, help="A:B, frames A..B-1 (default: all)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the town and the noise (default 0)")
+    ap.add_argument("--route-seed", type=int, default=0, help="seed of the generated route (default 0)")
+    ap.add_argument("--trajectory", default=None,
+                    help="render along this KITTI/TUM pose file or KITTI root instead of the route")
     ap.add_argument("--n-rings", type=int, default=64, help="64, 32 or 16 (default 64)")
     ap.add_argument("--max-range", type=float, default=120.0, help="metres (default 120)")
     ap.add_argument("--n-azimuth", type=int, default=2000, help="azimuth steps (default 2000)")
@@ -34,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.n_rings, max_range=args.max_range,
-                                n_azimuth=args.n_azimuth, nthreads=args.threads)
+                                n_azimuth=args.n_azimuth, nthreads=args.threads,
+                                route_seed=args.route_seed, trajectory=args.trajectory)
         frames = parse_frames(args.frames, len(seq))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as exc:

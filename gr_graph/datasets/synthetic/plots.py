@@ -2,7 +2,7 @@
 
 Writes ``docs/images/synthetic_scan.png`` (a rendered 64-ring scan and its 16-ring
 subsample: bird's-eye views and range images) and ``docs/images/synthetic_town.png`` (the
-town around the KITTI 00 trajectory from above, with a zoom showing a scan in place).
+town around the generated route from above, with a zoom showing a scan in place).
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
         for kind, colour in (("tree", "forestgreen"), ("bush", "yellowgreen"), ("pole", "k")):
             circles = [Circle((x, y), max(r, 0.4)) for x, y, r in fp[kind]]
             ax.add_collection(PatchCollection(circles, facecolor=colour, edgecolor="none", alpha=0.8))
-        ax.plot(traj[:, 0], traj[:, 1], color="red", lw=0.8 if k == 0 else 1.5, label="KITTI 00 path")
+        ax.plot(traj[:, 0], traj[:, 1], color="red", lw=0.8 if k == 0 else 1.5, label="route")
         ax.plot(*traj[0, :2], "o", color="red", ms=6)
         ax.set_aspect("equal")
         ax.set_xlabel("x [m]")
@@ -109,7 +109,7 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
     axes[0].set_xlim(g["x"][0] + 100, g["x"][-1] - 100)
     axes[0].set_ylim(g["y"][0] + 100, g["y"][-1] - 100)
     n = {k: len(v) for k, v in town.footprints.items()}
-    axes[0].set_title(f"procedural town around KITTI 00 (seed {seed}): {n['building']} buildings, "
+    axes[0].set_title(f"procedural town around the route (seed {seed}): {n['building']} buildings, "
                       f"{n['tree']} trees, {n['car']} cars, {len(town.triangles) / 1e6:.2f} M triangles",
                       fontsize=10)
     axes[1].set_title(f"zoom around frame {index}: buildings (grey), walls (black), trees, bushes, "
