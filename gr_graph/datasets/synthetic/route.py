@@ -17,8 +17,9 @@ How a route is built (deterministic for ``(seed, config)``):
 4. **Speed.** Per street a cruise speed; at most ``sqrt(lateral_accel / curvature)`` in
    turns; zero at ``n_stops`` stop lines 15 m before intersection centres, held 12-18 s; limited
    acceleration and braking (forward/backward passes), then a Gaussian of ``speed_smoothing``
-   seconds over time for smooth jerk. The cruise speeds are scaled (bisection) so that the
-   4,541 frames cover ``length_m``.
+   seconds over time for smooth jerk (less 5 cm/s around stops, so that they are exact
+   standstills). The cruise speeds are scaled (bisection) so that the 4,541 frames cover
+   ``length_m``.
 5. **Height and attitude.** The height is a function of place (three long sinusoids, grades
    of a few percent), so revisits pass at the same height; pitch follows the grade along the
    heading plus squat/dive under acceleration, roll the cross slope plus body roll in turns.
@@ -106,7 +107,7 @@ class RevisitStretch:
 
 @dataclass(frozen=True)
 class Stop:
-    """The vehicle stands still (speed < 0.05 m/s) for frames ``frames[0]:frames[1]``."""
+    """The vehicle stands still (speed < 1 mm/s) for frames ``frames[0]:frames[1]``."""
 
     frames: tuple[int, int]
     duration_s: float
@@ -293,7 +294,15 @@ def _drive(v: np.ndarray, stops: np.ndarray, holds: np.ndarray, cfg: RouteConfig
     tau = np.arange(0.0, duration + 1.0, 0.02)
     s_tau = np.interp(tau, t_knots, s_knots)
     vel = np.gradient(s_tau, tau)
-    vel = np.maximum(gaussian_filter1d(vel, cfg.speed_smoothing / 0.02, mode="nearest"), 0.0)
+    # smooth over time; around the holds shift down by 5 cm/s (clipped at 0) so that the car
+    # stands exactly still instead of creeping on the Gaussian's tails (elsewhere no shift:
+    # the distance must stay where the speed limits were computed)
+    holding = np.zeros(len(tau))
+    for i, h in zip(stops, holds):
+        t_stop = t[i] + shift[i]
+        holding[(tau >= t_stop) & (tau <= t_stop + h)] = 1.0
+    near = np.clip(3.0 * gaussian_filter1d(holding, 1.0 / 0.02, mode="nearest"), 0.0, 1.0)
+    vel = np.maximum(gaussian_filter1d(vel, cfg.speed_smoothing / 0.02, mode="nearest") - 0.05 * near, 0.0)
     s_smooth = np.concatenate([[0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * 0.02)])
     return tau, s_smooth
 
@@ -379,7 +388,7 @@ def find_revisits(positions: np.ndarray, yaw: np.ndarray, travelled: np.ndarray,
     return tuple(out)
 
 
-def find_stops(speed: np.ndarray, times: np.ndarray, threshold: float = 0.05,
+def find_stops(speed: np.ndarray, times: np.ndarray, threshold: float = 0.001,
                min_duration: float = 10.0) -> tuple[Stop, ...]:
     """Runs of frames with ``speed < threshold`` lasting at least ``min_duration`` s."""
     still = np.r_[False, speed < threshold, False]
