@@ -59,7 +59,8 @@ class RouteConfig:
     n_frames: int = N_FRAMES
     frame_dt: float = FRAME_DT
     time_jitter: float = 0.0005
-    """Uniform jitter (s) of each timestamp around ``k * frame_dt`` (frame 0 is at 0)."""
+    """Uniform jitter (s) of each timestamp around ``k * frame_dt`` (frame 0 is at 0); timestamps
+    are rounded to microseconds, so that they survive a text round trip exactly."""
     length_m: float = 3700.0
     grid_nodes: tuple[int, int] = (6, 5)
     block_min: float = 80.0
@@ -470,7 +471,7 @@ def _build(seed: int, attempt: int, cfg: RouteConfig) -> Route | None:
     if s_tau[-1] > (n - 1) * cfg.step:
         return None
 
-    times = np.arange(cfg.n_frames) * cfg.frame_dt + jitter
+    times = np.round(np.arange(cfg.n_frames) * cfg.frame_dt + jitter, 6)  # microseconds, as logged
     times[0] = 0.0
     s_k = np.interp(times, tau, s_tau)
     vel_tau = np.gradient(s_tau, tau)
