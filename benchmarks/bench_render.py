@@ -1,4 +1,4 @@
-"""Benchmark of the synthetic KITTI-00 renderer (not a test).
+"""Benchmark of the synthetic renderer along the generated route (not a test).
 
 Measures the scene build time (procedural town + open3d BVH), frames rendered per second
 at 64/32/16 rings with 1 ray-casting thread and with all threads, and, as a check that the
@@ -129,7 +129,7 @@ def main() -> None:
     load1 = os.getloadavg()
 
     lines = [
-        "# Synthetic KITTI-00 renderer: speed",
+        "# Synthetic renderer (generated route): speed",
         "",
         f"Reproduce: `python benchmarks/bench_render.py --frames {args.frames} --odometry {args.odometry}`",
         "",
