@@ -246,3 +246,14 @@ def test_deterministic(kitti_root):
     np.testing.assert_array_equal(a.covariances, b.covariances)
     assert [(x["query"], x["match"], x["accepted"]) for x in a.loop_attempts] == \
         [(x["query"], x["match"], x["accepted"]) for x in b.loop_attempts]
+
+
+def test_cli_route_seed_and_trajectory_reach_the_config(tmp_path):
+    from gr_graph.slam import build_parser, overrides_from_args
+
+    args = build_parser().parse_args(["--route-seed", "2", "--trajectory", str(tmp_path / "poses.txt")])
+    cfg = load_config(None, overrides_from_args(args))
+    assert cfg.data.route_seed == 2 and cfg.data.trajectory == str(tmp_path / "poses.txt")
+    assert load_config(None, {}).data.route_seed == 0 and load_config(None, {}).data.trajectory is None
+    # a missing trajectory file is a clear error naming it (exit code 2)
+    assert main(["--trajectory", str(tmp_path / "poses.txt"), "--out", str(tmp_path / "o"), "--quiet"]) == 2
