@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.se3 import rotation_angle
 from gr_graph.datasets.synthetic import SyntheticSequence
 from gr_graph.datasets.synthetic.path import route_path
 from gr_graph.datasets.synthetic.sequence import clear_scene_cache, get_town_and_scene
@@ -91,7 +92,7 @@ def bench_odometry(n_rings: int, start: int, n: int) -> dict[str, float]:
         rel_gt = np.linalg.inv(gt[k]) @ gt[k + 1]
         E = np.linalg.inv(rel_gt) @ rel
         errs_t.append(np.linalg.norm(E[:3, 3]))
-        errs_r.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+        errs_r.append(np.degrees(rotation_angle(E[:3, :3])))
         T = T @ rel
         est.append(T.copy())
         guess, prev = rel, cur

@@ -144,6 +144,9 @@ def degeneracy_report(
         ``[omega, v]``.
     rel_threshold : float
         A direction is weak when its eigenvalue is below ``rel_threshold * max eigenvalue``.
+        The comparison is strict (an eigenvalue equal to the threshold is not weak); an
+        eigenvalue within a few ulps of the threshold may fall either way with the
+        eigen-solver's rounding, so choose thresholds away from expected eigenvalues.
     abs_threshold : float, optional
         Additionally weak when the eigenvalue is below this absolute value.
     length_scale : float, optional

@@ -27,6 +27,7 @@ import gtsam
 import numpy as np
 
 from factors.degeneracy import check_information_matrix
+from factors.se3 import check_pose
 
 log = logging.getLogger(__name__)
 
@@ -279,12 +280,10 @@ def between_factor(
     NoiseModelError
         On an invalid ``H``, kernel or a malformed transform.
     """
-    T = np.asarray(T_target_source, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise NoiseModelError(f"T_target_source must be a finite (4, 4) transform, got shape {T.shape}")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
-        raise NoiseModelError("T_target_source[:3, :3] is not a rotation matrix")
+    try:
+        T = check_pose(T_target_source, "T_target_source", rot_tol=1e-6)
+    except ValueError as exc:
+        raise NoiseModelError(str(exc)) from None
     if kernel is None:
         model, report = information_noise_model(H, scale=scale, min_eigenvalue=min_eigenvalue)
     else:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from factors.se3 import exp_se3, hat
+from factors.se3 import check_pose, check_rotation, exp_se3, hat
 
 log = logging.getLogger(__name__)
 
@@ -102,23 +102,22 @@ def _as_points(x: np.ndarray, name: str) -> np.ndarray:
     return x
 
 
+#: rotation tolerance of the inputs (tighter than a trajectory file's: they come from computation)
+_ROT_TOL = 1e-6
+
+
 def _check_rotation(R: np.ndarray, name: str = "R") -> np.ndarray:
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-        raise WLSInputError(f"{name} must be a finite (3, 3) rotation matrix, got shape {R.shape}")
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0.0:
-        raise WLSInputError(f"{name} is not a rotation matrix (R^T R != I or det(R) < 0)")
-    return R
+    try:
+        return check_rotation(R, name, _ROT_TOL)
+    except ValueError as exc:
+        raise WLSInputError(str(exc)) from None
 
 
 def _check_transform(T: np.ndarray, name: str = "T") -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise WLSInputError(f"{name} must be a finite (4, 4) transform, got shape {T.shape}")
-    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
-        raise WLSInputError(f"{name} last row must be [0, 0, 0, 1], got {T[3]}")
-    _check_rotation(T[:3, :3], f"{name}[:3, :3]")
-    return T
+    try:
+        return check_pose(T, name, _ROT_TOL)
+    except ValueError as exc:
+        raise WLSInputError(str(exc)) from None
 
 
 # Internally a batch of 3x3 matrices is kept component-major: ``(9, N)`` contiguous, row

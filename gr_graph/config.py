@@ -17,16 +17,16 @@ training    the learning rounds (Algorithm 3): training, densification, converge
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from gr_graph.atomic import atomic_write_text
+from gr_graph.config_errors import describe_validation_error
+from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
 
 class _Section(BaseModel):
@@ -41,6 +41,9 @@ class DataConfig(_Section):
     channels: Literal[64, 32, 16] = 64
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
+    point_format: Literal["xyzi", "xyz"] = Field(
+        "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
+    )
     route_seed: int = Field(0, ge=0, description="synthetic sequence: seed of the generated route")
     trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
                                    "pose file or KITTI root instead of the generated route")
@@ -48,9 +51,13 @@ class DataConfig(_Section):
     @field_validator("frames", mode="before")
     @classmethod
     def _parse_frames(cls, v: Any) -> Any:
+        from gr_graph.datasets.registry import parse_frames
+
         if isinstance(v, str):
             return parse_frames(v)
-        return v
+        if isinstance(v, (list, tuple)) and len(v) == 2:
+            return parse_frames(tuple(v))
+        return v  # None, or a type pydantic rejects
 
 
 class PreprocessConfig(_Section):
@@ -140,11 +147,12 @@ class OutputConfig(_Section):
 class TrainingConfig(_Section):
     """Learning rounds (Algorithm 3): training f_theta (Algorithm 1) and densification (Algorithm 2).
 
-    ``trainer`` holds further keys of ``training.trainer.TrainConfig`` (``lr``, ``lambda_corr``,
-    ``lambda_pose``, ``max_corr``, ``num_threads``, ..., and ``net``: a mapping of
-    ``training.network.NetConfig`` keys); they are checked before round 0 and an unknown key
-    is an error. ``epochs``, ``seed``, ``device``, ``progress`` and ``init_checkpoint`` are
-    set by the pipeline and may not appear there.
+    ``trainer`` holds the trainer's hyper-parameters, :class:`training.config.TrainOptions`
+    (``lr``, ``lambda_corr``, ``lambda_pose``, ``max_corr``, ``num_threads``, ..., and ``net``:
+    :class:`training.config.NetConfig`), validated when the configuration is loaded; an
+    unknown key at any level is an error. The run settings of ``training.config.TrainConfig``
+    (``epochs``, ``seed``, ``device``, ``progress``, ``init_checkpoint``) are set by the
+    pipeline (:meth:`trainer_config`) and may not appear there.
     """
 
     rounds: int = Field(0, ge=0, description="reciprocal rounds after the raw-scan SLAM (round 0)")
@@ -172,26 +180,26 @@ class TrainingConfig(_Section):
     learned_noise_degeneracy_rel: float = Field(
         1e-4, ge=0.0, lt=1.0, description="H(C) eigenvalue below this x largest (rotations as arc at 10 m): degenerate, fallback"
     )
-    trainer: dict[str, Any] = Field(
-        default_factory=dict, description="more training.trainer.TrainConfig keys, e.g. {lr: 1e-3, net: {n_points: 1024}}"
+    trainer: TrainOptions = Field(
+        default_factory=TrainOptions, description="trainer hyper-parameters, e.g. {lr: 1e-3, net: {n_points: 1024}}"
     )
 
-    @field_validator("trainer")
+    @field_validator("trainer", mode="before")
     @classmethod
-    def _no_pipeline_keys(cls, v: dict[str, Any]) -> dict[str, Any]:
-        reserved = {"epochs", "seed", "device", "progress", "init_checkpoint"} & set(v)
+    def _no_pipeline_keys(cls, v: Any) -> Any:
+        reserved = set(RUN_KEYS) & set(v) if isinstance(v, dict) else set()
         if reserved:
-            raise ValueError(f"training.trainer: {sorted(reserved)} are set by the pipeline; use training.epochs/seed "
-                             "and the top-level device")
+            raise ValueError(f"{sorted(reserved)} are set by the pipeline; use training.epochs/seed and the "
+                             "top-level device")
         return v
 
-    def trainer_config(self, device: str = "cpu", progress: bool = True, init_checkpoint: str | None = None) -> dict[str, Any]:
-        """The mapping given to ``training.train.train_from_memory`` (only TrainConfig keys)."""
-        d: dict[str, Any] = {**self.trainer, "epochs": self.epochs, "seed": self.seed, "device": device,
-                             "progress": progress}
-        if init_checkpoint is not None:
-            d["init_checkpoint"] = str(init_checkpoint)
-        return d
+    def trainer_config(self, device: str = "cpu", progress: bool = True,
+                       init_checkpoint: str | os.PathLike[str] | None = None) -> TrainConfig:
+        """The trainer's configuration of a learning round: ``trainer`` plus the run settings."""
+        return TrainConfig.model_validate({
+            **self.trainer.model_dump(), "epochs": self.epochs, "seed": self.seed, "device": device,
+            "progress": progress, "init_checkpoint": None if init_checkpoint is None else str(init_checkpoint),
+        })
 
 
 class SlamConfig(_Section):
@@ -207,11 +215,6 @@ class SlamConfig(_Section):
     device: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
 
-    def slam_fingerprint(self) -> str:
-        """Hash of everything that changes the SLAM result (not output/progress options)."""
-        d = self.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}})
-        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
-
 
 def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     """Loop verification RMSE threshold: explicit, or scaled with ring sparsity (0.35 m at 64).
@@ -224,27 +227,23 @@ def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
     return 0.35 * (64.0 / channels) ** 0.25
 
 
-def parse_frames(text: str) -> tuple[int, int]:
-    """Parse ``"A:B"`` into ``(A, B)`` (A may be empty: 0); the sequence length is checked later.
-
-    Raises
-    ------
-    ValueError
-        Naming the problem (B missing, not integers, empty or negative range).
-    """
-    from gr_graph.datasets.registry import split_frame_spec
-
-    a, b = split_frame_spec(text)
-    a = 0 if a is None else a
-    if b is None:
-        raise ValueError(f"frames {text!r}: B is needed here (A:B, B exclusive)")
-    if a < 0 or b <= a:
-        raise ValueError(f"frames {text!r}: need 0 <= A < B")
-    return a, b
+class ConfigError(ValueError):
+    """The configuration is invalid; the message names each bad key (an unknown one with the
+    valid keys of its section) and where the configuration came from."""
 
 
 def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:
-    """Defaults, then a YAML file, then ``overrides`` (nested dict, e.g. ``{"data": {"channels": 32}}``)."""
+    """Defaults, then a YAML file, then ``overrides`` (nested dict, e.g. ``{"data": {"channels": 32}}``).
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ConfigError
+        If a key is unknown (at any level) or a value invalid.
+    ValueError
+        If the file does not hold a mapping.
+    """
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)
@@ -256,7 +255,11 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         data = loaded
     if overrides:
         data = _merge(data, overrides)
-    return SlamConfig.model_validate(data)
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as exc:
+        source = f"configuration ({path} and command line)" if path is not None else "configuration"
+        raise ConfigError(describe_validation_error(exc, SlamConfig, what=source)) from None
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:

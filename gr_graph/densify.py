@@ -34,8 +34,8 @@ Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.f
   would flag the scan anyway): the raw frame is returned.
 
 Predicted covariances: the points the network saw and its covariances are kept for the
-``keep_predictions`` most recently computed frames (default 16; more than the SLAM prefetch
-depth) and returned by :meth:`DensifiedSequence.predicted`, so that the learning rounds can
+``keep_predictions`` most recently computed frames (default 16; the pipeline keeps more than
+the SLAM prefetch depth) and returned by :meth:`DensifiedSequence.predicted`, so that the learning rounds can
 build each odometry edge's information H(C) without running the network again.
 
 ``checkpoint`` may be a ``model.pt`` / ``checkpoint.pt`` path, a
@@ -77,10 +77,8 @@ def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
         from training.trainer import load_model
 
         checkpoint = load_model(checkpoint, device)  # load once, not per frame
-    try:
-        from training.network import CovarianceNet
-    except ImportError:  # pragma: no cover - the trainer is part of the project
-        CovarianceNet = ()  # type: ignore[assignment,misc]
+    from training.network import CovarianceNet
+
     if isinstance(checkpoint, CovarianceNet):
         from training.predict import predict_covariances
 
@@ -99,19 +97,19 @@ class DensifiedSequence:
     """Lazy view of ``parent`` whose frames are the densified scans S+_k (module docstring)."""
 
     def __init__(self, parent: LidarSequence, predictor: Predictor, training_cfg: TrainingConfig,
-                 preprocess: PreprocessConfig | None = None) -> None:
+                 preprocess: PreprocessConfig | None = None, keep_predictions: int = 16) -> None:
         self.parent = parent
         self.predictor = predictor
         self.cfg = training_cfg
         self.preprocess = preprocess or PreprocessConfig()
-        self.name = f"{getattr(parent, 'name', 'sequence')}-densified"
+        self.name = f"{parent.name}-densified"
         self.timestamps = parent.timestamps
-        self.gt_poses = getattr(parent, "gt_poses", None)
+        self.gt_poses = parent.gt_poses
         self.T_cam_velo = parent.T_cam_velo
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()
-        self.keep_predictions = 16
+        self.keep_predictions = keep_predictions
         self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     def __len__(self) -> int:
@@ -217,7 +215,8 @@ class DensifiedSequence:
 
 
 def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: TrainingConfig | None = None,
-                       device: str = "cpu", preprocess: PreprocessConfig | None = None) -> DensifiedSequence:
+                       device: str = "cpu", preprocess: PreprocessConfig | None = None,
+                       keep_predictions: int = 16) -> DensifiedSequence:
     """The lazy densified view of ``sequence`` (see the module docstring).
 
     Parameters
@@ -233,6 +232,10 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
         Device of the network.
     preprocess : PreprocessConfig
         Must be the preprocessing of the memory the network was trained on (default: defaults).
+    keep_predictions : int
+        How many of the most recently computed frames keep their points and covariances
+        (:meth:`DensifiedSequence.predicted`).
     """
     cfg = training_cfg or TrainingConfig()
-    return DensifiedSequence(sequence, _make_predictor(checkpoint, device, cfg.seed), cfg, preprocess)
+    return DensifiedSequence(sequence, _make_predictor(checkpoint, device, cfg.seed), cfg, preprocess,
+                             keep_predictions)

@@ -4,13 +4,7 @@ The paper's protocol: sample ``N = 100`` scan pairs whose ground-truth translati
 is at most 10 m, register each pair from scratch (no initial guess), and count a pair as a
 success when the rotation error is below 10 deg and the translation error below 2 m.
 
-Solvers (both start from FPFH features of voxel-downsampled scans):
-
-- ``"kiss_matcher"``: KISS-Matcher (faster-PFH + ROBIN max-clique pruning + GNC, a
-  TEASER-class certifiable-style solver). Optional dependency ``kiss-matcher``; when it is
-  missing the solver is skipped with a log line.
-- ``"fpfh_ransac"``: open3d's FPFH + RANSAC
-  (``registration_ransac_based_on_feature_matching``), seeded and deterministic.
+Solvers: :mod:`gr_graph.global_solvers` (KISS-Matcher, FPFH + RANSAC).
 
 Conventions: scans are ``(N, 3)`` points in their own sensor frame; ``poses`` are
 ``T_w_sensor`` for the same frames (for KITTI: ``LidarSequence.gt_poses`` = ``T_w_velo``,
@@ -30,24 +24,33 @@ import argparse
 import json
 import logging
 import os
-import time
+import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from factors.se3 import check_poses, rotation_angle
 from gr_graph.atomic import atomic_write_text
-from gr_graph.trajectory import check_poses
+from gr_graph.cli_common import (
+    add_channels,
+    add_data_root,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_point_format,
+    add_seed,
+    make_parser,
+    setup_logging,
+)
+from gr_graph.global_solvers import DEFAULT_VOXEL, SOLVER_NAMES, available_solvers, kiss_matcher_available, register
 
 logger = logging.getLogger(__name__)
 
 MAX_ROT_DEG = 10.0
 MAX_TRANS_M = 2.0
-DEFAULT_VOXEL = 0.5
-SOLVER_NAMES = ("kiss_matcher", "fpfh_ransac")
 
 
 # ----------------------------------------------------------------------------- pairs
@@ -133,10 +136,7 @@ def load_pairs(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, Any]
 
 def rotation_error_deg(T_est: np.ndarray, T_ref: np.ndarray) -> float:
     """Angle (deg) of ``R_est^T R_ref``."""
-    R = T_est[:3, :3].T @ T_ref[:3, :3]
-    c = 0.5 * (np.trace(R) - 1.0)
-    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.degrees(np.arctan2(s, c)))
+    return float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_ref[:3, :3])))
 
 
 def translation_error_m(T_est: np.ndarray, T_ref: np.ndarray) -> float:
@@ -149,151 +149,6 @@ def is_success(
 ) -> bool:
     """Success criterion: rotation error < ``max_rot_deg`` and translation error < ``max_trans_m``."""
     return rotation_error_deg(T_est, T_ref) < max_rot_deg and translation_error_m(T_est, T_ref) < max_trans_m
-
-
-# ----------------------------------------------------------------------------- solvers
-
-
-@dataclass(frozen=True)
-class RegistrationOutcome:
-    """One global registration: the estimate ``T_target_source`` and solver diagnostics."""
-
-    solver: str
-    T: np.ndarray
-    n_inliers: int
-    seconds: float
-
-
-def _check_cloud(points: np.ndarray, name: str) -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name}: expected (N, 3) points, got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f"{name}: contains non-finite points")
-    if len(p) < 10:
-        raise ValueError(f"{name}: only {len(p)} points")
-    return p
-
-
-def _fpfh(points: np.ndarray, voxel: float) -> tuple[Any, Any]:
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
-    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
-    feat = reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
-    return pc, feat
-
-
-def register_fpfh_ransac(
-    source: np.ndarray,
-    target: np.ndarray,
-    voxel: float = DEFAULT_VOXEL,
-    seed: int = 0,
-    max_iterations: int = 100_000,
-    confidence: float = 0.999,
-) -> RegistrationOutcome:
-    """Global registration with open3d FPFH features + RANSAC (deterministic for a seed).
-
-    Parameters
-    ----------
-    source, target : (N, 3) arrays
-        Points in their own frames.
-    voxel : float
-        Voxel size (m) of the downsampling; normals use radius 2.5 voxel, FPFH 5 voxel,
-        inlier distance 1.5 voxel.
-    seed : int
-        open3d random seed.
-    max_iterations, confidence : RANSAC stopping criteria.
-
-    Returns
-    -------
-    RegistrationOutcome
-        ``T`` maps source points into the target frame; ``n_inliers`` is the RANSAC
-        correspondence-set size.
-    """
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    src = _check_cloud(source, "source")
-    tgt = _check_cloud(target, "target")
-    t0 = time.perf_counter()
-    a, fa = _fpfh(src, voxel)
-    b, fb = _fpfh(tgt, voxel)
-    o3d.utility.random.seed(int(seed))
-    dist = 1.5 * voxel
-    res = reg.registration_ransac_based_on_feature_matching(
-        a,
-        b,
-        fa,
-        fb,
-        True,  # mutual filter
-        dist,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-        reg.RANSACConvergenceCriteria(int(max_iterations), float(confidence)),
-    )
-    T = np.array(res.transformation, dtype=np.float64)
-    return RegistrationOutcome("fpfh_ransac", T, int(len(res.correspondence_set)), time.perf_counter() - t0)
-
-
-def kiss_matcher_available() -> bool:
-    """True when the optional ``kiss_matcher`` package can be imported."""
-    try:
-        import kiss_matcher  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def register_kiss_matcher(
-    source: np.ndarray, target: np.ndarray, voxel: float = DEFAULT_VOXEL
-) -> RegistrationOutcome:
-    """Global registration with KISS-Matcher (``pip install kiss-matcher``).
-
-    Returns
-    -------
-    RegistrationOutcome
-        ``T`` maps source points into the target frame (identity when KISS-Matcher reports
-        no valid solution); ``n_inliers`` is its final inlier count.
-
-    Raises
-    ------
-    ImportError
-        ``kiss_matcher`` is not installed.
-    """
-    try:
-        import kiss_matcher
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError("KISS-Matcher is not installed: pip install kiss-matcher") from exc
-    src = _check_cloud(source, "source")
-    tgt = _check_cloud(target, "target")
-    t0 = time.perf_counter()
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(float(voxel)))
-    sol = matcher.estimate(src, tgt)
-    T = np.eye(4)
-    if sol.valid:
-        T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64)
-        T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).ravel()
-    else:
-        logger.debug("KISS-Matcher returned no valid solution")
-    n_in = int(matcher.get_num_final_inliers()) if sol.valid else 0
-    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0)
-
-
-def available_solvers() -> tuple[str, ...]:
-    """Names of the solvers usable here (``kiss_matcher`` only if installed)."""
-    return tuple(s for s in SOLVER_NAMES if s != "kiss_matcher" or kiss_matcher_available())
-
-
-def register(solver: str, source: np.ndarray, target: np.ndarray, voxel: float = DEFAULT_VOXEL, seed: int = 0) -> RegistrationOutcome:
-    """Dispatch to a solver by name (see :data:`SOLVER_NAMES`)."""
-    if solver == "fpfh_ransac":
-        return register_fpfh_ransac(source, target, voxel=voxel, seed=seed)
-    if solver == "kiss_matcher":
-        return register_kiss_matcher(source, target, voxel=voxel)
-    raise ValueError(f"unknown solver {solver!r}; choose from {SOLVER_NAMES}")
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -407,29 +262,55 @@ def write_results(path: str | os.PathLike[str], results: dict[str, Any]) -> Path
 # ----------------------------------------------------------------------------- CLI
 
 
+EXAMPLES = (
+    "python -m gr_graph.global_registration --seq 00 --n-pairs 100 --seed 0 --out runs/greg_64",
+    "python -m gr_graph.global_registration --seq 00 --channels 16 --solvers fpfh_ransac --out runs/greg_16",
+    "python -m gr_graph.global_registration --seq 00 --data-root /data/kitti --pairs runs/greg_64/pairs.json "
+    "--out runs/greg_kitti",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m gr_graph.global_registration``."""
+    ap = make_parser("python -m gr_graph.global_registration",
+                     __doc__.split("\n\n")[0] + " Writes DIR/pairs.json and DIR/results.json.", EXAMPLES)
+    add_out(ap, "output directory", required=True)
+    ap.add_argument("--seq", default="00", help="KITTI sequence")
+    add_data_root(ap)
+    add_point_format(ap)
+    add_channels(ap)
+    ap.add_argument("--n-pairs", type=int, default=100, metavar="N", help="scan pairs sampled")
+    ap.add_argument("--max-distance", type=float, default=10.0, metavar="M",
+                    help="largest ground-truth distance between the scans of a pair [m]")
+    add_seed(ap, "seed of the pair sampling and of RANSAC")
+    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL, metavar="M", help="voxel size of the FPFH scans [m]")
+    ap.add_argument("--min-frame", type=int, default=None, metavar="K",
+                    help="first frame sampled "
+                         "(default: 14 for seq 00, whose GT of frames 0-13 is extrapolated; else 0)")
+    ap.add_argument("--pairs", default=None, metavar="FILE", help="reuse a pairs.json instead of sampling")
+    ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES,
+                    help="solvers to run (default: all available)")
+    add_no_progress(ap)
+    add_log_level(ap)
+    return ap
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: sample pairs on a sequence, register them, write pairs.json and results.json."""
+    from gr_graph.datasets.base import DatasetError
     from gr_graph.datasets.registry import open_sequence
 
-    ap = argparse.ArgumentParser(prog="python -m gr_graph.global_registration", description=__doc__.split("\n")[0])
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", default=None)
-    ap.add_argument("--channels", type=int, default=64)
-    ap.add_argument("--n-pairs", type=int, default=100)
-    ap.add_argument("--max-distance", type=float, default=10.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL)
-    ap.add_argument("--min-frame", type=int, default=None, help="default 14 for seq 00 (GT of 0-13 is extrapolated)")
-    ap.add_argument("--pairs", default=None, help="reuse a pairs.json instead of sampling")
-    ap.add_argument("--solvers", nargs="+", default=None, choices=SOLVER_NAMES)
-    ap.add_argument("--out", required=True)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-
-    seq, desc = open_sequence(args.seq, args.data_root, args.channels)
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        seq, desc = open_sequence(args.seq, args.data_root, args.channels, point_format=args.point_format)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     logger.info("%s", desc)
     if seq.gt_poses is None:
-        raise SystemExit(f"{desc}: no ground-truth poses, cannot evaluate global registration")
+        print(f"error: {desc}: no ground-truth poses, cannot evaluate global registration", file=sys.stderr)
+        return 2
     poses = np.asarray(seq.gt_poses)
     out = Path(args.out)
     if args.pairs:
@@ -446,7 +327,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             "convention": "rows are (source, target); T_target_source = inv(T_w_target) @ T_w_source",
         }
     save_pairs(out / "pairs.json", pairs, meta)
-    res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed)
+    try:
+        res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed,
+                             progress=not args.no_progress)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     res["settings"].update(sequence=desc, channels=args.channels, pairs_file=str(out / "pairs.json"))
     write_results(out / "results.json", res)
     for s, v in res["summary"].items():

@@ -13,6 +13,9 @@ then a fine correspondence distance; accepted when the fraction of source points
 ``max_correspondence_distance`` of the target is ≥ ``min_inlier_ratio``, the inlier RMSE is
 ≤ ``max_rmse`` and (proximity) the correction to the guess is ≤ ``max_correction``.
 The edge is (i, j): source P = S_i, target Q = S_j, T̂_ij maps scan i into the frame of j.
+
+When a SLAM run looks for loops and re-optimises its graph is :class:`LoopClosureSchedule`;
+loops against ground truth are :mod:`gr_graph.loop_evaluation`.
 """
 
 from __future__ import annotations
@@ -147,6 +150,67 @@ def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig) -> LoopCandi
     return LoopCandidate(i, j, guess, "proximity", float(d[j]))
 
 
+def loop_candidates(estimate: np.ndarray, i: int, scan_context_db: ScanContextDatabase | None,
+                    cfg: LoopConfig) -> list[LoopCandidate]:
+    """Candidates for query scan ``i``: proximity on ``estimate`` (poses 0..i) first, then Scan
+    Context (``scan_context_db``, None when disabled) unless it names a scan within 5 frames
+    of the proximity match."""
+    cands: list[LoopCandidate] = []
+    c = proximity_candidate(estimate, i, cfg) if cfg.use_proximity else None
+    if c is not None:
+        cands.append(c)
+    if scan_context_db is not None:
+        c = scan_context_db.query(i)
+        if c is not None and not any(abs(c.match - o.match) < 5 for o in cands):
+            cands.append(c)
+    return cands
+
+
+# ----------------------------------------------------------------------------- schedule
+
+
+class LoopClosureSchedule:
+    """When a SLAM run looks for loops and when it re-optimises the graph.
+
+    Scan ``i`` is checked when ``i`` is a multiple of ``check_every``, at least
+    ``min_frame_gap``, its scan is usable, and no cooldown is running; a cooldown of
+    ``cooldown`` such checks follows each accepted loop (the check is skipped and the cooldown
+    counts down). After new loops the graph is re-optimised at a check at least
+    ``reoptimize_every`` frames after the last re-optimisation.
+
+    Use: ``if schedule.should_check(i, usable): ...; schedule.loop_accepted(); ...;
+    if schedule.should_reoptimize(i): optimise; schedule.reoptimized(i)``.
+    """
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        self.cfg = cfg
+        self.cooldown = 0  # checks still to skip
+        self.pending_loops = 0  # loops accepted since the last re-optimisation
+        self.last_optimisation = 0  # frame of the last re-optimisation
+
+    def should_check(self, i: int, usable: bool) -> bool:
+        """Whether to look for a loop at scan ``i`` (counts the cooldown down on a skipped check)."""
+        if i % self.cfg.check_every or i < self.cfg.min_frame_gap or not usable:
+            return False
+        if self.cooldown > 0:
+            self.cooldown -= 1
+            return False
+        return True
+
+    def loop_accepted(self) -> None:
+        """A loop entered the graph: start the cooldown, ask for a re-optimisation."""
+        self.pending_loops += 1
+        self.cooldown = self.cfg.cooldown
+
+    def should_reoptimize(self, i: int) -> bool:
+        """Whether to re-optimise after the check at scan ``i``."""
+        return self.pending_loops > 0 and i - self.last_optimisation >= self.cfg.reoptimize_every
+
+    def reoptimized(self, i: int) -> None:
+        """The graph was re-optimised at scan ``i``."""
+        self.pending_loops, self.last_optimisation = 0, i
+
+
 # ----------------------------------------------------------------------------- verification
 
 
@@ -199,93 +263,3 @@ def verify_loop(
     return RegistrationEdge(cand.query, cand.match, T, H, information, ratio,
                             float(res.error / max(res.num_inliers, 1)), int(res.iterations), True, "", "loop",
                             {**info, **extra})
-
-
-# ----------------------------------------------------------------------------- ground truth
-
-
-def true_revisits(gt_poses: np.ndarray, min_frame_gap: int, radius: float) -> np.ndarray:
-    """Boolean (K,): scan i has an older scan (gap ≥ ``min_frame_gap``) within ``radius`` in GT."""
-    pos = np.asarray(gt_poses)[:, :3, 3]
-    K = len(pos)
-    out = np.zeros(K, dtype=bool)
-    for i in range(min_frame_gap, K):
-        d = np.linalg.norm(pos[: i - min_frame_gap + 1] - pos[i], axis=1)
-        out[i] = bool(d.min() <= radius)
-    return out
-
-
-def loop_error(T_ij: np.ndarray, gt_poses: np.ndarray, i: int, j: int) -> tuple[float, float]:
-    """Translation [m] and rotation [deg] error of a loop T̂_ij against GT (T_j⁻¹ T_i)."""
-    T_gt = np.linalg.inv(gt_poses[j]) @ gt_poses[i]
-    E = np.linalg.inv(T_gt) @ T_ij
-    c = np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)
-    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(c)))
-
-
-def loop_precision_recall(
-    loops: list[tuple[int, int, np.ndarray]],
-    gt_poses: np.ndarray,
-    checked: np.ndarray,
-    min_frame_gap: int,
-    revisit_radius: float = 5.0,
-    max_t_err: float = 2.0,
-    max_r_err_deg: float = 10.0,
-) -> dict:
-    """Precision and recall of accepted loops against ground truth.
-
-    Parameters
-    ----------
-    loops : list of (i, j, T̂_ij)
-        Accepted loops.
-    gt_poses : (K, 4, 4)
-        Ground-truth poses (any common world frame).
-    checked : (K,) bool
-        Which scans were queried for loops (recall is over those).
-    revisit_radius : float
-        A checked scan is a true revisit when GT has an older scan within this radius.
-
-    Returns
-    -------
-    dict with ``n_loops``, ``n_correct`` (pose error < max_t_err / max_r_err_deg),
-    ``precision``, ``n_revisit_queries``, ``n_revisit_found``, ``recall`` (revisit queries
-    with an accepted loop), ``n_revisit_segments``, ``segments_found`` (contiguous revisit
-    stretches with at least one loop) and ``segment_recall``; ``None`` where undefined.
-    """
-    correct = []
-    for i, j, T in loops:
-        et, er = loop_error(T, gt_poses, i, j)
-        correct.append(et <= max_t_err and er <= max_r_err_deg)
-    revisit = true_revisits(gt_poses, min_frame_gap, revisit_radius)
-    q = revisit & np.asarray(checked, bool)
-    found = np.zeros_like(q)
-    for (i, _j, _T), ok in zip(loops, correct):
-        if ok:
-            found[i] = True
-    n_q = int(q.sum())
-    n_found = int((found & q).sum())
-    # contiguous revisit segments (gaps of < min_frame_gap / 2 frames merged)
-    segs: list[tuple[int, int]] = []
-    idx = np.flatnonzero(revisit)
-    for i in idx:
-        if segs and i - segs[-1][1] <= max(1, min_frame_gap // 2):
-            segs[-1] = (segs[-1][0], int(i))
-        else:
-            segs.append((int(i), int(i)))
-    seg_found = sum(1 for a, b in segs if found[a : b + 1].any())
-    n = len(loops)
-    return {
-        "n_loops": n,
-        "n_correct": int(sum(correct)),
-        "precision": (sum(correct) / n) if n else None,
-        "n_revisit_queries": n_q,
-        "n_revisit_found": n_found,
-        "recall": (n_found / n_q) if n_q else None,
-        "n_revisit_segments": len(segs),
-        "revisit_segments": segs,
-        "segments_found": seg_found,
-        "segment_recall": (seg_found / len(segs)) if segs else None,
-        "revisit_radius": revisit_radius,
-        "max_t_err": max_t_err,
-        "max_r_err_deg": max_r_err_deg,
-    }

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.trajectory import Trajectory, check_poses, to_evo_path
+from factors.se3 import check_poses, rotation_angle
+from gr_graph.trajectory import Trajectory, to_evo_path
 
 logger = logging.getLogger(__name__)
 
@@ -296,14 +297,9 @@ def kitti_devkit_segments(
     d_est = np.linalg.inv(e[first]) @ e[last]
     err = np.linalg.inv(d_est) @ d_ref
     t_err = np.linalg.norm(err[:, :3, 3], axis=1)
-    # Rotation angle of R(E). The devkit uses acos((tr R - 1) / 2); atan2 of the sine (from
-    # the skew part) and that cosine is the same angle for a rotation, without acos's loss
-    # of precision near 0 (acos would report ~1e-8 rad for an exact match).
-    R = err[:, :3, :3]
-    cos = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
-    skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    sin = 0.5 * np.linalg.norm(skew, axis=1)
-    r_err = np.arctan2(sin, cos)
+    # Rotation angle of R(E): the devkit's acos((tr R - 1) / 2), computed without acos's loss
+    # of precision near 0 (factors.se3.rotation_angle).
+    r_err = rotation_angle(err[:, :3, :3])
     return KittiSegments(first, last, length, t_err / length, r_err / length)
 
 

@@ -18,10 +18,7 @@ A registration that returns non-finite values, has an inlier ratio below
 guess is *flagged* (``ok=False``, ``reason`` says why), logged, and replaced by the guess
 with a weak fallback information (``graph.fallback_sigmas``); never silently kept.
 
-:func:`learned_information` (learning rounds, ``training.edge_noise: learned``) computes an
-edge's information from the network's covariances instead: the WLS pose-likelihood Hessian
-H(C) at T̂ with ``Lambda_i = (2 C_qi)^-1`` on nearest-neighbour pairs, floored, with logged
-fallbacks (:data:`LEARNED_FALLBACK_REASONS`).
+The learned alternative to the registration information is :mod:`gr_graph.edge_noise`.
 """
 
 from __future__ import annotations
@@ -32,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import small_gicp
 
+from factors.se3 import rotation_angle
 from gr_graph.config import GraphConfig, OdometryConfig
 from gr_graph.preprocess import Scan
 
@@ -95,126 +93,6 @@ def scaled_information(H: np.ndarray, error: float, num_inliers: int, scale: flo
     var = max(2.0 * float(error) / dof, 1e-12)
     Hs = 0.5 * (H + H.T)
     return scale * Hs / var
-
-
-#: why an edge did not get its learned information H(C) (counted per round, never silent)
-LEARNED_FALLBACK_REASONS = {
-    "registration_failed": "the registration was flagged: its fallback information is kept",
-    "no_covariances": "the network gave no (finite) covariances for one of the two scans",
-    "few_correspondences": "too few nearest-neighbour pairs within the distance",
-    "nonfinite": "H(C) is not finite / not positive semi-definite",
-    "degenerate": "H(C) is degenerate (degeneracy_report): the registration information is kept",
-}
-
-
-@dataclass
-class LearnedInformation:
-    """Result of :func:`learned_information` for one edge.
-
-    Attributes
-    ----------
-    information : np.ndarray or None
-        ``(6, 6)`` graph information: ``scale * H(C)`` with eigenvalues floored; None on fallback.
-    hessian : np.ndarray or None
-        ``(6, 6)`` raw ``H(C) = sum_i J_i^T (2 C_qi)^-1 J_i`` at T̂ (None if not computed).
-    n_correspondences : int
-    reason : str
-        "" when ``information`` is set, else a key of :data:`LEARNED_FALLBACK_REASONS`.
-    floored : bool
-        Whether the eigenvalue floor raised any eigenvalue.
-    detail : str
-        Human-readable detail of a fallback (degenerate directions...).
-    """
-
-    information: np.ndarray | None
-    hessian: np.ndarray | None
-    n_correspondences: int
-    reason: str = ""
-    floored: bool = False
-    detail: str = ""
-
-
-def learned_information(
-    T: np.ndarray,
-    source: np.ndarray,
-    target: np.ndarray,
-    target_cov: np.ndarray,
-    max_distance: float,
-    min_correspondences: int = 50,
-    min_eigenvalue: float | None = 1e-2,
-    scale: float = 1.0,
-    degeneracy_rel: float = 1e-4,
-    target_tree: object | None = None,
-) -> LearnedInformation:
-    """Pose information of an edge from learned covariances: the pose-likelihood Hessian H(C).
-
-    Correspondences: each source point ``p`` mapped by ``T`` (T̂_kl, source into target frame)
-    is paired with its nearest target point ``q`` if closer than ``max_distance``. With
-    ``Lambda_i = (2 C_qi)^-1`` (the paper's shared-geometry case,
-    :func:`factors.wls.residual_information`), ``H(C) = sum_i J_i^T Lambda_i J_i`` is the
-    Gauss-Newton Hessian of the WLS cost at ``T`` (:func:`factors.wls.wls_cost_gradient_hessian`),
-    gtsam order ``[omega, v]``, right perturbation. It is scaled and floored by
-    :func:`factors.noise.floored_information` (``min_eigenvalue``).
-
-    Fallbacks (``information=None``, ``reason`` set, logged by the caller): fewer than
-    ``min_correspondences`` pairs; non-finite / non-PSD ``H(C)``; degenerate ``H(C)``
-    (:func:`factors.degeneracy.degeneracy_report` with ``rel_threshold=degeneracy_rel`` and
-    rotations measured as arc length at 10 m).
-
-    Parameters
-    ----------
-    T : (4, 4) array
-        T̂_kl of the edge.
-    source, target : (N, 3), (M, 3) arrays
-        Points of scan k and scan l that the network predicted covariances for.
-    target_cov : (M, 3, 3) array
-        Predicted covariances of ``target``.
-    target_tree : scipy.spatial.cKDTree, optional
-        A tree over ``target`` (built if omitted).
-    """
-    from scipy.spatial import cKDTree
-
-    from factors.degeneracy import degeneracy_report
-    from factors.noise import NoiseModelError, floored_information
-    from factors.wls import WLSInputError, residual_information, wls_cost_gradient_hessian
-
-    T = np.asarray(T, np.float64)
-    src = np.asarray(source, np.float64)
-    tgt = np.asarray(target, np.float64)
-    cov = np.asarray(target_cov, np.float64)
-    if cov.shape != (len(tgt), 3, 3):
-        raise ValueError(f"learned_information: target_cov must be ({len(tgt)}, 3, 3), got {cov.shape}")
-    if len(src) == 0 or len(tgt) == 0:
-        return LearnedInformation(None, None, 0, "few_correspondences", detail="empty scan")
-    tree = target_tree if target_tree is not None else cKDTree(tgt)
-    pm = src @ T[:3, :3].T + T[:3, 3]
-    d, j = tree.query(pm, k=1, distance_upper_bound=max_distance)
-    ok = np.isfinite(d)
-    n = int(ok.sum())
-    if n < min_correspondences:
-        return LearnedInformation(None, None, n, "few_correspondences",
-                                  detail=f"{n} < {min_correspondences} pairs within {max_distance} m")
-    try:
-        info = residual_information(cov[j[ok]])
-        _, _, H = wls_cost_gradient_hessian(T, src[ok], tgt[j[ok]], info)
-    except (WLSInputError, np.linalg.LinAlgError, FloatingPointError) as exc:
-        return LearnedInformation(None, None, n, "nonfinite", detail=str(exc))
-    if not np.all(np.isfinite(H)):
-        return LearnedInformation(None, H, n, "nonfinite", detail="non-finite H(C)")
-    rep = degeneracy_report(H, rel_threshold=degeneracy_rel, length_scale=10.0)
-    if rep.is_degenerate:
-        return LearnedInformation(None, H, n, "degenerate", detail=rep.describe())
-    try:
-        out, nrep = floored_information(H, scale=scale, min_eigenvalue=min_eigenvalue)
-    except NoiseModelError as exc:
-        return LearnedInformation(None, H, n, "nonfinite", detail=str(exc))
-    return LearnedInformation(out, H, n, "", floored=nrep.was_floored)
-
-
-def rotation_angle(R: np.ndarray) -> float:
-    """Rotation angle of a 3x3 rotation matrix [rad]."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
 def check_registration(

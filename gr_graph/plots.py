@@ -1,4 +1,4 @@
-"""Figures of a SLAM run (matplotlib, Agg backend; imported lazily by the pipeline)."""
+"""Figures of a SLAM run (matplotlib, Agg backend; imported lazily by gr_graph.round_output)."""
 
 from __future__ import annotations
 

@@ -78,8 +78,8 @@ def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
     -------
     dict
         ``git`` (commit, dirty), ``packages`` (name -> version), ``python``, ``platform``,
-        ``seeds``, ``num_threads``, ``cpu_count``, ``device`` and the thread-related
-        environment variables that were set.
+        ``seeds``, ``num_threads``, ``torch_threads`` (None when torch is not loaded),
+        ``cpu_count``, ``device`` and the thread-related environment variables that were set.
     """
     env_keys = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "CUBLAS_WORKSPACE_CONFIG")
     return {
@@ -89,6 +89,7 @@ def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
         "platform": platform.platform(),
         "seeds": dict(seeds or {}),
         "num_threads": num_threads if num_threads is not None else thread_count(),
+        "torch_threads": thread_count(),
         "cpu_count": os.cpu_count(),
         "device": device,
         "environment": {k: os.environ[k] for k in env_keys if k in os.environ},

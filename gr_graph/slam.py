@@ -6,47 +6,76 @@ project's generated route through a procedural town) and says so.
 Outputs (see :mod:`gr_graph.pipeline`) go to ``--out``; rerunning with the same ``--out``
 skips finished rounds.
 
-Examples
---------
-::
-
-    python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300
-    python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6
-    python -m gr_graph.slam --seq 00 --channels 16 --config my.yaml --out runs/c16
+Examples: see ``EXAMPLES`` (shown by ``--help``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from typing import Any
 
-from gr_graph.config import load_config, parse_frames
+from gr_graph.cli_common import (
+    add_channels,
+    add_config,
+    add_data_root,
+    add_device,
+    add_frames,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_point_format,
+    add_seed,
+    make_parser,
+    setup_logging,
+)
+from gr_graph.config import SlamConfig, load_config
+from gr_graph.datasets.registry import parse_frames
+
+
+EXAMPLES = (
+    "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
+    "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
+    "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
+    "python -m gr_graph.slam --seq 00 --route-seed 3 --channels 16 --out runs/route3_c16",
+    "python -m gr_graph.slam --seq 00 --trajectory /path/to/kitti/poses/00.txt --frames 0:300 --out runs/along_kitti00",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m gr_graph.slam",
-        description="gr_graph LiDAR SLAM: VGICP odometry, loop closures, gtsam pose graph, memory.",
-    )
-    p.add_argument("--seq", default=None, help="KITTI sequence (default 00)")
-    p.add_argument("--data-root", default=None, help="KITTI odometry root (default: $GR_GRAPH_KITTI_ROOT, else synthetic)")
-    p.add_argument("--channels", type=int, choices=(64, 32, 16), default=None)
-    p.add_argument("--frames", default=None, help="frame range A:B (half-open)")
-    p.add_argument("--route-seed", type=int, default=None, help="synthetic: seed of the generated route (default 0)")
-    p.add_argument("--trajectory", default=None,
+    """The argument parser of ``python -m gr_graph.slam``.
+
+    Options left out keep the value of ``--config`` (or the default of :mod:`gr_graph.config`,
+    quoted in the help).
+    """
+    d = SlamConfig()
+    p = make_parser("python -m gr_graph.slam",
+                    "gr_graph LiDAR SLAM: VGICP odometry, loop closures, gtsam pose graph, memory; "
+                    "options override --config, which overrides the defaults of gr_graph/config.py.",
+                    EXAMPLES)
+    add_config(p, "YAML file with config sections (see gr_graph/config.py)")
+    p.add_argument("--seq", default=None, help=f"KITTI sequence (default: {d.data.seq})")
+    add_data_root(p)
+    add_point_format(p, default=None, help="layout of the KITTI .bin files: float32 x,y,z,intensity (16 bytes a "
+                                           f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
+    add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
+    add_frames(p, help="half-open frame range A:B (default: all frames)")
+    p.add_argument("--route-seed", type=int, default=None, metavar="N",
+                   help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
+    p.add_argument("--trajectory", default=None, metavar="PATH",
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
-    p.add_argument("--rounds", type=int, default=None, help="learning rounds after round 0 (default 0)")
-    p.add_argument("--out", default=None, help="output directory (default runs/slam)")
-    p.add_argument("--config", default=None, help="YAML file with config sections (see gr_graph/config.py)")
-    p.add_argument("--device", choices=("cpu", "cuda"), default=None, help="device of the learning rounds")
+    p.add_argument("--rounds", type=int, default=None, metavar="N",
+                   help=f"learning rounds after round 0 (default: {d.training.rounds})")
+    add_out(p, f"output directory (default: {d.output.out_dir})")
+    add_seed(p, f"seed of the synthetic data and of the learning rounds: sets seed and training.seed "
+                f"(default: {d.seed})", default=None)
+    add_device(p, f"device of the learning rounds (default: {d.device})", default=None)
     p.add_argument("--no-loops", action="store_true", help="odometry only (no loop closures)")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--log-level", default="INFO")
+    add_no_progress(p, deprecated=("--quiet",))
+    add_log_level(p)
     return p
 
 
@@ -59,6 +88,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["data_root"] = args.data_root
     if args.channels is not None:
         o["data"]["channels"] = args.channels
+    if args.point_format is not None:
+        o["data"]["point_format"] = args.point_format
     if args.frames is not None:
         o["data"]["frames"] = parse_frames(args.frames)
     if args.route_seed is not None:
@@ -73,13 +104,16 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["output"]["out_dir"] = args.out
     if args.device is not None:
         o["device"] = args.device
+    if args.seed is not None:
+        o["seed"] = args.seed
+        o["training"]["seed"] = args.seed
     if args.no_loops:
         o["loops"]["enabled"] = False
     if args.no_resume:
         o["output"]["resume"] = False
     if args.no_memory:
         o["output"]["write_memory"] = False
-    if args.quiet:
+    if args.no_progress:
         o["output"]["progress"] = False
     return {k: v for k, v in o.items() if v != {}}
 
@@ -87,20 +121,21 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(args.log_level)
     try:
         cfg = load_config(args.config, overrides_from_args(args))
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from gr_graph.datasets.base import DatasetError
-    from gr_graph.pipeline import LearningRoundsUnavailable, SlamPipeline
+    from gr_graph.datasets.registry import open_configured_sequence
+    from gr_graph.pipeline import SlamPipeline
 
     try:
-        pipe = SlamPipeline(cfg)
+        sequence, source = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+        pipe = SlamPipeline(cfg, sequence, source)
         metrics = pipe.run()
-    except (DatasetError, LearningRoundsUnavailable) as exc:
+    except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     last = metrics["rounds"][max(metrics["rounds"], key=int)]

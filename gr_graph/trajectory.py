@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from factors.se3 import ROT_TOL, check_poses, rotation_defects
 from gr_graph.atomic import atomic_write_text
 
 if TYPE_CHECKING:  # evo is only needed for the conversion helpers
@@ -39,9 +40,6 @@ logger = logging.getLogger(__name__)
 
 PathLike = str | os.PathLike[str]
 
-#: Default tolerance on ``max |R^T R - I|`` and ``|det R - 1|``. The official KITTI ground
-#: truth (7 significant digits) deviates by about 2e-7.
-ROT_TOL = 1e-4
 #: Default tolerance on ``| |q| - 1 |`` for TUM quaternions (files often hold 4-6 digits).
 QUAT_NORM_TOL = 1e-3
 
@@ -53,52 +51,6 @@ class TrajectoryFormatError(ValueError):
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def _rotation_defects(R: np.ndarray) -> np.ndarray:
-    """``max(max|R^T R - I|, |det R - 1|)`` for each of ``(K, 3, 3)`` matrices."""
-    gram = np.einsum("kji,kjl->kil", R, R) - np.eye(3)
-    return np.maximum(np.abs(gram).max(axis=(1, 2)), np.abs(np.linalg.det(R) - 1.0))
-
-
-def check_poses(poses: np.ndarray, name: str = "poses", rot_tol: float = ROT_TOL) -> np.ndarray:
-    """Validate a stack of rigid transforms and return it as ``(K, 4, 4)`` float64.
-
-    Parameters
-    ----------
-    poses : array_like
-        ``(K, 4, 4)`` homogeneous transforms.
-    name : str
-        Name used in error messages.
-    rot_tol : float
-        Tolerance on ``max |R^T R - I|`` and ``|det R - 1|``.
-
-    Raises
-    ------
-    ValueError
-        Wrong shape, non-finite entries, bottom row not ``[0, 0, 0, 1]``, or a rotation
-        block that is not a proper rotation within ``rot_tol`` (the first bad index is named).
-    """
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise ValueError(f"{name}: expected shape (K, 4, 4), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        k = int(np.argwhere(~np.isfinite(arr).all(axis=(1, 2)))[0, 0])
-        raise ValueError(f"{name}: pose {k} has non-finite entries")
-    bottom_ok = np.all(np.abs(arr[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])) <= 1e-9, axis=1)
-    if not bottom_ok.all():
-        k = int(np.argmin(bottom_ok))
-        raise ValueError(f"{name}: pose {k} bottom row is {arr[k, 3].tolist()}, not [0, 0, 0, 1]")
-    if len(arr):
-        defects = _rotation_defects(arr[:, :3, :3])
-        bad = defects > rot_tol
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise ValueError(
-                f"{name}: pose {k} rotation is not orthonormal "
-                f"(defect {defects[k]:.3g} > tolerance {rot_tol:g})"
-            )
-    return arr
 
 
 def _check_timestamps(timestamps: np.ndarray, n: int, name: str = "timestamps") -> np.ndarray:
@@ -188,7 +140,7 @@ def read_kitti_poses(path: PathLike, rot_tol: float = ROT_TOL) -> np.ndarray:
     poses = np.zeros((K, 4, 4), dtype=np.float64)
     poses[:, :3, :] = rows.reshape(K, 3, 4)
     poses[:, 3, 3] = 1.0
-    defects = _rotation_defects(poses[:, :3, :3])
+    defects = rotation_defects(poses[:, :3, :3])
     bad = defects > rot_tol
     if bad.any():
         k = int(np.argmax(bad))

@@ -1,28 +1,24 @@
-"""Helpers shared by the SLAM tests: a frame-subset view and short synthetic runs, one each per session.
+"""Helpers shared by the SLAM tests: a frame-subset view and two short synthetic runs.
+
+The runs are made once per test session by the fixtures ``revisit_run`` and ``learning_run``
+in ``tests/conftest.py``.
 
 The short run stitches two stretches of the synthetic sequence's generated route that pass
 the same street (:func:`revisit_ranges`: 100 frames of a street, then 60 frames of a later
 pass that turns onto it and drives it again in the same direction), so a 160-frame run
-contains real revisits. The jump between the stretches is a deliberate odometry failure: it
-must be flagged, and the loops (found by Scan Context, since the estimate is wrong after the
-jump) must repair the trajectory.
+contains real revisits. The jump between the stretches is a deliberate
+odometry failure: it must be flagged, and the loops (found by Scan Context, since the
+estimate is wrong after the jump) must repair the trajectory.
 """
 
 from __future__ import annotations
 
-import atexit
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame
-
-_RUN_CACHE: dict[str, Path] = {}
-_RUN_ARGV: dict[str, list[str]] = {}
-
 
 class FrameSubset:
     """A LidarSequence made of selected frames of a parent sequence (keeps original indices)."""
@@ -88,16 +84,12 @@ def revisit_config(out_dir: Path):
     })
 
 
-def short_revisit_run() -> Path:
-    """Run the pipeline once per process on :func:`revisit_sequence`; return the output dir."""
-    if "revisit" not in _RUN_CACHE:
-        from gr_graph.pipeline import SlamPipeline
+def run_revisit(out: Path) -> Path:
+    """Run the pipeline on :func:`revisit_sequence` into ``out``; return ``out``."""
+    from gr_graph.pipeline import SlamPipeline
 
-        out = Path(tempfile.mkdtemp(prefix="gr_graph_revisit_run_"))
-        atexit.register(shutil.rmtree, out, ignore_errors=True)
-        SlamPipeline(revisit_config(out), revisit_sequence(), "synthetic route revisit excerpt").run()
-        _RUN_CACHE["revisit"] = out
-    return _RUN_CACHE["revisit"]
+    SlamPipeline(revisit_config(out), revisit_sequence(), "synthetic route revisit excerpt").run()
+    return out
 
 
 # A short --rounds 1 run (30 frames, 27 m of a straight street at 9.4 m/s on route seed 0,
@@ -116,24 +108,19 @@ LEARNING_RUN_CONFIG = {
 }
 
 
-def short_learning_run() -> tuple[Path, list[str]]:
-    """Run ``python -m gr_graph.slam ... --rounds 1`` once per process; return (out dir, argv).
+def run_learning(root: Path) -> tuple[Path, tuple[str, ...]]:
+    """Run ``python -m gr_graph.slam ... --rounds 1`` into ``root/run``; return (run dir, argv).
 
     Tests may rerun ``argv`` (resume) but must leave the directory as a finished run.
     """
-    if "learning" not in _RUN_CACHE:
-        import yaml
+    import yaml
 
-        from gr_graph.slam import main
+    from gr_graph.slam import main
 
-        out = Path(tempfile.mkdtemp(prefix="gr_graph_learning_run_"))
-        atexit.register(shutil.rmtree, out, ignore_errors=True)
-        cfg_path = out / "config_in.yaml"
-        cfg_path.write_text(yaml.safe_dump(LEARNING_RUN_CONFIG))
-        argv = ["--seq", "00", "--frames", LEARNING_RUN_FRAMES, "--channels", "16", "--rounds", "1",
-                "--out", str(out / "run"), "--config", str(cfg_path), "--quiet"]
-        if main(argv) != 0:
-            raise RuntimeError("the short learning run failed")
-        _RUN_CACHE["learning"] = out / "run"
-        _RUN_ARGV["learning"] = argv
-    return _RUN_CACHE["learning"], list(_RUN_ARGV["learning"])
+    cfg_path = root / "config_in.yaml"
+    cfg_path.write_text(yaml.safe_dump(LEARNING_RUN_CONFIG))
+    argv = ["--seq", "00", "--frames", LEARNING_RUN_FRAMES, "--channels", "16", "--rounds", "1",
+            "--out", str(root / "run"), "--config", str(cfg_path), "--quiet"]
+    if main(argv) != 0:
+        raise RuntimeError("the short learning run failed")
+    return root / "run", tuple(argv)

@@ -12,10 +12,7 @@ from scipy.spatial.transform import Rotation
 from gr_graph.global_registration import (
     evaluate_pairs,
     is_success,
-    kiss_matcher_available,
     load_pairs,
-    register_fpfh_ransac,
-    register_kiss_matcher,
     relative_transform,
     rotation_error_deg,
     sample_pairs,
@@ -23,6 +20,7 @@ from gr_graph.global_registration import (
     translation_error_m,
     write_results,
 )
+from gr_graph.global_solvers import kiss_matcher_available, register_fpfh_ransac, register_kiss_matcher
 
 
 def make_T(rotvec: list[float], t: list[float]) -> np.ndarray:

@@ -8,11 +8,10 @@ import logging
 import numpy as np
 import pytest
 
-from factors.noise import floored_information
 from factors.wls import solve_wls
 from gr_graph.config import GraphConfig, load_config
-from gr_graph.odometry import RegistrationEdge, learned_information
-from gr_graph.pipeline import LearnedEdgeNoise
+from gr_graph.edge_noise import LearnedEdgeNoise, learned_information
+from gr_graph.odometry import RegistrationEdge
 from gr_graph.pose_graph import edge_noise_model
 
 
@@ -124,8 +123,7 @@ def test_densified_sequence_keeps_its_predictions():
     from test_learning_rounds import PlaneScenes, plane_predictor
 
     view = densified_sequence(PlaneScenes(n=4), plane_predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
-                              preprocess=PreprocessConfig())
-    view.keep_predictions = 2
+                              preprocess=PreprocessConfig(), keep_predictions=2)
     for i in range(4):
         view[i]
     assert view.predicted(0) is None and view.predicted(1) is None  # evicted
@@ -137,22 +135,15 @@ def test_densified_sequence_keeps_its_predictions():
 # ----------------------------------------------------------------------------- end to end
 
 
-@pytest.fixture()
-def learned_run():
-    """The short ``--rounds 1`` run shared with tests/test_learning_rounds.py."""
-    from slam_support import short_learning_run
-
-    return short_learning_run()[0]
-
-
-def test_round1_uses_learned_noise_end_to_end(learned_run):
+@pytest.mark.slow
+def test_round1_uses_learned_noise_end_to_end(learning_run):
     from scipy.spatial import cKDTree
 
     from gr_graph.pipeline import SlamPipeline
     from gr_graph.preprocess import preprocess_scan
     from training.predict import predict_covariances
 
-    out = learned_run
+    out = learning_run[0]  # the short --rounds 1 run shared with tests/test_learning_rounds.py
     r1 = json.loads((out / "round_1" / "round.json").read_text())
     en = r1["edge_noise"]
     assert en["mode"] == "learned" and en["n_learned"] > 0

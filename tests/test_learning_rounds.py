@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from gr_graph.datasets.base import LidarFrame
 from gr_graph.densify import densified_sequence
 from gr_graph.preprocess import preprocess_scan
 
-from slam_support import LEARNING_RUN_CONFIG, FrameSubset, short_learning_run
+from slam_support import LEARNING_RUN_CONFIG
 
 GROUND_Z = -1.73
 # a tilted planar covariance with correlations: eigenvalues 0.09, 0.04, 4e-4 -> a = 0.9956
@@ -182,32 +181,31 @@ def test_real_network_checkpoint_is_accepted(tmp_path):
 
 
 def test_trainer_keys_checked_before_round_zero(tmp_path):
+    """The trainer section is validated when the configuration is loaded, before any round."""
     from gr_graph.config import load_config
-    from gr_graph.pipeline import SlamPipeline
 
     with pytest.raises(ValueError, match="set by the pipeline"):
         TrainingConfig(trainer={"epochs": 3})
-    cfg = load_config(overrides={"output": {"out_dir": str(tmp_path)}, "training": {"rounds": 1, "trainer": {"lrr": 1}}})
-    with pytest.raises(Exception, match="lrr"):
-        SlamPipeline(cfg, PlaneScenes(n=2)).run()
-    assert not (tmp_path / "round_0").exists()
+    with pytest.raises(ValueError, match="unknown key 'training.trainer.lrr'"):
+        load_config(overrides={"output": {"out_dir": str(tmp_path)}, "training": {"rounds": 1, "trainer": {"lrr": 1}}})
+    cfg = load_config(overrides={"training": {"rounds": 1, "trainer": {"lr": 2e-3, "net": {"n_points": 256}}}})
+    tc = cfg.training.trainer_config("cpu", progress=False)
+    assert (tc.lr, tc.net.n_points, tc.epochs, tc.seed) == (2e-3, 256, cfg.training.epochs, cfg.training.seed)
+    with pytest.raises(ValueError, match="lr"):
+        cfg.training.trainer.lr = -1.0  # validated on assignment too
 
 
 # ----------------------------------------------------------------------------- end to end
 
-# Bounds for the shared run (slam_support.short_learning_run); a densified scan that lost its
-# walls (only ground kept) drifts by metres, far above these.
+# Bounds for the shared run (session fixture learning_run, tests/conftest.py); a densified
+# scan that lost its walls (only ground kept) drifts by metres, far above these.
 RPE10_BOUND_M = 0.1  # translation error over 10 frames (~8 m driven)
 ATE_BOUND_M = 0.1
 
 
-@pytest.fixture()
-def rounds_run():
-    return short_learning_run()
-
-
-def test_rounds_end_to_end(rounds_run):
-    out, _ = rounds_run
+@pytest.mark.slow
+def test_rounds_end_to_end(learning_run):
+    out, _ = learning_run
     for r in (0, 1):
         for name in ("poses_kitti.txt", "poses_tum.txt", "marginals.npz", "round.json", "memory"):
             assert (out / f"round_{r}" / name).exists(), (r, name)
@@ -239,12 +237,13 @@ def test_rounds_end_to_end(rounds_run):
         np.testing.assert_allclose(m1.poses, z["poses"], atol=1e-6)
 
 
-def test_rounds_resume_skips_finished(rounds_run, caplog):
+@pytest.mark.slow
+def test_rounds_resume_skips_finished(learning_run, caplog):
     import logging
 
     from gr_graph.slam import main
 
-    out, argv = rounds_run
+    out, argv = learning_run
     stamp = {p: p.stat().st_mtime_ns for p in (out / "round_0" / "round.json", out / "round_1" / "round.json",
                                               out / "round_1" / "training" / "model.pt")}
     with caplog.at_level(logging.INFO):
@@ -255,14 +254,15 @@ def test_rounds_resume_skips_finished(rounds_run, caplog):
     assert set(m["rounds"]) == {"0", "1"} and "trajectory_change" in m["rounds"]["1"]
 
 
-def test_unfinished_round_resumes_its_training(rounds_run, caplog):
+@pytest.mark.slow
+def test_unfinished_round_resumes_its_training(learning_run, caplog):
     """Round 1 interrupted after training (no round.json): the rerun skips round 0, resumes the
     finished training from its checkpoint (no new training steps) and redoes round 1's SLAM."""
     import logging
 
     from gr_graph.slam import main
 
-    out, argv = rounds_run
+    out, argv = learning_run
     log_path = out / "round_1" / "training" / "train_log.jsonl"
     n_log = len(log_path.read_text().splitlines())
     r0 = (out / "round_0" / "round.json").stat().st_mtime_ns
@@ -277,7 +277,8 @@ def test_unfinished_round_resumes_its_training(rounds_run, caplog):
     assert after["slam"]["ate_rmse"] == pytest.approx(before["slam"]["ate_rmse"], abs=1e-9)  # same model, same seeds
 
 
-def test_changed_training_config_retrains(rounds_run, caplog, tmp_path):
+@pytest.mark.slow
+def test_changed_training_config_retrains(learning_run, caplog, tmp_path):
     """Another trainer setting: round 0 is kept (it does not depend on training), round 1 is
     recomputed and its stale checkpoint is not resumed but replaced (logged)."""
     import logging
@@ -286,7 +287,8 @@ def test_changed_training_config_retrains(rounds_run, caplog, tmp_path):
 
     import shutil
 
-    shared, argv = rounds_run
+    shared, argv = learning_run
+    argv = list(argv)
     out = tmp_path / "run"  # a copy: the shared run stays as it was made
     shutil.copytree(shared, out)
     argv[argv.index("--out") + 1] = str(out)

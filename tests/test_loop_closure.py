@@ -9,16 +9,15 @@ import small_gicp
 from gr_graph.config import GraphConfig, LoopConfig, PreprocessConfig
 from gr_graph.loop_closure import (
     LoopCandidate,
+    LoopClosureSchedule,
     ScanContextDatabase,
-    loop_error,
-    loop_precision_recall,
     proximity_candidate,
     scan_context,
     scan_context_distance,
-    true_revisits,
     verify_loop,
     yaw_matrix,
 )
+from gr_graph.loop_evaluation import loop_error, loop_precision_recall, true_revisits
 from gr_graph.preprocess import preprocess_scan
 
 
@@ -137,3 +136,18 @@ def test_loop_rmse_threshold_scales_with_sparsity():
     vals = [loop_max_rmse(auto, ch) for ch in (64, 32, 16)]
     assert vals[0] == pytest.approx(0.35) and vals[0] < vals[1] < vals[2] < 0.5
     assert loop_max_rmse(LoopConfig(max_rmse=0.2), 16) == 0.2
+
+
+def test_schedule_checks_every_nth_usable_frame_with_cooldown_and_reoptimises():
+    cfg = LoopConfig(check_every=5, min_frame_gap=20, cooldown=2, reoptimize_every=30)
+    sch = LoopClosureSchedule(cfg)
+    assert [i for i in range(40) if LoopClosureSchedule(cfg).should_check(i, True)] == [20, 25, 30, 35]
+    assert not sch.should_check(25, usable=False)
+    assert sch.should_check(25, True) and not sch.should_reoptimize(25)  # no loop yet
+    sch.loop_accepted()  # at 25: the next 2 checks (30, 35) are skipped, then 40 is checked
+    assert [i for i in (26, 30, 31, 35, 40) if sch.should_check(i, True)] == [40]
+    assert sch.should_reoptimize(40)  # 40 - 0 >= 30 with a pending loop
+    sch.reoptimized(40)
+    assert not sch.should_reoptimize(45)
+    sch.loop_accepted()
+    assert not sch.should_reoptimize(65) and sch.should_reoptimize(70)  # 30 frames after the last

@@ -8,15 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam_support import short_revisit_run
-
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "marginal_covariances.ipynb"
 
 
-def test_marginal_covariances_notebook_executes(monkeypatch):
+@pytest.mark.slow
+def test_marginal_covariances_notebook_executes(revisit_run, monkeypatch):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
-    run_dir = short_revisit_run()
+    run_dir = revisit_run
     monkeypatch.setenv("GR_GRAPH_RUN_DIR", str(run_dir))
     nb = nbformat.read(NOTEBOOK, as_version=4)
     nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",

@@ -76,6 +76,18 @@ def test_out_of_range_frames_are_an_error_not_clipped() -> None:
         parse_frames("6:6", 10)
     with pytest.raises(DatasetError, match="steps"):
         parse_frames(slice(0, 10, 2), 10)
+    for bad in ("5", "7:3", "0:11", "a:b"):
+        with pytest.raises(DatasetError):
+            parse_frames(bad, 10)
+
+
+def test_frames_without_the_sequence_length() -> None:
+    """A configuration's range is parsed before the sequence is opened: B is required."""
+    assert parse_frames("2330:2480") == (2330, 2480) and parse_frames(":5") == (0, 5)
+    for bad, msg in (("7:", "B is needed"), ("5:5", "need 0 <= A < B"), ("-1:4", "need 0 <= A < B"),
+                     (None, "sequence length")):
+        with pytest.raises(DatasetError, match=msg):
+            parse_frames(bad)
 
 
 def test_synthetic_route_seed_and_trajectory(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -21,7 +21,6 @@ from gr_graph.datasets.synthetic.sensor import BeamModel, hdl64_elevations_deg
 from gr_graph.datasets.synthetic.sequence import clear_scene_cache
 from gr_graph.datasets.synthetic.route import generate_route
 from gr_graph.datasets.synthetic.town import build_town
-from gr_graph.datasets.synthetic.writer import parse_frames
 from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
 
@@ -214,7 +213,7 @@ def test_renders_a_scan_along_a_given_trajectory(tmp_path):
     # the exporter renders along it too, and says so
     out = tmp_path / "export"
     assert cli_main(["--out", str(out), "--trajectory", str(tmp_path / "t.tum"), "--frames", "50:51",
-                     "--seed", "2", "--n-rings", "16", "--n-azimuth", "500"]) == 0
+                     "--seed", "2", "--channels", "16", "--n-azimuth", "500"]) == 0
     meta = json.loads((out / "sequences" / "00" / "synthetic.json").read_text())
     assert meta["trajectory"] == str(tmp_path / "t.tum") and "TUM format" in meta["source"]
     raw = np.fromfile(out / "sequences" / "00" / "velodyne" / "000000.bin", dtype=np.float32).reshape(-1, 4)
@@ -333,15 +332,6 @@ def test_frames_register_onto_their_ground_truth(seq, i, j, from_identity):
 
 
 # ---------------------------------------------------------------- writer / CLI ----------
-def test_parse_frames():
-    assert parse_frames("3:7", 10) == range(3, 7)
-    assert parse_frames(":4", 10) == range(0, 4) and parse_frames("8:", 10) == range(8, 10)
-    assert parse_frames(None, 10) == range(10)
-    for bad in ("5", "7:3", "0:11", "a:b"):
-        with pytest.raises(ValueError):
-            parse_frames(bad, 10)
-
-
 def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
     out = tmp_path / "synth"
     assert cli_main(["--out", str(out), "--frames", "20:23", "--seed", "0"]) == 0

@@ -14,7 +14,6 @@ weights. Rank 0 writes ``checkpoint.pt``, ``model.pt``, ``train_log.jsonl``; oth
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import sys
 from pathlib import Path
@@ -23,6 +22,16 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
+from gr_graph.cli_common import (
+    add_device,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_seed,
+    add_threads,
+    make_parser,
+    setup_logging,
+)
 from gr_graph.memory import load_memory
 from training.trainer import TrainConfig, Trainer
 
@@ -43,23 +52,39 @@ def train_distributed(memory_dir: str | os.PathLike[str], out_dir: str | os.Path
     return path
 
 
+EXAMPLES = (
+    "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp",
+    "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp --epochs 3 --seed 1",
+    "torchrun --nproc_per_node=2 -m training.ddp --memory runs/slam/round_0/memory --out runs/ddp_gpu "
+    "--device cuda --backend nccl",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``torchrun ... -m training.ddp``."""
+    ap = make_parser("torchrun ... -m training.ddp", __doc__.split("\n\n")[0], EXAMPLES)
+    ap.add_argument("--memory", required=True, metavar="DIR", help="memory directory (written by gr_graph.slam)")
+    add_out(ap, "output directory", required=True)
+    ap.add_argument("--epochs", type=int, default=1, metavar="N", help="epochs")
+    add_seed(ap, "seed of the weights and of all sampling (the same on every rank)")
+    add_device(ap, "torch device (cuda: one GPU per rank)")
+    ap.add_argument("--backend", choices=("gloo", "nccl", "mpi", "ucc"), default=None,
+                    help="process-group backend (default: gloo on CPU, nccl with --device cuda)")
+    add_threads(ap, "torch threads per process", default=1)
+    add_no_progress(ap)
+    add_log_level(ap)
+    return ap
+
+
 def main(argv: list[str] | None = None) -> int:
     """torchrun entry point."""
-    ap = argparse.ArgumentParser(prog="torchrun ... -m training.ddp")
-    ap.add_argument("--memory", required=True)
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--epochs", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    ap.add_argument("--backend", default=None, help="gloo (default on CPU) or nccl")
-    ap.add_argument("--threads", type=int, default=1)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO)
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
     backend = args.backend or ("nccl" if args.device == "cuda" else "gloo")
     dist.init_process_group(backend)
     try:
         cfg = {"epochs": args.epochs, "seed": args.seed, "device": args.device, "num_threads": args.threads,
-               "progress": dist.get_rank() == 0}
+               "progress": dist.get_rank() == 0 and not args.no_progress}
         path = train_distributed(args.memory, args.out, cfg)
         if dist.get_rank() == 0:
             print(path)

@@ -38,66 +38,15 @@ shape directly, which max-pooling alone learns only slowly. The network runs in 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import numpy as np
 import torch
 from torch import nn
 
-from training.neighbors import Neighborhoods, build_neighborhoods
+from training.config import NetConfig
+from training.neighbors import Neighborhoods
 from training.pose_layer import inv3
 
 __all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov"]
-
-
-@dataclass
-class NetConfig:
-    """Hyper-parameters of :class:`CovarianceNet` and of its input sampling.
-
-    Attributes
-    ----------
-    n_points : int
-        Points per network input (scans are subsampled / split to this size).
-    k0, k1, k2 : int
-        Group sizes of the three set-abstraction levels.
-    ratio1, ratio2 : int
-        Centroid down-sampling ratios of levels 1 and 2.
-    c0, c1, c2 : int
-        Feature widths of the levels.
-    cov_scale : float
-        Scale (m) of the Cholesky factor at zero network output: initial C ~ cov_scale^2 I.
-    eps : float
-        The paper's epsilon (m^2) added to the diagonal of C.
-    sampling : str
-        Centroid sampling of the set-abstraction levels: ``"random"`` or ``"fps"``.
-    head : str
-        ``"geometric"`` or ``"cholesky"`` (see the module docstring).
-    kw : int
-        Wide neighbours (level-1 centroids) per point used by the geometric head.
-    """
-
-    n_points: int = 2048
-    k0: int = 16
-    ratio1: int = 4
-    k1: int = 16
-    ratio2: int = 4
-    k2: int = 16
-    c0: int = 32
-    c1: int = 64
-    c2: int = 128
-    cov_scale: float = 0.1
-    eps: float = 1e-6
-    sampling: str = "random"
-    head: str = "geometric"
-    kw: int = 16
-
-    def neighborhoods(self, points: np.ndarray, start: int = 0) -> Neighborhoods:
-        """Neighbour indices of ``points`` for this configuration (``start`` seeds the sampling)."""
-        return build_neighborhoods(points, self.k0, self.ratio1, self.k1, self.ratio2, self.k2, start, self.sampling, self.kw)
-
-    def to_dict(self) -> dict:
-        """Plain dict (stored in checkpoints)."""
-        return asdict(self)
 
 
 def _mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
@@ -171,8 +120,6 @@ class CovarianceNet(nn.Module):
         self.sa2 = _GroupMLP(3, c.c1 + 7, [c.c2, c.c2])
         self.fp2 = _mlp([c.c2 + c.c1 + 7, c.c1, c.c1])
         self.fp1 = _mlp([c.c1 + c0 + 7 + 2, c0 * 2, c0 * 2])
-        if c.head not in ("geometric", "cholesky"):
-            raise ValueError(f"NetConfig.head must be 'geometric' or 'cholesky', got {c.head!r}")
         self.head = nn.Linear(c0 * 2, 3 if c.head == "geometric" else 6)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)

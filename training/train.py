@@ -23,8 +23,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gr_graph.cli_common import (
+    add_config,
+    add_device,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_seed,
+    add_threads,
+    make_parser,
+    setup_logging,
+)
 from gr_graph.memory import load_memory
-from training.trainer import TrainConfig, Trainer
+from training.config import TrainConfig, load_train_config
+from training.trainer import Trainer
 
 log = logging.getLogger(__name__)
 
@@ -48,10 +60,9 @@ def train_from_memory(
         ``training.predict.predict_covariances``), ``checkpoint.pt``, ``train_log.jsonl``,
         ``summary.json``.
     config : TrainConfig, dict or pydantic model, optional
-        Training hyper-parameters (keys as :class:`training.trainer.TrainConfig`, with
-        ``"net"`` a dict of :class:`training.network.NetConfig`); keys the trainer does not
-        know (e.g. ``rounds``) are logged and ignored. Use ``init_checkpoint`` to continue
-        from the previous round's ``model.pt``.
+        Training hyper-parameters (keys as :class:`training.config.TrainConfig`, with
+        ``"net"`` a dict of :class:`training.config.NetConfig`); an unknown key is an error.
+        Use ``init_checkpoint`` to continue from the previous round's ``model.pt``.
     resume : bool
         Continue from ``out_dir/checkpoint.pt`` if it exists (same configuration required).
 
@@ -59,45 +70,58 @@ def train_from_memory(
     ------
     gr_graph.memory.MemoryFormatError
         If the memory cannot be read.
+    training.config.TrainConfigError
+        On a bad configuration (unknown key, value out of range).
     training.trainer.TrainingError
-        On a bad configuration, an incompatible checkpoint or too many unusable pairs.
+        On an incompatible checkpoint or too many unusable pairs.
     """
-    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config, strict=False)
+    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config)
     memory = load_memory(memory_dir)
     log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
     return Trainer(memory, out_dir, cfg).fit(resume=resume)
 
 
-def _parse(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--memory", required=True, help="memory directory (written by gr_graph.slam)")
-    ap.add_argument("--out", default=None, help="output directory (default: <memory>/../training)")
-    ap.add_argument("--epochs", type=int, default=None, help="epochs (default from config, 1)")
-    ap.add_argument("--device", choices=["cpu", "cuda"], default=None)
-    ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--config", default=None, help="YAML/JSON file with TrainConfig keys")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+EXAMPLES = (
+    "python -m training.train --memory runs/slam/round_0/memory --out runs/train --epochs 2",
+    "python -m training.train --memory runs/slam/round_0/memory --out runs/train --config train.yaml --device cuda",
+    "python -m training.train --memory runs/slam/round_0/memory --out runs/train --seed 1 --threads 1 --no-progress",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m training.train``; options left out keep ``--config``'s value."""
+    d = TrainConfig()
+    ap = make_parser("python -m training.train", __doc__.split("\n\n")[0] + " Options override --config.", EXAMPLES)
+    ap.add_argument("--memory", required=True, metavar="DIR", help="memory directory (written by gr_graph.slam)")
+    add_out(ap, "output directory (default: <memory>/../training)")
+    add_config(ap, "YAML/JSON file with TrainConfig keys (an unknown key is an error)")
+    ap.add_argument("--epochs", type=int, default=None, metavar="N", help=f"epochs (default: {d.epochs})")
+    add_seed(ap, f"seed of the weights and of all sampling (default: {d.seed})", default=None)
+    add_device(ap, f"torch device (default: {d.device})", default=None)
+    add_threads(ap, "torch threads (default: torch's own choice)", default=None)
     ap.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
-    ap.add_argument("--no-progress", action="store_true")
-    return ap.parse_args(argv)
+    add_no_progress(ap)
+    add_log_level(ap)
+    return ap
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    return build_parser().parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry; returns the exit code."""
     args = _parse(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    cfg: dict[str, Any] = {}
-    if args.config:
-        import yaml
-
-        cfg = yaml.safe_load(Path(args.config).read_text()) or {}
+    setup_logging(args.log_level)
+    overrides: dict[str, Any] = {}
     for key, val in (("epochs", args.epochs), ("device", args.device), ("seed", args.seed), ("num_threads", args.threads)):
         if val is not None:
-            cfg[key] = val
+            overrides[key] = val
     if args.no_progress:
-        cfg["progress"] = False
+        overrides["progress"] = False
     out = Path(args.out) if args.out else Path(args.memory).resolve().parent / "training"
     try:
+        cfg = load_train_config(args.config, overrides)
         path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)
     except (ValueError, RuntimeError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -14,7 +14,16 @@ every ``pairs_per_step`` pairs (the paper: every pair). Robustness:
 Outputs in ``out_dir``: ``checkpoint.pt`` (latest state, written atomically every
 ``checkpoint_every`` steps and at each epoch end; resuming from it reproduces the
 uninterrupted run exactly), ``train_log.jsonl`` (one JSON line per pair), ``model.pt`` (the
-final network: weights + NetConfig) and ``summary.json``.
+final network: weights + NetConfig) and ``summary.json`` (counts, configuration, step timing
+and provenance: commit, packages, seed, device, thread count).
+
+Reproducibility: the same memory, configuration (seed included) and torch thread count give
+bit-identical ``model.pt``, ``checkpoint.pt`` and ``train_log.jsonl`` in separate processes.
+Everything random is drawn from generators seeded by ``(seed, epoch, edge)`` or from torch's
+seeded generator; the loop runs under :func:`deterministic_algorithms` (see there for the
+operation that varied without it); the log holds no wall-clock times (they go to
+``summary.json``); checkpoints are written so that their bytes do not depend on the
+temporary file name (:func:`save_atomic`).
 
 Data parallel: with ``world_size > 1`` (see :mod:`training.ddp`) the network is wrapped in
 ``torch.nn.parallel.DistributedDataParallel``; step ``s`` of an epoch uses the pairs
@@ -31,155 +40,69 @@ import math
 import os
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
 from gr_graph.atomic import atomic_path, atomic_write_text
 from gr_graph.memory import Memory
+from gr_graph.provenance import provenance
+from training.config import NetConfig, TrainConfig, TrainConfigError, TrainOptions
 from training.dataset import PairDataset, PairSample, SkipSample
 from training.losses import LossError, corr_nll, default_gamma, pose_nll
-from training.network import CovarianceNet, NetConfig, neighborhoods_to_torch
+from training.network import CovarianceNet, neighborhoods_to_torch
 from training.pose_layer import PoseLayerError, solve_pose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrainConfig", "TrainingError", "Trainer", "save_atomic", "load_model"]
+__all__ = ["TrainConfig", "TrainOptions", "TrainConfigError", "TrainingError", "Trainer", "save_atomic", "load_model",
+           "deterministic_algorithms"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 MODEL_NAME = "model.pt"
 LOG_NAME = "train_log.jsonl"
+SUMMARY_NAME = "summary.json"
 
 
 class TrainingError(RuntimeError):
-    """Training cannot proceed (bad config, incompatible checkpoint, too many skipped pairs)."""
+    """Training cannot proceed (incompatible checkpoint, too many skipped pairs, no device).
 
-
-@dataclass
-class TrainConfig:
-    """Hyper-parameters of Algorithm 1 (the paper's Omega) and of the training run.
-
-    Attributes
-    ----------
-    epochs : int
-        Passes over all edges (the paper's I).
-    lr : float
-        Adam learning rate (the paper's eta).
-    lambda_corr, lambda_pose : float
-        Weights of the correspondence and pose NLLs.
-    gamma_rot_std : float
-        Std (rad) of the pose observation noise: Gamma's rotation block is ``gamma_rot_std^2`` (rad^2).
-    gamma_trans_std : float
-        Std (m): Gamma's translation block is ``gamma_trans_std^2`` (m^2).
-    corr_reduction : str
-        ``"mean"`` (default) or ``"sum"`` (paper) over the correspondences of a pair.
-    max_corr, min_corr : int
-        Correspondences per pair used at most / needed at least (else the pair is skipped).
-    pairs_per_step : int
-        Pairs whose losses are averaged per Adam step (per process).
-    augment_yaw : bool
-        Random yaw rotation of each sample's target frame (``training.dataset``).
-    seed : int
-        Seeds the initial weights and all sampling.
-    checkpoint_every : int
-        Steps between checkpoints (also written at every epoch end).
-    grad_clip : float
-        Max gradient norm (0 disables).
-    device : str
-        ``"cpu"`` or ``"cuda"``.
-    num_threads : int or None
-        ``torch.set_num_threads`` for the run (None leaves it alone).
-    max_skip_fraction : float
-        Abort if more than this fraction of an epoch's pairs is skipped.
-    progress : bool
-        Show a tqdm bar with running losses.
-    net : NetConfig
-        Network / input sampling configuration.
-    init_checkpoint : str or None
-        Start from the weights of this ``model.pt``/``checkpoint.pt`` (e.g. the previous round).
+    An invalid configuration raises :class:`training.config.TrainConfigError` (a ValueError).
     """
-
-    epochs: int = 1
-    lr: float = 1e-3
-    lambda_corr: float = 1.0
-    lambda_pose: float = 1.0
-    gamma_rot_std: float = 2e-3
-    gamma_trans_std: float = 2e-2
-    corr_reduction: str = "mean"
-    max_corr: int = 1024
-    min_corr: int = 16
-    pairs_per_step: int = 1
-    augment_yaw: bool = True
-    seed: int = 0
-    checkpoint_every: int = 50
-    grad_clip: float = 10.0
-    device: str = "cpu"
-    num_threads: int | None = None
-    max_skip_fraction: float = 0.5
-    progress: bool = True
-    net: NetConfig = field(default_factory=NetConfig)
-    init_checkpoint: str | None = None
-
-    @classmethod
-    def from_dict(cls, d: Any = None, strict: bool = True) -> "TrainConfig":
-        """Build from a (possibly partial) dict or pydantic model.
-
-        Unknown keys raise :class:`TrainingError` if ``strict``, else they are logged and
-        ignored (for a config section shared with other parts, e.g. ``gr_graph``'s
-        ``training`` section that also holds ``rounds``).
-        """
-        if d is not None and hasattr(d, "model_dump"):
-            d = d.model_dump()
-        d = dict(d or {})
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown and strict:
-            raise TrainingError(f"unknown training config keys: {sorted(unknown)}")
-        if unknown:
-            log.info("training config: ignoring keys not used by the trainer: %s", sorted(unknown))
-            d = {k: v for k, v in d.items() if k in names}
-        net = d.pop("net", None)
-        if isinstance(net, dict):
-            bad = set(net) - {f.name for f in fields(NetConfig)}
-            if bad:
-                raise TrainingError(f"unknown network config keys: {sorted(bad)}")
-            net = NetConfig(**net)
-        cfg = cls(**d, **({"net": net} if net is not None else {}))
-        cfg.validate()
-        return cfg
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-serialisable dict."""
-        return asdict(self)
-
-    def validate(self) -> None:
-        """Raise :class:`TrainingError` on out-of-range values."""
-        if self.epochs < 0 or self.pairs_per_step < 1 or self.checkpoint_every < 1:
-            raise TrainingError("epochs must be >= 0, pairs_per_step and checkpoint_every >= 1")
-        if self.lr <= 0 or self.lambda_corr < 0 or self.lambda_pose < 0 or self.lambda_corr + self.lambda_pose == 0:
-            raise TrainingError("lr must be > 0 and lambda_corr, lambda_pose >= 0, not both 0")
-        if self.gamma_rot_std <= 0 or self.gamma_trans_std <= 0:
-            raise TrainingError("gamma_rot_std and gamma_trans_std must be > 0")
-        if self.corr_reduction not in ("mean", "sum"):
-            raise TrainingError(f"corr_reduction must be 'mean' or 'sum', got {self.corr_reduction!r}")
-        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise TrainingError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
-
-    def resume_key(self) -> dict[str, Any]:
-        """Settings that must match for a checkpoint to be resumed."""
-        d = self.to_dict()
-        for k in ("epochs", "progress", "device", "num_threads", "checkpoint_every", "max_skip_fraction"):
-            d.pop(k)
-        return d
 
 
 def save_atomic(obj: Any, path: Path) -> None:
-    """``torch.save`` to ``path`` atomically (temporary sibling, fsync, ``os.replace``)."""
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+    """``torch.save`` to ``path`` atomically (temporary sibling, fsync, ``os.replace``).
+
+    torch names the folder inside its zip archive after the file it is given, which here
+    would be the random temporary name; writing through an open file gives the fixed name
+    ``archive``, so the same object gives the same bytes in every run.
+    """
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
+
+
+@contextlib.contextmanager
+def deterministic_algorithms() -> Iterator[None]:
+    """Run the block with ``torch.use_deterministic_algorithms(True)``; restore the setting after.
+
+    Needed for reproducible training on CPU with more than one thread: the backward pass of
+    the network's gathers (``features[index]``) is an ``index_put_`` with accumulation, which
+    torch parallelises with atomic float adds when deterministic algorithms are off, so the
+    order of the additions, and the rounding of the gradient, changes from run to run. In
+    deterministic mode torch accumulates serially. Any op without a deterministic
+    implementation then raises instead of silently varying.
+    """
+    previous = torch.are_deterministic_algorithms_enabled()
+    previous_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(previous, warn_only=previous_warn)
 
 
 def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str = "cpu") -> CovarianceNet:
@@ -212,7 +135,6 @@ class Trainer:
     """
 
     def __init__(self, memory: Memory, out_dir: str | os.PathLike[str], config: TrainConfig, rank: int = 0, world_size: int = 1):
-        config.validate()
         self.memory = memory
         self.out_dir = Path(out_dir)
         self.config = config
@@ -220,6 +142,11 @@ class Trainer:
         self.world_size = world_size
         if config.device.startswith("cuda") and not torch.cuda.is_available():
             raise TrainingError("device 'cuda' requested but torch.cuda.is_available() is False")
+        if config.device.startswith("cuda") and "CUBLAS_WORKSPACE_CONFIG" not in os.environ:
+            # cuBLAS is deterministic only with a fixed workspace (torch raises in deterministic
+            # mode otherwise); read when the first cuBLAS handle is made, i.e. after this point
+            os.environ["CUBLAS_WORKSPACE_CONFIG"] = ":4096:8"
+            log.info("CUBLAS_WORKSPACE_CONFIG=:4096:8 set for deterministic cuBLAS")
         self.device = torch.device(config.device)
         self.dataset = PairDataset(memory, config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
         torch.manual_seed(config.seed)
@@ -239,6 +166,7 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.skip_counts: Counter[str] = Counter()
+        self.step_seconds: list[float] = []  # wall time of each step run by this process
         self._dummy: tuple[torch.Tensor, dict[str, torch.Tensor]] | None = None
 
     # ------------------------------------------------------------------ losses of one pair
@@ -366,10 +294,16 @@ class Trainer:
         ``callback(record)`` is called after every step (rank 0 and others) with the step's
         record; an exception raised there interrupts training like a kill would (the last
         checkpoint stays valid). Returns the path of ``model.pt``.
+
+        Runs under :func:`deterministic_algorithms`: the same memory, configuration and thread
+        count give bit-identical ``model.pt``, ``checkpoint.pt`` and ``train_log.jsonl`` in
+        every process. Results may differ between thread counts (reductions split differently);
+        the count used is logged and stored in ``summary.json`` (``provenance.num_threads``).
         """
         cfg = self.config
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
+        log.info("training with %d torch thread(s), deterministic algorithms", torch.get_num_threads())
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if len(self.dataset) == 0:
             raise TrainingError("the memory has no edges to train on")
@@ -382,8 +316,7 @@ class Trainer:
         n_steps = self.steps_per_epoch()
         from tqdm.auto import tqdm
 
-        logfh = open(self._log_path(), "a")
-        try:
+        with deterministic_algorithms(), open(self._log_path(), "a") as logfh:
             while self.epoch < cfg.epochs:
                 order = self.epoch_order(self.epoch)
                 run: dict[str, list[float]] = {"loss": [], "corr": [], "pose": []}
@@ -431,9 +364,8 @@ class Trainer:
                     else:
                         self.skip_counts["nonfinite_grad"] += 1
                         log.warning("step %d: non-finite gradient, update not applied", self.step)
-                    dt = time.perf_counter() - t0
+                    self.step_seconds.append(time.perf_counter() - t0)  # not in the log: it must not vary
                     for rec in records:
-                        rec["time_s"] = dt / B
                         rec["applied"] = grads_ok
                         logfh.write(json.dumps(rec) + "\n")
                         for k in run:
@@ -457,8 +389,6 @@ class Trainer:
                 self.epoch += 1
                 self.step = 0
                 self.save_checkpoint()
-        finally:
-            logfh.close()
         return self._finish()
 
     def _finish(self) -> Path:
@@ -469,8 +399,26 @@ class Trainer:
                  "train_config": self.config.to_dict(), "epochs_done": self.epoch},
                 path,
             )
-            summary = {"epochs_done": self.epoch, "skip_counts": dict(self.skip_counts),
-                       "dataset": self.dataset.describe(), "config": self.config.to_dict(),
-                       "model": str(path)}
-            atomic_write_text(self.out_dir / "summary.json", json.dumps(summary, indent=2))
+            atomic_write_text(self.out_dir / SUMMARY_NAME, json.dumps(self.summary(path), indent=2))
         return path
+
+    def summary(self, model_path: Path) -> dict[str, Any]:
+        """The content of ``summary.json``: counts, configuration, timing and provenance.
+
+        ``runtime_s`` covers the steps run by this process (a resumed run: only the rest);
+        ``provenance`` (:func:`gr_graph.provenance.provenance`) holds the commit, package
+        versions, seed, device and the torch thread count the weights were computed with.
+        """
+        steps = np.asarray(self.step_seconds, np.float64)
+        return {
+            "epochs_done": self.epoch,
+            "skip_counts": dict(self.skip_counts),
+            "dataset": self.dataset.describe(),
+            "config": self.config.to_dict(),
+            "model": str(model_path),
+            "world_size": self.world_size,
+            "runtime_s": {"steps": len(steps), "total": float(steps.sum()),
+                          "step_median": float(np.median(steps)) if len(steps) else None},
+            "provenance": provenance(seeds={"training": self.config.seed}, device=str(self.device),
+                                     num_threads=torch.get_num_threads()),
+        }

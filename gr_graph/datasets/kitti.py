@@ -2,7 +2,7 @@
 
 Layout (the official odometry benchmark)::
 
-    ROOT/sequences/XX/velodyne/000000.bin ...   float32 x, y, z, reflectance
+    ROOT/sequences/XX/velodyne/000000.bin ...   float32 x, y, z, reflectance (or x, y, z: point_format="xyz")
     ROOT/sequences/XX/calib.txt                 P0..P3 and Tr (velodyne -> cam0), 12 floats
     ROOT/sequences/XX/times.txt                 one timestamp (s) per frame
     ROOT/poses/XX.txt                           optional ground truth, camera-0 frame
@@ -30,12 +30,12 @@ from gr_graph.datasets.base import (
     check_index,
     velo_to_cam_poses,
 )
-from gr_graph.datasets.channels import RingRecoveryError, recover_rings
+from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
+from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, size_error
 
 log = logging.getLogger(__name__)
 
 KITTI_SCAN_PERIOD_S = 0.1037  # mean frame spacing of the odometry sequences (~10 Hz)
-_BYTES_PER_POINT = 16
 
 
 def read_calib(path: str | Path) -> dict[str, np.ndarray]:
@@ -92,25 +92,42 @@ def read_times(path: str | Path) -> np.ndarray:
     return np.asarray(rows, np.float64)
 
 
-def read_velodyne_bin(path: str | Path) -> np.ndarray:
-    """Read one KITTI ``.bin`` as an ``(N, 4)`` float32 array (x, y, z, reflectance).
+def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarray:
+    """Read one KITTI-style ``.bin`` as an ``(N, 4)`` float32 array (x, y, z, intensity).
+
+    Parameters
+    ----------
+    path : path
+    point_format : {"xyzi", "xyz"}
+        ``"xyzi"``: 16 bytes a point (KITTI); ``"xyz"``: 12 bytes a point, no intensity (the
+        intensity column of the result is 0).
 
     Raises
     ------
     DatasetError
-        If the file is missing or its size is not a multiple of 16 bytes (truncated).
+        If the file is missing, its size is not a multiple of the point size (the message
+        suggests the other format when the size fits it), or its contents do not look like
+        ``point_format`` points (e.g. a 12-byte x,y,z file read as x,y,z,intensity; see
+        :mod:`gr_graph.datasets.point_layout`).
     """
+    if point_format not in POINT_FORMATS:
+        raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
     path = Path(path)
     try:
         size = path.stat().st_size
     except FileNotFoundError as exc:
         raise DatasetError(f"{path}: scan file not found") from exc
-    if size % _BYTES_PER_POINT:
-        raise DatasetError(
-            f"{path}: size {size} bytes is not a multiple of {_BYTES_PER_POINT} "
-            "(4 float32 per point); the file is truncated or not a KITTI scan"
-        )
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    stride = POINT_FORMATS[point_format]
+    if size % (4 * stride):
+        values = np.fromfile(path, dtype=np.float32) if size % 4 == 0 else None
+        raise size_error(path, size, point_format, values)
+    values = np.fromfile(path, dtype=np.float32)
+    check_point_layout(values, point_format, path)
+    if stride == 4:
+        return values.reshape(-1, 4)
+    out = np.zeros((len(values) // 3, 4), dtype=np.float32)
+    out[:, :3] = values.reshape(-1, 3)
+    return out
 
 
 class KittiSequence:
@@ -123,10 +140,17 @@ class KittiSequence:
     seq : str
         Sequence name, e.g. ``"00"``.
     recover_ring_index : bool
-        Recover each point's laser ring (needed for channel subsampling). When recovery
-        fails for a frame, the frame is returned with ``ring=None`` and a warning.
+        Recover each point's laser ring (needed for channel subsampling) with a
+        :class:`gr_graph.datasets.channels.RingIndexer`: frames whose lines are not found in
+        order are matched to per-ring elevations of probe frames, and as a last resort get
+        approximate rings from per-point elevation; every fallback is logged and counted
+        (:attr:`ring_recovery_counts`), every frame has a ring index.
     n_rings : int
         Rings of the sensor (64 for KITTI's HDL-64E; 32 or 16 for subsampled exports).
+    point_format : {"xyzi", "xyz"}
+        ``"xyzi"``: float32 x, y, z, intensity a point (KITTI); ``"xyz"``: float32 x, y, z
+        (12 bytes a point; frames get intensity 0). Every file is checked against it when
+        read: a file that looks like the other layout is refused, naming the file.
 
     Attributes
     ----------
@@ -138,13 +162,18 @@ class KittiSequence:
     """
 
     def __init__(
-        self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64
+        self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64,
+        point_format: str = "xyzi",
     ) -> None:
+        if point_format not in POINT_FORMATS:
+            raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
+        self.point_format = point_format
         self.root = Path(root)
         self.n_rings = n_rings
         self.seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
         self.name = f"kitti-{self.seq}"
         self.recover_ring_index = recover_ring_index
+        self.ring_indexer = RingIndexer(n_rings, reference_source=self._probe_points)
         seq_dir = self.root / "sequences" / self.seq
         velo_dir = seq_dir / "velodyne"
         if not velo_dir.is_dir():
@@ -186,9 +215,24 @@ class KittiSequence:
     def __len__(self) -> int:
         return len(self.files)
 
+    def _probe_points(self, k: int) -> np.ndarray | None:
+        """Points of the k-th frame spread evenly over the sequence (ring reference probes)."""
+        n = len(self.files)
+        if k >= min(PROBE_FRAMES, n):
+            return None
+        i = (k * n) // min(PROBE_FRAMES, n)
+        raw = read_velodyne_bin(self.files[i], self.point_format)
+        raw = raw[np.all(np.isfinite(raw), axis=1)]
+        return raw[:, :3].astype(np.float64)
+
+    @property
+    def ring_recovery_counts(self) -> dict[str, int]:
+        """Frames indexed per method so far: ``storage_order``, ``reference``, ``elevation``."""
+        return dict(self.ring_indexer.counts)
+
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        raw = read_velodyne_bin(self.files[i])
+        raw = read_velodyne_bin(self.files[i], self.point_format)
         finite = np.all(np.isfinite(raw), axis=1)
         dropped = int(len(raw) - finite.sum())
         if dropped:
@@ -197,10 +241,10 @@ class KittiSequence:
         points = raw[:, :3].astype(np.float64)
         ring = None
         if self.recover_ring_index and len(points):
-            try:
-                ring = recover_rings(points, self.n_rings)
-            except RingRecoveryError as exc:
-                log.warning("%s: ring recovery failed (%s); frame has no ring index", self.files[i], exc)
+            ring, method, problem = self.ring_indexer(points)
+            if method != "storage_order":
+                log.warning("%s: rings by %s (%s)%s", self.files[i], method, problem,
+                            "; approximate: per-point elevation" if method == "elevation" else "")
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),

@@ -11,11 +11,15 @@ import logging
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
+
+if TYPE_CHECKING:
+    from gr_graph.config import DataConfig
 
 log = logging.getLogger(__name__)
 
@@ -72,14 +76,8 @@ class SequenceView:
             yield self[i]
 
 
-def split_frame_spec(text: str) -> tuple[int | None, int | None]:
-    """Read the syntax of ``"A:B"``: two integers, either side may be empty (None).
-
-    Raises
-    ------
-    DatasetError
-        (a ``ValueError``) if the text is not of that form.
-    """
+def _split_frame_spec(text: str) -> tuple[int | None, int | None]:
+    """The two integers of ``"A:B"``, None for an empty side."""
     parts = text.split(":")
     if len(parts) != 2:
         raise DatasetError(f"frames {text!r}: expected 'A:B' (B exclusive)")
@@ -89,16 +87,33 @@ def split_frame_spec(text: str) -> tuple[int | None, int | None]:
         raise DatasetError(f"frames {text!r}: A and B must be integers") from exc
 
 
-def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[int, int]:
-    """Turn ``"A:B"`` / ``slice`` / ``(A, B)`` / None into a half-open range ``(A, B)`` of ``n`` frames.
+def parse_frames(spec: str | slice | tuple[int, int] | None, n: int | None = None) -> tuple[int, int]:
+    """The one frame-range parser: ``"A:B"`` / ``slice`` / ``(A, B)`` / None -> half-open ``(A, B)``.
 
-    Empty sides mean the start and the end. A range that is empty or reaches outside
-    ``0..n`` is an error, not silently clipped.
+    Empty sides mean the start and the end (A may be empty: 0). A range that is empty or
+    reaches outside ``0..n`` is an error, never silently clipped.
+
+    Parameters
+    ----------
+    spec : str, slice, (int, int) or None
+        The range; None is the whole sequence.
+    n : int, optional
+        Frames in the sequence. Without it (a configuration read before the sequence is
+        opened) B must be given and only ``0 <= A < B`` is checked; the length is checked
+        when the sequence is opened.
+
+    Raises
+    ------
+    DatasetError
+        (a ``ValueError``) naming the problem: not ``A:B``, not integers, a step, B missing
+        without ``n``, an empty range or one outside the sequence.
     """
     if spec is None:
+        if n is None:
+            raise DatasetError("frames: None needs the sequence length")
         return 0, n
     if isinstance(spec, str):
-        start, stop = split_frame_spec(spec)
+        start, stop = _split_frame_spec(spec)
     elif isinstance(spec, slice):
         if spec.step not in (None, 1):
             raise DatasetError("frames: steps other than 1 are not supported")
@@ -106,8 +121,13 @@ def parse_frames(spec: str | slice | tuple[int, int] | None, n: int) -> tuple[in
     else:
         start, stop = spec
     start = 0 if start is None else int(start)
+    if stop is None and n is None:
+        raise DatasetError(f"frames {spec!r}: B is needed here (A:B, B exclusive)")
     stop = n if stop is None else int(stop)
-    if not 0 <= start < stop <= n:
+    if n is None:
+        if not 0 <= start < stop:
+            raise DatasetError(f"frames {start}:{stop}: need 0 <= A < B")
+    elif not 0 <= start < stop <= n:
         raise DatasetError(f"frames {start}:{stop}: need 0 <= A < B <= {n} (the sequence has {n} frames)")
     return start, stop
 
@@ -139,6 +159,7 @@ def open_sequence(
     channels: int = 64,
     frames: str | slice | tuple[int, int] | None = None,
     synthetic_seed: int = 0,
+    point_format: str = "xyzi",
     route_seed: int = 0,
     trajectory: str | os.PathLike[str] | None = None,
 ) -> tuple[LidarSequence, str]:
@@ -161,6 +182,9 @@ def open_sequence(
     trajectory : path, optional
         Render the synthetic sequence along this trajectory (KITTI/TUM pose file or KITTI
         root) instead of the generated route.
+    point_format : {"xyzi", "xyz"}
+        Layout of the KITTI ``.bin`` files: float32 x, y, z, intensity (KITTI) or x, y, z
+        (12 bytes a point). Unused by the synthetic sequence.
 
     Returns
     -------
@@ -178,8 +202,8 @@ def open_sequence(
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
-        base = KittiSequence(root, seq)
-        source = f"KITTI sequence {seq} from {root}"
+        base = KittiSequence(root, seq, point_format=point_format)
+        source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
     else:
         if seq != "00":
             raise DatasetError(
@@ -188,6 +212,9 @@ def open_sequence(
             )
         from gr_graph.datasets.synthetic import SyntheticSequence
 
+        if point_format != "xyzi":
+            log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect",
+                        point_format)
         synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory)
         base = synth
         source = (
@@ -199,3 +226,14 @@ def open_sequence(
     label = "" if channels == 64 else f"-{channels}ch"
     view = SequenceView(base, start, stop, transform, label)
     return view, f"{source}, frames {start}:{stop}, {channels} channels"
+
+
+def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple[LidarSequence, str]:
+    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``).
+
+    The one place that maps the ``data`` config section to a sequence, so that a key added
+    there (e.g. ``point_format``) reaches the loader from every caller.
+    """
+    return open_sequence(seq=data.seq, data_root=data.data_root, channels=data.channels, frames=data.frames,
+                         synthetic_seed=synthetic_seed, point_format=data.point_format,
+                         route_seed=data.route_seed, trajectory=data.trajectory)

@@ -6,7 +6,20 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.se3 import adjoint_se3, exp_se3, exp_so3, hat, inverse_se3, log_se3, log_so3, vee
+from factors.se3 import (
+    adjoint_se3,
+    check_pose,
+    check_poses,
+    check_rotation,
+    exp_se3,
+    exp_so3,
+    hat,
+    inverse_se3,
+    log_se3,
+    log_so3,
+    rotation_angle,
+    vee,
+)
 
 # Tolerance of agreement with gtsam away from theta = pi (both are closed forms in float64).
 TOL = 1e-12
@@ -84,3 +97,60 @@ def test_bad_input_is_rejected():
         exp_se3(np.array([np.nan, 0, 0, 0, 0, 0]))
     with pytest.raises(ValueError, match="4, 4"):
         log_se3(np.eye(3))
+
+
+ANGLES = [0.0, 1e-12, 1e-8, 1e-4, 0.3, np.pi / 2, 2.5, np.pi - 1e-6, np.pi]
+
+
+def _rot_z(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("theta", ANGLES)
+def test_rotation_angle_closed_form(theta):
+    """Q Rz(theta) Q^T turns by exactly theta about Q e_z, for any rotation Q (here from gtsam)."""
+    rng = np.random.default_rng(int(theta * 1e6) % 1000)
+    Q = gtsam.Rot3.Expmap(rng.normal(size=3)).matrix()
+    R = Q @ _rot_z(theta) @ Q.T
+    assert rotation_angle(_rot_z(theta)) == pytest.approx(theta, abs=1e-15)
+    assert rotation_angle(R) == pytest.approx(theta, abs=1e-14)  # rounding of the product only
+    assert isinstance(rotation_angle(R), float)
+
+
+def test_rotation_angle_batch_equals_single_and_acos_away_from_the_ends():
+    rng = np.random.default_rng(5)
+    Rs = np.stack([gtsam.Rot3.Expmap(w).matrix() for w in rng.normal(size=(20, 3))]).reshape(4, 5, 3, 3)
+    batch = rotation_angle(Rs)
+    assert batch.shape == (4, 5)
+    single = np.array([[rotation_angle(R) for R in row] for row in Rs])
+    np.testing.assert_array_equal(batch, single)
+    acos = np.arccos(np.clip((np.trace(Rs, axis1=-2, axis2=-1) - 1) / 2, -1, 1))
+    np.testing.assert_allclose(batch, acos, atol=1e-12)
+    with pytest.raises(ValueError, match="3, 3"):
+        rotation_angle(np.eye(4))
+
+
+def test_pose_validator_one_and_many():
+    rng = np.random.default_rng(3)
+    T = exp_se3(_xi(rng, 1.0))
+    np.testing.assert_array_equal(check_pose(T), T)
+    np.testing.assert_array_equal(check_poses(np.stack([T, T])), np.stack([T, T]))
+    reflection = np.diag([1.0, 1.0, -1.0, 1.0])  # orthogonal, det -1: not a rotation
+    sheared = T.copy()
+    sheared[0, 1] += 1e-3
+    bottom = T.copy()
+    bottom[3, 0] = 0.1
+    nan = T.copy()
+    nan[1, 3] = np.nan
+    for bad, msg in ((reflection, "not orthonormal"), (sheared, r"defect [0-9.e-]+ > tolerance 0.0001"), (bottom, "bottom row"),
+                     (nan, "non-finite"), (np.eye(3), "(4, 4)")):
+        with pytest.raises(ValueError, match=msg):
+            check_pose(bad, "X")
+    with pytest.raises(ValueError, match="X: pose 1 rotation is not orthonormal"):
+        check_poses(np.stack([T, sheared]), "X")
+    check_pose(sheared, rot_tol=1e-2)  # within a looser tolerance
+    with pytest.raises(ValueError, match="not orthonormal"):
+        check_rotation(reflection[:3, :3])
+    with pytest.raises(ValueError, match=r"\(3, 3\)"):
+        check_rotation(np.eye(4))

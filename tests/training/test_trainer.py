@@ -18,7 +18,7 @@ from training.predict import predict_covariances
 from training.toy_scenes import make_memory, pose_xy_yaw, street_scene
 from training.train import main as train_main
 from training.train import train_from_memory
-from training.trainer import TrainConfig, Trainer, TrainingError, load_model
+from training.trainer import TrainConfig, TrainConfigError, Trainer, TrainingError, load_model
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[2]
@@ -116,6 +116,13 @@ def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     assert path.name == "model.pt" and path.is_file()
     summary = json.loads((tmp_path / "lib" / "summary.json").read_text())
     assert summary["epochs_done"] == 1 and summary["dataset"]["n_edges"] == 5
+    prov = summary["provenance"]  # what made these weights
+    assert prov["seeds"] == {"training": 0} and prov["device"] == "cpu"
+    assert prov["num_threads"] == torch.get_num_threads() == 1  # set at the top of this module
+    assert prov["packages"]["torch"] == torch.__version__ and prov["packages"]["numpy"] == np.__version__
+    assert set(prov["git"]) == {"commit", "dirty"}
+    assert summary["runtime_s"]["steps"] == 5 and summary["runtime_s"]["total"] > 0
+    assert all("time_s" not in r for r in _log(tmp_path / "lib"))  # wall time never in the log
     pts = np.asarray(load_memory(memory_dir).scan(0))[:1500]
     C = predict_covariances(path, pts)
     assert C.shape == (1500, 3, 3) and np.all(np.linalg.eigvalsh(C) > 0)
@@ -133,9 +140,9 @@ def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
 
 
 def test_bad_config_is_rejected():
-    with pytest.raises(TrainingError, match="unknown training config keys"):
+    with pytest.raises(TrainConfigError, match="unknown key 'epochz'.*valid keys: lr, .*epochs, seed"):
         TrainConfig.from_dict({"epochz": 1})
-    with pytest.raises(TrainingError, match="corr_reduction"):
+    with pytest.raises(TrainConfigError, match="corr_reduction: Input should be 'mean' or 'sum'"):
         TrainConfig.from_dict({"corr_reduction": "median"})
 
 
@@ -212,10 +219,10 @@ def test_trains_from_a_memory_written_by_gr_graph_slam(kitti_root, tmp_path):
     mem_dir = tmp_path / "slam" / "round_0" / "memory"
     mem = load_memory(mem_dir)
     assert mem.n_edges >= 5
-    # the pipeline passes its pydantic `training` section: unknown keys (rounds, ...) are ignored
+    # the pipeline's configuration of a learning round, from its pydantic `training` section
     section = config.SlamConfig().training
-    cfg = TrainConfig.from_dict(section, strict=False)
-    cfg.epochs, cfg.progress, cfg.max_corr = 1, False, 300
+    cfg = section.trainer_config("cpu", progress=False)
+    cfg.epochs, cfg.max_corr = 1, 300
     cfg.net = NetConfig(**SMALL_NET)
     path = train_from_memory(mem_dir, tmp_path / "train", cfg)
     summary = json.loads((tmp_path / "train" / "summary.json").read_text())

@@ -1,50 +1,77 @@
 """Render the synthetic sequence to disk in KITTI layout.
 
-Examples::
+By default the sensor drives the project's generated route (``--route-seed``); ``--trajectory``
+renders along a KITTI (12 floats a row, camera frame) or TUM pose file, or the poses of a KITTI
+root, instead.
 
-    python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0
-    python -m gr_graph.datasets.synthetic --out /tmp/synth --route-seed 3
-    python -m gr_graph.datasets.synthetic --out /tmp/synth --trajectory poses.txt
-
-write ``/tmp/synth/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt}`` and
-``/tmp/synth/poses/00.txt`` (camera frame), readable by the KITTI loader. By default the
-sensor drives the project's generated route (``--route-seed``); ``--trajectory`` renders
-along a KITTI (12 floats a row, camera frame) or TUM pose file, or the poses of a KITTI root.
+Writes ``DIR/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt, synthetic.json}`` and
+``DIR/poses/00.txt`` (camera frame), readable by the KITTI loader (``--data-root DIR``).
+``--point-format xyz`` writes 12-byte x,y,z points without intensity, as some public
+datasets do (read them back with ``--point-format xyz``).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
-from pathlib import Path
 
+from gr_graph.cli_common import (
+    add_channels,
+    add_frames,
+    add_log_level,
+    add_no_progress,
+    add_out,
+    add_point_format,
+    add_seed,
+    add_threads,
+    make_parser,
+    setup_logging,
+)
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
-from gr_graph.datasets.synthetic.writer import parse_frames, write_kitti_layout
+from gr_graph.datasets.registry import parse_frames
+from gr_graph.datasets.synthetic.writer import write_kitti_layout
+
+EXAMPLES = (
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth16 --frames 0:200 --channels 16 --no-progress",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_xyz --frames 0:10 --point-format xyz",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_r3 --frames 0:100 --route-seed 3",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_traj --frames 0:100 --trajectory poses.txt",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m gr_graph.datasets.synthetic``."""
+    ap = make_parser("python -m gr_graph.datasets.synthetic", __doc__, EXAMPLES)
+    add_out(ap, "dataset root to write", required=True)
+    add_frames(ap, help="half-open frame range A:B of the sequence (default: all)")
+    add_seed(ap, "seed of the town and the noise")
+    ap.add_argument("--route-seed", type=int, default=0, metavar="N", help="seed of the generated route")
+    ap.add_argument("--trajectory", default=None, metavar="PATH",
+                    help="render along this KITTI/TUM pose file or KITTI root instead of the generated route")
+    add_channels(ap, help="laser rings rendered")
+    add_point_format(ap, help="layout of the written .bin files: float32 x,y,z,intensity (KITTI, 16 bytes a point) "
+                              "or x,y,z (12 bytes a point)")
+    ap.add_argument("--max-range", type=float, default=120.0, metavar="M", help="largest range [m]")
+    ap.add_argument("--n-azimuth", type=int, default=2000, metavar="N", help="azimuth steps of a revolution")
+    add_threads(ap, "ray-casting threads (0 = all)", default=0)
+    ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
+    add_no_progress(ap)
+    add_log_level(ap)
+    return ap
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m gr_graph.datasets.synthetic", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, required=True, help="dataset root DIR")
-    ap.add_argument("--frames", default=None, help="A:B, frames A..B-1 (default: all)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the town and the noise (default 0)")
-    ap.add_argument("--route-seed", type=int, default=0, help="seed of the generated route (default 0)")
-    ap.add_argument("--trajectory", default=None,
-                    help="render along this KITTI/TUM pose file or KITTI root instead of the route")
-    ap.add_argument("--n-rings", type=int, default=64, help="64, 32 or 16 (default 64)")
-    ap.add_argument("--max-range", type=float, default=120.0, help="metres (default 120)")
-    ap.add_argument("--n-azimuth", type=int, default=2000, help="azimuth steps (default 2000)")
-    ap.add_argument("--threads", type=int, default=0, help="ray-casting threads (0 = all)")
-    ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    """Entry point; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
     try:
-        seq = SyntheticSequence(seed=args.seed, n_rings=args.n_rings, max_range=args.max_range,
+        seq = SyntheticSequence(seed=args.seed, n_rings=args.channels, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads,
                                 route_seed=args.route_seed, trajectory=args.trajectory)
-        frames = parse_frames(args.frames, len(seq))
-        out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite)
+        frames = range(*parse_frames(args.frames, len(seq)))
+        out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite, progress=not args.no_progress,
+                                 point_format=args.point_format)
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

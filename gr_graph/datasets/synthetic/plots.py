@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.atomic import atomic_savefig
+from gr_graph.cli_common import add_log_level, add_out, add_seed, make_parser, setup_logging
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
 
 log = logging.getLogger(__name__)
@@ -133,15 +134,28 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
     return path
 
 
+EXAMPLES = (
+    "python -m gr_graph.datasets.synthetic.plots",
+    "python -m gr_graph.datasets.synthetic.plots --out /tmp/pictures --frame 2000 --seed 1",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m gr_graph.datasets.synthetic.plots``."""
+    ap = make_parser("python -m gr_graph.datasets.synthetic.plots", __doc__, EXAMPLES)
+    add_out(ap, "output folder (default: docs/images of the repository)")
+    ap.add_argument("--frame", type=int, default=1000, metavar="K", help="frame shown")
+    add_seed(ap, "seed of the town and the noise")
+    add_log_level(ap)
+    return ap
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m gr_graph.datasets.synthetic.plots", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default docs/images)")
-    ap.add_argument("--frame", type=int, default=1000, help="frame shown (default 1000)")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    for p in (plot_scan(args.out, args.frame, args.seed), plot_town(args.out, args.frame, args.seed)):
+    """Entry point; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    out = DEFAULT_OUT if args.out is None else Path(args.out)
+    for p in (plot_scan(out, args.frame, args.seed), plot_town(out, args.frame, args.seed)):
         print(f"wrote {p}")
     return 0
 

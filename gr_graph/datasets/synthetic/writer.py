@@ -2,7 +2,8 @@
 
 ::
 
-    DIR/sequences/00/velodyne/%06d.bin   float32 x, y, z, intensity (one row per point)
+    DIR/sequences/00/velodyne/%06d.bin   float32 x, y, z, intensity (one row per point;
+                                         x, y, z only with point_format="xyz")
     DIR/sequences/00/calib.txt           P0 and Tr lines (Tr = velodyne -> camera 0)
     DIR/sequences/00/times.txt           one timestamp (s) per frame
     DIR/sequences/00/synthetic.json      how it was rendered (seeds, rings, path, source frames)
@@ -24,15 +25,10 @@ import numpy as np
 
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.datasets.base import velo_to_cam_poses
-from gr_graph.datasets.registry import parse_frames as registry_parse_frames
+from gr_graph.datasets.point_layout import POINT_FORMATS
 from gr_graph.datasets.synthetic import rig
 
 log = logging.getLogger(__name__)
-
-
-def parse_frames(spec: str | None, length: int) -> range:
-    """Frames ``"A:B"`` (B exclusive; either side may be empty) as a range within ``length``."""
-    return range(*registry_parse_frames(spec, length))
 
 
 def _fmt_rows(rows: np.ndarray) -> str:
@@ -40,7 +36,7 @@ def _fmt_rows(rows: np.ndarray) -> str:
 
 
 def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: str = "00",
-                       overwrite: bool = False, progress: bool = True) -> Path:
+                       overwrite: bool = False, progress: bool = True, point_format: str = "xyzi") -> Path:
     """Render ``frames`` of ``seq`` (a SyntheticSequence) into ``out`` in KITTI layout.
 
     Parameters
@@ -54,6 +50,11 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
     overwrite : bool
         Remove existing ``.bin`` files in the target velodyne folder first; without it an
         existing, non-empty velodyne folder is an error (mixing runs gives a wrong dataset).
+    progress : bool
+        Show a progress bar.
+    point_format : {"xyzi", "xyz"}
+        ``"xyzi"``: KITTI's 16 bytes a point; ``"xyz"``: 12 bytes a point, no intensity (as
+        some public datasets ship; read back with ``KittiSequence(..., point_format="xyz")``).
 
     Returns
     -------
@@ -62,6 +63,8 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
     """
     from tqdm import tqdm
 
+    if point_format not in POINT_FORMATS:
+        raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
     frames = range(len(seq)) if frames is None else frames
     if frames.step != 1 or len(frames) == 0 or frames.start < 0 or frames.stop > len(seq):
         raise ValueError(f"frames must be a non-empty contiguous range within 0..{len(seq)}, got {frames}")
@@ -96,6 +99,7 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "seed": getattr(seq, "seed", None),
         "n_rings": getattr(seq, "n_rings", None),
         "repr": repr(seq),
+        "point_format": point_format,
         "first_frame": frames.start,
         "n_frames": len(frames),
         "town_seed": getattr(seq, "town_seed", None),
@@ -107,9 +111,10 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
 
     for k, i in enumerate(tqdm(frames, desc=f"rendering {len(frames)} frames", disable=not progress)):
         f = seq[i]
-        arr = np.empty((len(f), 4), dtype=np.float32)
+        arr = np.empty((len(f), POINT_FORMATS[point_format]), dtype=np.float32)
         arr[:, :3] = f.points
-        arr[:, 3] = f.intensity
+        if point_format == "xyzi":
+            arr[:, 3] = f.intensity
         atomic_write_bytes(velo / f"{k:06d}.bin", arr.tobytes())
     log.info("wrote %d frames (%d..%d) to %s", len(frames), frames.start, frames.stop - 1, seq_dir)
     return seq_dir

@@ -1,0 +1,135 @@
+"""Motion compensation ("deskewing") of a LiDAR sweep under constant velocity.
+
+A spinning LiDAR measures each point from the sensor pose at the point's own time; a sweep
+taken while driving is therefore distorted (a 10 m/s car moves 1 m during a 0.1 s sweep).
+Deskewing moves every point into the sensor frame at one reference time of the sweep, here
+its middle, assuming the sensor moved with constant velocity during the sweep.
+
+Conventions
+-----------
+* ``times`` are per-point fractions of the sweep in ``[0, 1]`` (0 = the sweep's start).
+* ``sweep_motion`` is the pose of the sensor at the end of the sweep in the frame of the
+  sensor at its start (a 4x4 matrix); under constant velocity the pose at fraction ``t`` is
+  ``Exp(t * xi)`` with ``xi = Log(sweep_motion)`` (gtsam tangent order ``[omega, v]``). The
+  odometry predicts it from the previous frame-to-frame motion.
+* A point ``p`` measured at fraction ``t`` is, in the sensor frame at fraction ``s``,
+  ``Exp((t - s) * xi) p``.
+
+When the data carries no per-point time, :func:`times_from_azimuth` derives it from the
+azimuth, for a sensor that spins clockwise seen from above (Velodyne, Ouster) and whose
+sweep starts and ends facing backward, so that it faces forward at mid-sweep (KITTI's
+camera is triggered when the laser faces forward; its poses refer to that instant).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from factors.se3 import log_se3
+
+__all__ = ["times_from_azimuth", "normalise_times", "deskew", "sweep_motion_from_velocity"]
+
+
+def times_from_azimuth(points: np.ndarray, clockwise: bool = True) -> np.ndarray:
+    """Per-point sweep fraction in ``[0, 1]`` from the azimuth (start and end facing backward).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Points in the sensor frame (x forward, y left, z up).
+    clockwise : bool
+        Rotation seen from above; clockwise (Velodyne, Ouster) means the azimuth decreases
+        with time.
+
+    Returns
+    -------
+    np.ndarray
+        ``(N,)`` float64; 0.5 straight ahead.
+    """
+    az = np.arctan2(points[:, 1], points[:, 0])
+    t = 0.5 * (1.0 - az / np.pi) if clockwise else 0.5 * (1.0 + az / np.pi)
+    return np.clip(t, 0.0, 1.0)
+
+
+def normalise_times(times: np.ndarray, scan_period: float | None = None) -> np.ndarray:
+    """Per-point times in any unit/offset (seconds, nanoseconds, absolute stamps) -> sweep fractions.
+
+    With ``scan_period`` (in the unit of ``times``) the fraction is ``(t - t_min) / period``;
+    without, the times are stretched to ``[0, 1]`` by their own range. Non-finite times
+    raise ``ValueError``.
+    """
+    t = np.asarray(times, np.float64)
+    if t.size == 0:
+        return t
+    if not np.all(np.isfinite(t)):
+        raise ValueError("per-point times contain non-finite values")
+    span = float(scan_period) if scan_period is not None else float(t.max() - t.min())
+    if span <= 0.0:
+        return np.full_like(t, 0.5)
+    return np.clip((t - t.min()) / span, 0.0, 1.0)
+
+
+def sweep_motion_from_velocity(frame_motion: np.ndarray, frame_period: float = 0.1,
+                               scan_period: float = 0.1) -> np.ndarray:
+    """The sweep motion (start -> end pose) from the motion between two frames (constant velocity).
+
+    ``frame_motion`` is the pose of frame k in frame k-1 (the odometry's last increment);
+    the sweep lasts ``scan_period`` of the ``frame_period`` between frames.
+    """
+    from factors.se3 import exp_se3
+
+    return exp_se3(log_se3(np.asarray(frame_motion, np.float64)) * (scan_period / frame_period))
+
+
+def _exp_se3_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations ``(N, 3, 3)`` and translations ``(N, 3)`` of ``Exp(xi_i)`` for ``xi (N, 6)``."""
+    w, v = xi[:, :3], xi[:, 3:]
+    theta = np.linalg.norm(w, axis=1)
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    th2 = th * th
+    # coefficients of R = I + A W + B W^2 and V = I + B W + C W^2, Taylor series for small angles
+    A = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
+    B = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th2)
+    C = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / (th2 * th))
+    W = np.zeros((len(xi), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    W2 = W @ W
+    eye = np.eye(3)[None]
+    R = eye + A[:, None, None] * W + B[:, None, None] * W2
+    V = eye + B[:, None, None] * W + C[:, None, None] * W2
+    return R, np.einsum("nij,nj->ni", V, v)
+
+
+def deskew(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
+           reference_time: float = 0.5) -> np.ndarray:
+    """Move every point into the sensor frame at ``reference_time`` (constant velocity).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Points, each in the sensor frame at its own time.
+    times : (N,) array
+        Sweep fractions in ``[0, 1]`` (:func:`times_from_azimuth`, :func:`normalise_times`).
+    sweep_motion : (4, 4) array
+        Sensor pose at the end of the sweep in the frame at its start.
+    reference_time : float
+        Sweep fraction the points are moved to (0.5: the middle).
+
+    Returns
+    -------
+    np.ndarray
+        ``(N, 3)`` float64 deskewed points.
+    """
+    p = np.asarray(points, np.float64)
+    t = np.asarray(times, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or t.shape != (len(p),):
+        raise ValueError(f"points must be (N, 3) and times (N,), got {p.shape} and {t.shape}")
+    if len(p) == 0:
+        return p.copy()
+    xi = log_se3(np.asarray(sweep_motion, np.float64))
+    if not np.any(xi):
+        return p.copy()
+    R, trans = _exp_se3_batch((t - reference_time)[:, None] * xi[None, :])
+    return np.einsum("nij,nj->ni", R, p) + trans

@@ -1,0 +1,229 @@
+"""Learned edge noise: an odometry edge's information from the network's covariances.
+
+Learning rounds (``training.edge_noise: learned``, the default) give each ok odometry edge
+the pose-likelihood Hessian H(C) of the network's covariances of its two preprocessed scans
+instead of the registration information (:mod:`gr_graph.odometry`):
+
+- :func:`learned_information` computes, for one edge, the WLS Gauss-Newton Hessian
+  ``H(C) = sum_i J_i^T Lambda_i J_i`` at T̂ with ``Lambda_i = (2 C_qi)^-1`` on the
+  nearest-neighbour pairs under T̂ (:func:`gr_graph.correspondences.nearest_correspondences`),
+  scaled and floored by ``graph.min_information_eigenvalue``;
+- :class:`LearnedEdgeNoise` applies it edge by edge during a SLAM run, reusing the
+  covariances densification predicted (:meth:`gr_graph.densify.DensifiedSequence.predicted`).
+
+Fallbacks to the registration information (failed registration, missing covariances, too
+few correspondences, non-finite or degenerate H(C); :data:`LEARNED_FALLBACK_REASONS`) are
+logged and counted (:meth:`LearnedEdgeNoise.summary`, stored in the round's summary as
+``edge_noise``). Loop edges and round 0 keep the registration information.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict, defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gr_graph.config import SlamConfig
+from gr_graph.correspondences import nearest_correspondences, target_tree
+from gr_graph.odometry import RegistrationEdge
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LEARNED_FALLBACK_REASONS", "LearnedInformation", "learned_information", "LearnedEdgeNoise",
+           "registration_edge_noise_summary"]
+
+#: why an edge did not get its learned information H(C) (counted per round, never silent)
+LEARNED_FALLBACK_REASONS = {
+    "registration_failed": "the registration was flagged: its fallback information is kept",
+    "no_covariances": "the network gave no (finite) covariances for one of the two scans",
+    "few_correspondences": "too few nearest-neighbour pairs within the distance",
+    "nonfinite": "H(C) is not finite / not positive semi-definite",
+    "degenerate": "H(C) is degenerate (degeneracy_report): the registration information is kept",
+}
+
+
+@dataclass
+class LearnedInformation:
+    """Result of :func:`learned_information` for one edge.
+
+    Attributes
+    ----------
+    information : np.ndarray or None
+        ``(6, 6)`` graph information: ``scale * H(C)`` with eigenvalues floored; None on fallback.
+    hessian : np.ndarray or None
+        ``(6, 6)`` raw ``H(C) = sum_i J_i^T (2 C_qi)^-1 J_i`` at T̂ (None if not computed).
+    n_correspondences : int
+    reason : str
+        "" when ``information`` is set, else a key of :data:`LEARNED_FALLBACK_REASONS`.
+    floored : bool
+        Whether the eigenvalue floor raised any eigenvalue.
+    detail : str
+        Human-readable detail of a fallback (degenerate directions...).
+    """
+
+    information: np.ndarray | None
+    hessian: np.ndarray | None
+    n_correspondences: int
+    reason: str = ""
+    floored: bool = False
+    detail: str = ""
+
+
+def learned_information(
+    T: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    target_cov: np.ndarray,
+    max_distance: float,
+    min_correspondences: int = 50,
+    min_eigenvalue: float | None = 1e-2,
+    scale: float = 1.0,
+    degeneracy_rel: float = 1e-4,
+    tree: Any | None = None,
+    num_threads: int = 1,
+) -> LearnedInformation:
+    """Pose information of an edge from learned covariances: the pose-likelihood Hessian H(C).
+
+    Correspondences: each source point ``p`` mapped by ``T`` (T̂_kl, source into target frame)
+    is paired with its nearest target point ``q`` if closer than ``max_distance``. With
+    ``Lambda_i = (2 C_qi)^-1`` (the paper's shared-geometry case,
+    :func:`factors.wls.residual_information`), ``H(C) = sum_i J_i^T Lambda_i J_i`` is the
+    Gauss-Newton Hessian of the WLS cost at ``T`` (:func:`factors.wls.wls_cost_gradient_hessian`),
+    gtsam order ``[omega, v]``, right perturbation. It is scaled and floored by
+    :func:`factors.noise.floored_information` (``min_eigenvalue``).
+
+    Fallbacks (``information=None``, ``reason`` set, logged by the caller): fewer than
+    ``min_correspondences`` pairs; non-finite / non-PSD ``H(C)``; degenerate ``H(C)``
+    (:func:`factors.degeneracy.degeneracy_report` with ``rel_threshold=degeneracy_rel`` and
+    rotations measured as arc length at 10 m).
+
+    Parameters
+    ----------
+    T : (4, 4) array
+        T̂_kl of the edge.
+    source, target : (N, 3), (M, 3) arrays
+        Points of scan k and scan l that the network predicted covariances for.
+    target_cov : (M, 3, 3) array
+        Predicted covariances of ``target``.
+    tree : small_gicp.KdTree, optional
+        :func:`gr_graph.correspondences.target_tree` of ``target`` (built if omitted).
+    num_threads : int
+        Threads of the nearest-neighbour search.
+    """
+    from factors.degeneracy import degeneracy_report
+    from factors.noise import NoiseModelError, floored_information
+    from factors.wls import WLSInputError, residual_information, wls_cost_gradient_hessian
+
+    T = np.asarray(T, np.float64)
+    src = np.asarray(source, np.float64)
+    tgt = np.asarray(target, np.float64)
+    cov = np.asarray(target_cov, np.float64)
+    if cov.shape != (len(tgt), 3, 3):
+        raise ValueError(f"learned_information: target_cov must be ({len(tgt)}, 3, 3), got {cov.shape}")
+    if len(src) == 0 or len(tgt) == 0:
+        return LearnedInformation(None, None, 0, "few_correspondences", detail="empty scan")
+    if tree is None:
+        tree = target_tree(tgt, num_threads)
+    pairs = nearest_correspondences(src, tree, T, max_distance, num_threads)
+    n = len(pairs)
+    if n < min_correspondences:
+        return LearnedInformation(None, None, n, "few_correspondences",
+                                  detail=f"{n} < {min_correspondences} pairs within {max_distance} m")
+    try:
+        info = residual_information(cov[pairs[:, 1]])
+        _, _, H = wls_cost_gradient_hessian(T, src[pairs[:, 0]], tgt[pairs[:, 1]], info)
+    except (WLSInputError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        return LearnedInformation(None, None, n, "nonfinite", detail=str(exc))
+    if not np.all(np.isfinite(H)):
+        return LearnedInformation(None, H, n, "nonfinite", detail="non-finite H(C)")
+    rep = degeneracy_report(H, rel_threshold=degeneracy_rel, length_scale=10.0)
+    if rep.is_degenerate:
+        return LearnedInformation(None, H, n, "degenerate", detail=rep.describe())
+    try:
+        out, nrep = floored_information(H, scale=scale, min_eigenvalue=min_eigenvalue)
+    except NoiseModelError as exc:
+        return LearnedInformation(None, H, n, "nonfinite", detail=str(exc))
+    return LearnedInformation(out, H, n, "", floored=nrep.was_floored)
+
+
+#: ``predictions(frame_index)``: the points of a frame and the network's covariances of them, or None
+Predictions = Callable[[int], "tuple[np.ndarray, np.ndarray] | None"]
+
+
+class LearnedEdgeNoise:
+    """Odometry-edge information from the network's covariances (``training.edge_noise: learned``).
+
+    ``predictions(frame_index)`` returns ``(points, C)`` the network predicted for a frame
+    (:meth:`gr_graph.densify.DensifiedSequence.predicted`) or None. :meth:`apply` replaces an
+    ok odometry edge's ``information`` by ``scale * H(C)`` (floored, :func:`learned_information`)
+    and keeps the registration information otherwise, logging the reason. :meth:`summary`
+    counts edges with H(C), floored ones and fallbacks per reason.
+    """
+
+    #: KdTrees kept over the most recent target frames (odometry edges reuse the last one)
+    TREES_KEPT = 5
+
+    def __init__(self, predictions: Predictions, cfg: SlamConfig) -> None:
+        self.predictions = predictions
+        self.cfg = cfg
+        self.n_learned = 0
+        self.n_floored = 0
+        self.fallbacks: dict[str, int] = defaultdict(int)
+        self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
+        self._trees: OrderedDict[int, Any] = OrderedDict()
+
+    def _tree(self, frame: int, points: np.ndarray) -> Any:
+        if frame not in self._trees:
+            if len(self._trees) >= self.TREES_KEPT:
+                self._trees.popitem(last=False)
+            self._trees[frame] = target_tree(points, self.cfg.odometry.num_threads)
+        return self._trees[frame]
+
+    def apply(self, edge: RegistrationEdge, source_frame: int, target_frame: int) -> RegistrationEdge:
+        """Set ``edge.information`` to the learned information when possible; return the edge."""
+        tc = self.cfg.training
+        reason, detail, res = "", "", None
+        if not edge.ok:
+            reason = "registration_failed"
+        else:
+            ps, pt = self.predictions(source_frame), self.predictions(target_frame)
+            if ps is None or pt is None:
+                reason = "no_covariances"
+            else:
+                res = learned_information(
+                    edge.T, ps[0], pt[0], pt[1], max_distance=self.cfg.odometry.corr_max_distance,
+                    min_correspondences=tc.learned_noise_min_correspondences,
+                    min_eigenvalue=self.cfg.graph.min_information_eigenvalue, scale=tc.learned_noise_scale,
+                    degeneracy_rel=tc.learned_noise_degeneracy_rel, tree=self._tree(target_frame, pt[0]),
+                    num_threads=self.cfg.odometry.num_threads,
+                )
+                reason, detail = res.reason, res.detail
+                if res.hessian is not None:
+                    self.hessians[(edge.source, edge.target)] = res.hessian
+        if reason:
+            self.fallbacks[reason] += 1
+            log.warning("edge (%d, %d): no learned information H(C), %s%s; registration information kept",
+                        edge.source, edge.target, LEARNED_FALLBACK_REASONS[reason], f" ({detail})" if detail else "")
+            edge.info["edge_noise"] = f"registration ({reason})"
+            return edge
+        assert res is not None and res.information is not None
+        self.n_learned += 1
+        self.n_floored += int(res.floored)
+        edge.information = res.information
+        edge.info["edge_noise"] = "learned"
+        edge.info["learned_noise_correspondences"] = res.n_correspondences
+        return edge
+
+    def summary(self) -> dict[str, Any]:
+        """``{"mode": "learned", "n_learned", "n_floored", "n_fallback", "fallbacks": {reason: count}}``."""
+        return {"mode": "learned", "n_learned": self.n_learned, "n_floored": self.n_floored,
+                "n_fallback": int(sum(self.fallbacks.values())), "fallbacks": dict(self.fallbacks)}
+
+
+def registration_edge_noise_summary() -> dict[str, Any]:
+    """The ``edge_noise`` summary of a learning round with ``training.edge_noise: registration``."""
+    return {"mode": "registration", "n_learned": 0, "n_floored": 0, "n_fallback": 0, "fallbacks": {}}

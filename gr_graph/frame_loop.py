@@ -1,0 +1,277 @@
+"""F_SLAM over one sequence: the frame loop (one round of :mod:`gr_graph.pipeline`).
+
+:func:`run_slam` reads (renders) the frames one at a time in a worker thread
+(:func:`prefetch_frames`), and for each frame
+
+1. preprocesses it (:func:`gr_graph.preprocess.preprocess_scan`); only the downsampled
+   scan is kept;
+2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`) and adds the pose
+   and its odometry edge to the pose graph; in learning rounds the edge's information may
+   first be replaced by the learned H(C) (:class:`gr_graph.edge_noise.LearnedEdgeNoise`);
+3. when the :class:`gr_graph.loop_closure.LoopClosureSchedule` says so, looks for a loop
+   (candidates on the loop-corrected estimate and by Scan Context, each verified by GICP),
+   adds accepted loops to the graph and re-optimises it now and then.
+
+At the end the whole graph is optimised and its marginal covariances computed
+(:class:`SlamResult`). Wall time is accumulated per stage (``read`` is time spent waiting
+for frames).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict, deque
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from gr_graph.config import SlamConfig, loop_max_rmse
+from gr_graph.datasets.base import LidarFrame, LidarSequence
+from gr_graph.edge_noise import LearnedEdgeNoise
+from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
+from gr_graph.odometry import RegistrationEdge, VgicpOdometry
+from gr_graph.pose_graph import PoseGraph
+from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SlamResult", "StageTimer", "prefetch_frames", "run_slam"]
+
+
+class StageTimer:
+    """Accumulates wall time per named stage: ``with timer("odometry"): ...``."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - t0
+
+
+def prefetch_frames(sequence: LidarSequence, ahead: int = 4) -> Iterator[LidarFrame]:
+    """Yield ``sequence[0..K-1]`` in order while a worker thread reads (renders) the next ones.
+
+    Reading/rendering (file I/O, open3d ray casting, numpy) releases the GIL, so it overlaps
+    with registration. ``ahead=0`` reads in the calling thread. Errors surface in order.
+    """
+    K = len(sequence)
+    if ahead <= 0:
+        for i in range(K):
+            yield sequence[i]
+        return
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gr_graph-read") as pool:
+        queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
+        nxt = len(queue)
+        while queue:
+            fut = queue.popleft()
+            if nxt < K:
+                queue.append(pool.submit(sequence.__getitem__, nxt))
+                nxt += 1
+            yield fut.result()
+
+
+@dataclass
+class SlamResult:
+    """Everything one SLAM run (one round) produced.
+
+    ``scans`` are the downsampled scans (float32, LiDAR frame); ``checked[i]`` says whether
+    scan i was queried for loops; ``loop_attempts`` lists every verified candidate (accepted
+    or not) with its figures; ``covariances`` are the marginals (None if disabled).
+    """
+
+    frame_index: np.ndarray
+    timestamps: np.ndarray
+    poses: np.ndarray
+    odometry_poses: np.ndarray
+    covariances: np.ndarray | None
+    scans: list[np.ndarray]
+    edges: list[RegistrationEdge]
+    loop_attempts: list[dict]
+    checked: np.ndarray
+    runtime: dict[str, float]
+    graph_error: tuple[float, float] = (float("nan"), float("nan"))
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def loops(self) -> list[RegistrationEdge]:
+        return [e for e in self.edges if e.kind == "loop"]
+
+
+class LoopCorrectedEstimate:
+    """The current trajectory estimate: the last optimised poses (a prefix of the run), then
+    the odometry poses moved by the correction at the end of that prefix."""
+
+    def __init__(self, odometry_poses: list[np.ndarray]) -> None:
+        self.odometry_poses = odometry_poses  # grows with the run (VgicpOdometry.poses)
+        self.optimised = np.zeros((0, 4, 4))
+
+    def poses(self, upto: int) -> np.ndarray:
+        """Estimate of poses ``0..upto-1``."""
+        odom = np.asarray(self.odometry_poses[:upto])
+        n = len(self.optimised)
+        if n == 0:
+            return odom
+        if n >= upto:
+            return self.optimised[:upto]
+        corr = self.optimised[n - 1] @ np.linalg.inv(odom[n - 1])
+        return np.concatenate([self.optimised, corr[None] @ odom[n:]])
+
+    def pose(self, i: int) -> np.ndarray:
+        """Estimate of pose ``i``."""
+        n = len(self.optimised)
+        if n == 0:
+            return self.odometry_poses[i]
+        if i < n:
+            return self.optimised[i]
+        return self.optimised[n - 1] @ np.linalg.inv(self.odometry_poses[n - 1]) @ self.odometry_poses[i]
+
+
+class _FrameLoop:
+    """State of one :func:`run_slam` call (see the module docstring)."""
+
+    def __init__(self, sequence: LidarSequence, cfg: SlamConfig, edge_noise: LearnedEdgeNoise | None) -> None:
+        self.sequence = sequence
+        self.cfg = cfg
+        self.loop_cfg = cfg.loops.model_copy(update={"max_rmse": loop_max_rmse(cfg.loops, cfg.data.channels)})
+        self.edge_noise = edge_noise
+        self.timer = StageTimer()
+        self.odometry = VgicpOdometry(cfg.odometry, cfg.graph)
+        self.graph = PoseGraph(cfg.graph)
+        self.estimate = LoopCorrectedEstimate(self.odometry.poses)
+        self.schedule = LoopClosureSchedule(self.loop_cfg)
+        self.scan_context = ScanContextDatabase(self.loop_cfg) if self.loop_cfg.use_scan_context else None
+        self.scans: list[np.ndarray] = []
+        self.frame_index: list[int] = []
+        self.edges: list[RegistrationEdge] = []
+        self.attempts: list[dict] = []
+        self.checked = np.zeros(len(sequence), dtype=bool)
+        self.n_flagged = 0
+        self.n_dropped = 0
+
+    @property
+    def n_loops(self) -> int:
+        return sum(e.kind == "loop" for e in self.edges)
+
+    def run(self, desc: str) -> SlamResult:
+        K = len(self.sequence)
+        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch)
+        bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
+                   mininterval=1.0)
+        for i in bar:
+            with self.timer("read"):  # time spent waiting for the reader thread
+                frame = next(frames)
+            scan = self.preprocess(frame)
+            self.add_odometry(i, scan)
+            if self.loop_cfg.enabled:
+                with self.timer("loops"):
+                    self.look_for_loop(i, scan)
+            bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
+        bar.close()
+        return self.finish()
+
+    def preprocess(self, frame: LidarFrame) -> Scan:
+        with self.timer("preprocess"):
+            scan = preprocess_scan(frame.points, self.cfg.preprocess, index=int(frame.index),
+                                   num_threads=self.cfg.odometry.num_threads)
+        self.n_dropped += scan.n_dropped
+        return scan
+
+    def add_odometry(self, i: int, scan: Scan) -> None:
+        """Register scan ``i``; add its pose and odometry edge to the graph."""
+        with self.timer("odometry"):
+            edge = self.odometry.step(scan)
+        self.scans.append(scan.points.astype(np.float32))
+        self.frame_index.append(int(scan.index))
+        self.graph.add_pose(self.estimate.pose(i))
+        if edge is None:
+            return
+        if self.edge_noise is not None:
+            with self.timer("edge_noise"):
+                self.edge_noise.apply(edge, self.frame_index[edge.source], self.frame_index[edge.target])
+        self.edges.append(edge)
+        self.n_flagged += int(not edge.ok)
+        self.graph.add_edge(edge.source, edge.target, edge.T, edge.information, loop=False)
+
+    def look_for_loop(self, i: int, scan: Scan) -> None:
+        """Loop closure at scan ``i`` when the schedule says so; re-optimise after new loops."""
+        if self.scan_context is not None:
+            self.scan_context.add(scan.points)
+        if not self.schedule.should_check(i, scan.usable):
+            return
+        self.checked[i] = True
+        est = self.estimate.poses(i + 1)
+        pc, oc, lc = self.cfg.preprocess, self.cfg.odometry, self.loop_cfg
+        for cand in loop_candidates(est, i, self.scan_context, lc):
+            target = rebuild_scan(self.scans[cand.match], pc, index=self.frame_index[cand.match],
+                                  num_threads=oc.num_threads)
+            le = verify_loop(scan, target, cand, lc, self.cfg.graph, num_threads=oc.num_threads)
+            self.attempts.append(
+                {"query": i, "match": cand.match, "frame_query": self.frame_index[i],
+                 "frame_match": self.frame_index[cand.match], "accepted": le.ok, "reason": le.reason,
+                 "T": le.T, **le.info}
+            )
+            if le.ok:
+                self.edges.append(le)
+                self.graph.add_edge(le.source, le.target, le.T, le.information, loop=True)
+                self.schedule.loop_accepted()
+                log.debug("loop (%d, %d) accepted via %s", i, cand.match, cand.source)
+                break
+        if self.schedule.should_reoptimize(i):
+            with self.timer("graph"):
+                self.graph.set_estimate(est)
+                self.estimate.optimised = self.graph.optimize(marginals=False).poses
+            self.schedule.reoptimized(i)
+
+    def finish(self) -> SlamResult:
+        """Optimise the whole graph, compute the marginals; the run's result."""
+        K = len(self.sequence)
+        if self.n_flagged:
+            log.warning("%d of %d odometry edges failed and were replaced by the constant-velocity guess",
+                        self.n_flagged, max(K - 1, 0))
+        odom_poses = np.asarray(self.odometry.poses)
+        with self.timer("graph"):
+            self.graph.set_estimate(self.estimate.poses(K))
+            res = self.graph.optimize(marginals=False)
+        covs = None
+        if self.cfg.graph.marginals:
+            with self.timer("marginals"):
+                covs = self.graph.marginal_covariances()
+        log.info("pose graph: error %.4g -> %.4g in %d iterations; %d loops", res.initial_error, res.final_error,
+                 res.iterations, self.n_loops)
+        return SlamResult(
+            frame_index=np.asarray(self.frame_index, dtype=np.int64),
+            timestamps=np.asarray(self.sequence.timestamps, dtype=np.float64)[:K],
+            poses=res.poses,
+            odometry_poses=odom_poses,
+            covariances=covs,
+            scans=self.scans,
+            edges=self.edges,
+            loop_attempts=self.attempts,
+            checked=self.checked,
+            runtime=dict(self.timer.seconds),
+            graph_error=(res.initial_error, res.final_error),
+            info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped},
+        )
+
+
+def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "",
+             edge_noise: LearnedEdgeNoise | None = None) -> SlamResult:
+    """F_SLAM: odometry, loop closures, pose graph and marginals over ``sequence``.
+
+    Frames are read (rendered) one at a time; only the downsampled scans are kept.
+    ``edge_noise`` (learning rounds, ``training.edge_noise: learned``) replaces each odometry
+    edge's information by the learned H(C) before it enters the graph. ``desc`` labels the
+    progress bar.
+    """
+    return _FrameLoop(sequence, cfg, edge_noise).run(desc)

@@ -1,0 +1,62 @@
+"""Constant-velocity deskewing against independent per-point SE(3) products."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from factors.se3 import exp_se3, inverse_se3
+from gr_graph.deskew import deskew, normalise_times, sweep_motion_from_velocity, times_from_azimuth
+
+
+def _scene(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-40, -40, -2], [40, 40, 5], size=(n, 3))
+
+
+@pytest.mark.parametrize("xi", [np.array([0.0, 0.0, 0.05, 1.2, 0.05, 0.0]),     # driving, turning
+                                np.array([0.01, -0.02, 0.3, 0.5, -0.2, 0.1]),    # fast turn
+                                np.array([0.0, 0.0, 1e-9, 0.0, 0.0, 1e-9])])    # nearly still
+def test_deskew_undoes_a_constant_velocity_sweep(xi: np.ndarray) -> None:
+    """Points measured from the pose Exp(t xi) at their own time come back in the mid-sweep frame."""
+    world = _scene(2000, 0)  # world = sensor frame at the sweep's start
+    t = np.random.default_rng(1).uniform(0, 1, len(world))
+    measured = np.empty_like(world)
+    for i in range(len(world)):  # independent reference: one 4x4 product per point
+        T_inv = inverse_se3(exp_se3(t[i] * xi))
+        measured[i] = T_inv[:3, :3] @ world[i] + T_inv[:3, 3]
+    mid = inverse_se3(exp_se3(0.5 * xi))
+    expected = world @ mid[:3, :3].T + mid[:3, 3]
+    out = deskew(measured, t, exp_se3(xi))
+    np.testing.assert_allclose(out, expected, atol=1e-9)
+    # to the start of the sweep instead: the world points themselves
+    np.testing.assert_allclose(deskew(measured, t, exp_se3(xi), reference_time=0.0), world, atol=1e-9)
+
+
+def test_no_motion_and_empty_input() -> None:
+    p = _scene(10, 2)
+    np.testing.assert_array_equal(deskew(p, np.linspace(0, 1, 10), np.eye(4)), p)
+    assert deskew(np.zeros((0, 3)), np.zeros(0), exp_se3(np.ones(6) * 0.1)).shape == (0, 3)
+    with pytest.raises(ValueError, match="times"):
+        deskew(p, np.zeros(3), np.eye(4))
+
+
+def test_times_from_azimuth_clockwise_sweep() -> None:
+    # behind-left (az just below +180 deg) starts, ahead is mid-sweep, behind-right ends
+    pts = np.array([[-1.0, 1e-6, 0], [0, 1, 0], [1, 0, 0], [0, -1, 0], [-1, -1e-6, 0]])
+    np.testing.assert_allclose(times_from_azimuth(pts), [0.0, 0.25, 0.5, 0.75, 1.0], atol=1e-6)
+    np.testing.assert_allclose(times_from_azimuth(pts, clockwise=False), [1.0, 0.75, 0.5, 0.25, 0.0], atol=1e-6)
+
+
+def test_normalise_times_units_and_errors() -> None:
+    ns = np.array([1_000_000_000, 1_050_000_000, 1_100_000_000], np.float64)
+    np.testing.assert_allclose(normalise_times(ns), [0, 0.5, 1])
+    np.testing.assert_allclose(normalise_times(ns, scan_period=2e8), [0, 0.25, 0.5])
+    np.testing.assert_allclose(normalise_times(np.zeros(3)), [0.5, 0.5, 0.5])
+    with pytest.raises(ValueError, match="non-finite"):
+        normalise_times(np.array([0.0, np.nan]))
+
+
+def test_sweep_motion_scales_the_frame_motion() -> None:
+    xi = np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(sweep_motion_from_velocity(exp_se3(xi), 0.1, 0.05), exp_se3(0.5 * xi), atol=1e-12)
