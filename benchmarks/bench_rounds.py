@@ -1,4 +1,4 @@
-"""Reciprocal rounds (Algorithm 3) on a synthetic KITTI 00 excerpt: RPE/ATE and wall time per round.
+"""Reciprocal rounds (Algorithm 3) on an excerpt of the synthetic sequence: RPE/ATE and wall time per round.
 
     python benchmarks/bench_rounds.py --frames 0:300 --channels 16 --rounds 2 --net small \
         --out runs/bench_rounds_small [--results benchmarks/results/rounds.md]

@@ -1,5 +1,5 @@
 """SLAM benchmarks: odometry throughput vs KISS-ICP, odometry RPE-300 per channel count, and
-the full synthetic KITTI 00 run (wall time, peak memory). Writes ``benchmarks/results/slam.md``.
+the full synthetic run along the generated route (wall time, peak memory). Writes ``benchmarks/results/slam.md``.
 
 Sections (each stores ``benchmarks/results/slam_<section>.json``; the markdown is rebuilt from
 all stored sections, so they can be run separately)::
@@ -9,7 +9,7 @@ all stored sections, so they can be run separately)::
     python benchmarks/bench_slam.py full       [--frames 0:4541]
     python benchmarks/bench_slam.py ingest --out RUN_DIR --command "..." --label "..."
 
-- throughput: frames are rendered (synthetic KITTI 00) or read once into RAM, then the
+- throughput: frames are rendered (synthetic sequence) or read once into RAM, then the
   gr_graph front end (preprocess + VGICP odometry, 1 thread) and KISS-ICP 1.3.0
   (``KissICP`` with its default config, deskew off because frames have no per-point time,
   1 thread) process the very same frames, at 64, 32 and 16 channels; frames/s and ratio.
@@ -153,14 +153,16 @@ def bench_full(frames: tuple[int, int] | None, out_dir: Path) -> dict:
     cmd = [sys.executable, "-m", "gr_graph.slam", "--seq", "00", "--out", str(out_dir), "--no-resume", "--quiet"]
     if frames is not None:
         cmd += ["--frames", f"{frames[0]}:{frames[1]}"]
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=REPO)
     wall = time.perf_counter() - t0
+    load = f"1-minute load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2 cores)"
     peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     m = json.loads((out_dir / "metrics.json").read_text())
     r0 = m["rounds"]["0"]
     return {"command": " ".join(["python", "-m", "gr_graph.slam"] + cmd[3:]), "source": m["source"],
-            "wall_s": wall, "peak_rss_gb": peak_kb / 1024**2, "round0": r0}
+            "wall_s": wall, "peak_rss_gb": peak_kb / 1024**2, "load": load, "round0": r0}
 
 
 def ingest_run(out_dir: Path, command: str, label: str) -> dict:
@@ -185,7 +187,8 @@ def write_markdown() -> Path:
     lines = ["# SLAM benchmarks (gr_graph.slam)", "", f"Machine: {machine()}. Other jobs shared the 2 cores, "
              "so absolute times are pessimistic; ratios within one section are measured on the same frames "
              "in the same process.", "",
-             "Caveat: the synthetic KITTI 00 (clean ray-cast town) is far easier than the real KITTI 00: the paper "
+             "Caveat: the synthetic sequence (a generated 3.7 km route through a clean ray-cast town) is far "
+             "easier than the real KITTI 00: the paper "
              "reports RPE300 = 3.68 m for raw VGICP at 64 channels on real data, gr_graph gets ~0.07 m here. "
              "Compare systems and channel counts within a table, not with the paper.", ""]
     p = RESULTS / "slam_throughput.json"
@@ -194,6 +197,7 @@ def write_markdown() -> Path:
         lines += ["## Odometry throughput vs KISS-ICP", "",
                   f"`python benchmarks/bench_slam.py throughput --frames {d['frames']}` — {d['source']}; "
                   f"{d['n_frames']} frames held in RAM (rendering excluded), 1 thread each.", "",
+                  *([f"Note: {d['note']}", ""] if d.get("note") else []),
                   "| channels | points/scan | gr_graph [frames/s] | KISS-ICP [frames/s] | ratio (target ≥ 1) |",
                   "|---|---|---|---|---|"]
         for r in d["rows"]:
@@ -206,8 +210,9 @@ def write_markdown() -> Path:
         lines += ["## Odometry RPE over 300 frames (translation, m), per channel count", "",
                   f"`python benchmarks/bench_slam.py rpe --frames {d['frames']}` — {d['source']}; "
                   f"{d['n_frames']} frames rendered once at 64 rings, 32/16 by ring subsampling (gr_graph.datasets.channels), one pass feeding all six front ends. "
-                  "gr_graph = its VGICP front end (round 0 without loop closures: no revisit before frame 1560). "
+                  "gr_graph = its VGICP front end (odometry only, no loop closures). "
                   "Camera frame, evo, consecutive and all pairs.", "",
+                  *([f"Note: {d['note']}", ""] if d.get("note") else []),
                   "| system | channels | RPE300 mean (consec.) | RMSE (consec.) | mean (all pairs) | RMSE (all pairs) | ATE RMSE | KITTI % | frames/s |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(d["rows"], key=lambda r: (-r["channels"], r["system"])):
@@ -224,10 +229,12 @@ def write_markdown() -> Path:
         o = r0.get("odometry", {})
         lc = r0.get("loop_closure", {})
         rt = r0["runtime_s"]
-        lines += ["## Full synthetic KITTI 00, 64 channels, --rounds 0", "", f"`{d['command']}` — {d['source']}", "",
+        lines += ["## Full synthetic sequence (4,541 frames, 3.7 km), 64 channels, --rounds 0", "",
+                  f"`{d['command']}` — {d['source']}", "",
                   f"- wall time: **{d['wall_s'] / 60:.1f} min** (target < 10 min), of which waiting for the "
                   f"renderer {rt.get('read', 0) / 60:.1f} min; peak RSS **{d['peak_rss_gb']:.2f} GB** (target < 4 GB)",
                   f"- runtime per stage [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in rt.items()),
+                  *([f"- load: {d['load']}"] if d.get("load") else []),
                   *([f"- note: {d['note']}"] if d.get("note") else []),
                   f"- frames: {r0['n_frames']}, flagged odometry edges: {r0['n_flagged_odometry_edges']}, "
                   f"points/scan: {r0['mean_points_per_scan']:.0f}",
@@ -245,7 +252,7 @@ def write_markdown() -> Path:
     p = RESULTS / "slam_runs.json"
     if p.exists():
         runs = json.loads(p.read_text())
-        lines += ["## Other full synthetic KITTI 00 runs (loop closure settings, channels)", "",
+        lines += ["## Other full synthetic runs (loop closure settings, channels)", "",
                   "Loop precision = accepted loops within 2 m / 10° of GT; recall = revisit queries (GT neighbour "
                   "≥ min_frame_gap older within 5 m) with an accepted loop; segments = contiguous revisit "
                   "stretches with at least one loop.", "",

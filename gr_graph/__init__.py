@@ -3,7 +3,7 @@
 See the README and the paper for the method. Modules, one concern each:
 
 - :mod:`gr_graph.datasets`: KITTI loader, ring recovery and channel subsampling, the
-  synthetic KITTI 00 renderer, and :func:`gr_graph.datasets.registry.open_sequence`.
+  synthetic renderer (a generated route through a procedural town), and :func:`gr_graph.datasets.registry.open_sequence`.
 - :mod:`gr_graph.preprocess`, :mod:`gr_graph.odometry`, :mod:`gr_graph.loop_closure`
   (candidates, verification, the check/re-optimise schedule), :mod:`gr_graph.pose_graph`:
   the SLAM front and back end; :mod:`gr_graph.frame_loop`: F_SLAM over a sequence.

@@ -144,7 +144,7 @@ def add_channels(p: argparse.ArgumentParser, help: str = "laser rings kept (ever
 
 def add_data_root(p: argparse.ArgumentParser,
                   help: str = "KITTI odometry root (default: $GR_GRAPH_KITTI_ROOT, ./data/kitti, ~/data/kitti, "
-                              "else the synthetic KITTI 00)") -> None:
+                              "else the synthetic sequence)") -> None:
     p.add_argument("--data-root", default=None, metavar="DIR", help=help)
 
 

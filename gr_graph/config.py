@@ -49,6 +49,9 @@ class DataConfig(_Section):
         "vertical-angle error; KISS-ICP 1.3.0 uses 0.205, published values 0.195-0.22); 0: off (any KITTI-layout folder, "
         "synthetic exports included, is read unchanged)"
     )
+    route_seed: int = Field(0, ge=0, description="synthetic sequence: seed of the generated route")
+    trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
+                                   "pose file or KITTI root instead of the generated route")
 
     @field_validator("frames", mode="before")
     @classmethod

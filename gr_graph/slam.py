@@ -1,7 +1,8 @@
 """The main command: ``python -m gr_graph.slam --seq 00 [options]``.
 
 Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algorithm 3;
-they need the trainer). Without a KITTI root it runs on the synthetic KITTI 00 and says so.
+they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
+project's generated route through a procedural town) and says so.
 Outputs (see :mod:`gr_graph.pipeline`) go to ``--out``; rerunning with the same ``--out``
 skips finished rounds.
 
@@ -37,6 +38,8 @@ EXAMPLES = (
     "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
     "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
     "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
+    "python -m gr_graph.slam --seq 00 --route-seed 3 --channels 16 --out runs/route3_c16",
+    "python -m gr_graph.slam --seq 00 --trajectory /path/to/kitti/poses/00.txt --frames 0:300 --out runs/along_kitti00",
 )
 
 
@@ -58,6 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
                                            f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
     add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
+    p.add_argument("--route-seed", type=int, default=None, metavar="N",
+                   help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
+    p.add_argument("--trajectory", default=None, metavar="PATH",
+                   help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
     add_out(p, f"output directory (default: {d.output.out_dir})")
@@ -91,6 +98,10 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["point_format"] = args.point_format
     if args.frames is not None:
         o["data"]["frames"] = parse_frames(args.frames)
+    if args.route_seed is not None:
+        o["data"]["route_seed"] = args.route_seed
+    if args.trajectory is not None:
+        o["data"]["trajectory"] = args.trajectory
     if args.rounds is not None:
         if args.rounds < 0:
             raise ValueError("--rounds must be >= 0")

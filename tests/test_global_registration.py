@@ -21,7 +21,6 @@ from gr_graph.global_registration import (
     write_results,
 )
 from gr_graph.global_solvers import kiss_matcher_available, register_fpfh_ransac, register_kiss_matcher
-from gr_graph.trajectory import read_kitti_poses
 
 
 def make_T(rotvec: list[float], t: list[float]) -> np.ndarray:
@@ -47,8 +46,10 @@ def test_error_measures_closed_form() -> None:
     assert rotation_error_deg(ref @ make_T([np.pi, 0, 0], [0, 0, 0]), ref) == pytest.approx(180.0, abs=1e-9)
 
 
-def test_sample_pairs_kitti00(kitti00_gt_dir: Path, tmp_path: Path) -> None:
-    poses = read_kitti_poses(kitti00_gt_dir / "00.txt")
+def test_sample_pairs_on_the_generated_route(tmp_path: Path) -> None:
+    from gr_graph.datasets.synthetic.route import generate_route
+
+    poses = np.asarray(generate_route(0).T_w_velo)  # a 3.7 km drive with revisits
     pairs = sample_pairs(poses, n=100, max_distance=10.0, seed=3, min_frame=14)
     assert pairs.shape == (100, 2)
     assert len({tuple(p) for p in pairs.tolist()}) == 100

@@ -57,17 +57,38 @@ def run_evo_rpe(ref: Path, est: Path, out: Path, all_pairs: bool) -> dict:
 
 
 @pytest.fixture(scope="module")
-def kitti00(kitti00_gt_dir: Path) -> np.ndarray:
-    return read_kitti_poses(kitti00_gt_dir / "00.txt")
+def route_gt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generated route's 4,541 poses as a KITTI ground-truth file (camera frame)."""
+    from gr_graph.datasets.base import velo_to_cam_poses
+    from gr_graph.datasets.synthetic import rig
+    from gr_graph.datasets.synthetic.route import generate_route
+
+    T = velo_to_cam_poses(np.asarray(generate_route(0).T_w_velo), rig.T_cam_velo())
+    return write_kitti_poses(tmp_path_factory.mktemp("route") / "00.txt", T)
+
+
+@pytest.fixture(scope="module")
+def gt_poses(route_gt: Path) -> np.ndarray:
+    return read_kitti_poses(route_gt)
+
+
+@pytest.fixture(params=["route", "kitti00_gt"])
+def gt_file(request: pytest.FixtureRequest, route_gt: Path) -> Path:
+    """A ground-truth file as is: the generated route, and the real KITTI 00 one (its 7-digit,
+    slightly non-orthonormal rotations; skipped without ../shared/data)."""
+    if request.param == "route":
+        return route_gt
+    return request.getfixturevalue("kitti00_gt_dir") / "00.txt"
 
 
 @pytest.mark.parametrize("all_pairs", [False, True], ids=["consecutive", "all_pairs"])
-def test_rpe_matches_evo_cli_on_kitti00(tmp_path: Path, kitti00_gt_dir: Path, kitti00: np.ndarray, all_pairs: bool) -> None:
-    ref_file = kitti00_gt_dir / "00.txt"  # the official file as is
-    est_file = write_kitti_poses(tmp_path / "est.txt", drifted_copy(kitti00))
+def test_rpe_matches_evo_cli(tmp_path: Path, gt_file: Path, all_pairs: bool) -> None:
+    gt = read_kitti_poses(gt_file)
+    ref_file = gt_file  # the file as is
+    est_file = write_kitti_poses(tmp_path / "est.txt", drifted_copy(gt))
     est = read_kitti_poses(est_file)
     cli = run_evo_rpe(ref_file, est_file, tmp_path / "res.zip", all_pairs)
-    ours = rpe_translation(est, kitti00, delta=300, all_pairs=all_pairs)
+    ours = rpe_translation(est, gt, delta=300, all_pairs=all_pairs)
     assert ours.n == cli["error"].size == (4241 if all_pairs else 15)
     for key in ("mean", "rmse", "median", "max", "min", "std"):
         assert getattr(ours, key) == pytest.approx(cli["stats"][key], rel=0, abs=1e-9), key
@@ -181,26 +202,26 @@ def test_kitti_devkit_constant_yaw_rate_bias() -> None:
     assert t_err == pytest.approx(expected_t, rel=1e-7)
 
 
-def test_kitti_devkit_identity_and_real_gt(kitti00: np.ndarray) -> None:
-    t, r = kitti_devkit_errors(kitti00, kitti00)
+def test_kitti_devkit_identity_and_a_drive(gt_poses: np.ndarray) -> None:
+    t, r = kitti_devkit_errors(gt_poses, gt_poses)
     assert t < 1e-12 and r < 1e-12
     # a rigid change of the world frame does not change any relative motion
     G = np.eye(4)
     G[:3, :3] = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
     G[:3, 3] = [5, 6, 7]
-    t, r = kitti_devkit_errors(G @ kitti00, kitti00)
+    t, r = kitti_devkit_errors(G @ gt_poses, gt_poses)
     assert t < 1e-9 and r < 1e-6
-    est = drifted_copy(kitti00)
-    t, r = kitti_devkit_errors(est, kitti00)
+    est = drifted_copy(gt_poses)
+    t, r = kitti_devkit_errors(est, gt_poses)
     assert 0.01 < t < 10 and 0.01 < r < 10
 
 
-def test_kitti_devkit_matches_kiss_icp_port(kitti00: np.ndarray) -> None:
+def test_kitti_devkit_matches_kiss_icp_port(gt_poses: np.ndarray) -> None:
     """Cross-check against an independent C++ port of the devkit (KISS-ICP's, float32 output)."""
     kiss_metrics = pytest.importorskip("kiss_icp.metrics", reason="kiss-icp (bench extra) not installed")
-    for est in (drifted_copy(kitti00), drifted_copy(kitti00, seed=1)):
-        t_ref, r_ref_deg_per_m = kiss_metrics.sequence_error(kitti00, est)
-        t, r = kitti_devkit_errors(est, kitti00)
+    for est in (drifted_copy(gt_poses), drifted_copy(gt_poses, seed=1)):
+        t_ref, r_ref_deg_per_m = kiss_metrics.sequence_error(gt_poses, est)
+        t, r = kitti_devkit_errors(est, gt_poses)
         assert t == pytest.approx(t_ref, rel=1e-5)
         # KISS-ICP reports deg / m and loses ~1e-4 relative in float32 acos near 1
         assert r == pytest.approx(100 * r_ref_deg_per_m, rel=2e-3)

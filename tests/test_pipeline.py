@@ -259,3 +259,14 @@ def test_metrics_record_provenance(revisit_run):
     assert {"gtsam", "small_gicp", "scipy"} <= set(prov["packages"])
     assert prov["seeds"] == {"world": 0, "training": 0}
     assert prov["device"] == "cpu" and prov["num_threads"] >= 1 and prov["cpu_count"] >= 1
+
+
+def test_cli_route_seed_and_trajectory_reach_the_config(tmp_path):
+    from gr_graph.slam import build_parser, overrides_from_args
+
+    args = build_parser().parse_args(["--route-seed", "2", "--trajectory", str(tmp_path / "poses.txt")])
+    cfg = load_config(None, overrides_from_args(args))
+    assert cfg.data.route_seed == 2 and cfg.data.trajectory == str(tmp_path / "poses.txt")
+    assert load_config(None, {}).data.route_seed == 0 and load_config(None, {}).data.trajectory is None
+    # a missing trajectory file is a clear error naming it (exit code 2)
+    assert main(["--trajectory", str(tmp_path / "poses.txt"), "--out", str(tmp_path / "o"), "--no-progress"]) == 2

@@ -88,3 +88,25 @@ def test_frames_without_the_sequence_length() -> None:
                      (None, "sequence length")):
         with pytest.raises(DatasetError, match=msg):
             parse_frames(bad)
+
+
+def test_synthetic_route_seed_and_trajectory(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Without KITTI: the generated route of route_seed, or a given trajectory; never both
+    a trajectory and a KITTI root."""
+    from gr_graph.datasets.synthetic.route import generate_route
+    from gr_graph.trajectory import write_tum_poses
+
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    seq, source = open_sequence("00", frames="10:20", route_seed=1, synthetic_seed=3)
+    assert "generated route, route seed 1, town seed 3" in source and len(seq) == 10
+    np.testing.assert_array_equal(seq.gt_poses, generate_route(1).T_w_velo[10:20])
+    T = np.asarray(generate_route(0).T_w_velo[:50])
+    f = write_tum_poses(tmp_path / "t.tum", np.arange(50) * 0.1, T)
+    seq, source = open_sequence("00", trajectory=f)
+    assert f"trajectory {f} (TUM format" in source and len(seq) == 50
+    root = tmp_path / "kitti"
+    (root / "sequences" / "00" / "velodyne").mkdir(parents=True)
+    with pytest.raises(DatasetError, match="cannot be combined with the KITTI root"):
+        open_sequence("00", data_root=root, trajectory=f)

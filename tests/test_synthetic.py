@@ -1,8 +1,9 @@
-"""Tests of the synthetic KITTI-00 renderer (gr_graph.datasets.synthetic).
+"""Tests of the synthetic renderer (gr_graph.datasets.synthetic) along the generated route.
 
-References used: the shipped/official KITTI 00 text files parsed with plain numpy, the beam
-model's closed form, small_gicp registration (independent of the renderer), an exact
-point-to-polyline distance, and numpy reads of the written .bin files.
+References used: the route's poses and the rig's calibration composed with plain numpy, the
+beam model's closed form, small_gicp registration (independent of the renderer), an exact
+point-to-polyline distance, numpy reads of the written .bin files, and trajectory files
+written here and read back through ``--trajectory``.
 """
 
 from __future__ import annotations
@@ -13,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gr_graph.datasets.base import LidarFrame, LidarSequence
-from gr_graph.datasets.synthetic import SyntheticSequence
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence
+from gr_graph.datasets.synthetic import SyntheticSequence, rig
 from gr_graph.datasets.synthetic.__main__ import main as cli_main
 from gr_graph.datasets.synthetic.sensor import BeamModel, hdl64_elevations_deg
 from gr_graph.datasets.synthetic.sequence import clear_scene_cache
+from gr_graph.datasets.synthetic.route import generate_route
 from gr_graph.datasets.synthetic.town import build_town
-
-DATA = Path(__file__).resolve().parents[1] / "gr_graph" / "data" / "kitti00"
+from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
 
 @pytest.fixture(scope="module")
@@ -33,13 +34,10 @@ def frame1000(seq) -> LidarFrame:
     return seq[1000]
 
 
-def _shipped_Tr() -> np.ndarray:
-    for line in (DATA / "calib.txt").read_text().splitlines():
-        if line.startswith("Tr:"):
-            Tr = np.eye(4)
-            Tr[:3] = np.array(line.split()[1:], float).reshape(3, 4)
-            return Tr
-    raise AssertionError("no Tr line in shipped calib.txt")
+def _camera_poses(T_w_velo: np.ndarray) -> np.ndarray:
+    """KITTI's ground-truth convention: camera-0 poses ``Tr · T_w_velo · Tr⁻¹`` (rig's Tr)."""
+    Tr = rig.T_cam_velo()
+    return Tr @ T_w_velo @ np.linalg.inv(Tr)
 
 
 def _rot_deg(R: np.ndarray) -> float:
@@ -131,7 +129,7 @@ def test_town_rebuild_is_bit_identical(frame1000):
 
 
 def test_town_depends_on_seed_and_is_deterministic():
-    P = np.loadtxt(DATA / "poses.txt")[:300, [3, 7, 11]]  # any 3-D path works
+    P = generate_route(0).T_w_velo[:300, :3, 3]  # any 3-D path works
     a, b, c = build_town(P, seed=5), build_town(P, seed=5), build_town(P, seed=6)
     np.testing.assert_array_equal(a.vertices, b.vertices)
     np.testing.assert_array_equal(a.triangles, b.triangles)
@@ -141,21 +139,103 @@ def test_town_depends_on_seed_and_is_deterministic():
 
 
 # ---------------------------------------------------------------- ground truth ----------
-def test_gt_poses_are_the_shipped_kitti_poses_in_the_lidar_frame(seq):
-    rows = np.loadtxt(DATA / "poses.txt")
-    T_cam = np.tile(np.eye(4), (len(rows), 1, 1))
-    T_cam[:, :3, :] = rows.reshape(-1, 3, 4)
-    Tr = _shipped_Tr()
-    np.testing.assert_allclose(seq.T_cam_velo, Tr, atol=0)
-    expected = np.linalg.inv(Tr) @ T_cam @ Tr
-    np.testing.assert_allclose(seq.gt_poses, expected, atol=1e-9)
-    np.testing.assert_allclose(seq.timestamps, np.loadtxt(DATA / "times.txt"), atol=0)
-    assert seq.gt_poses.shape == (4541, 4, 4)
+def test_gt_poses_are_the_generated_route_and_the_rig_is_its_own(seq):
+    route = generate_route(0)
+    np.testing.assert_array_equal(seq.gt_poses, route.T_w_velo)
+    np.testing.assert_array_equal(seq.timestamps, route.times)
+    np.testing.assert_array_equal(seq.T_cam_velo, rig.T_cam_velo())
+    assert seq.path.route is route and seq.gt_poses.shape == (4541, 4, 4)
+    # another route seed drives elsewhere through its own town; the noise seed is unchanged
+    other = SyntheticSequence(seed=0, route_seed=1)
+    assert other.seed == seq.seed and other.route_seed == 1
+    assert np.linalg.norm(other.gt_poses[-1, :3, 3] - seq.gt_poses[-1, :3, 3]) > 10.0
+    with pytest.raises(ValueError, match="route_seed"):
+        SyntheticSequence(route_seed=-1)
 
 
-def test_shipped_path_is_the_official_kitti00_gt(kitti00_gt_dir):
+def _kitti_calib(path: Path, Tr: np.ndarray) -> None:
+    P0 = "P0: " + " ".join(["1"] + ["0"] * 11)
+    path.write_text(P0 + "\nTr: " + " ".join(f"{v:.17g}" for v in Tr[:3].ravel()) + "\n")
+
+
+def test_renders_along_a_given_trajectory(tmp_path):
+    """--trajectory: KITTI file (with and without calib/times beside it), TUM file, KITTI root."""
+    T = np.asarray(generate_route(0).T_w_velo[2000:2040])  # 40 frames of some drive, not from 0
+    ts = 5.0 + np.arange(40) * 0.1037
+    base = np.linalg.inv(T[0]) @ T  # every source is re-based on its first pose
+    # KITTI camera-frame file alone: the rig's Tr, 0.1 s steps
+    f = write_kitti_poses(tmp_path / "a" / "poses.txt", _camera_poses(T))
+    s = SyntheticSequence(trajectory=f)
+    np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
+    np.testing.assert_allclose(s.timestamps, np.arange(40) * 0.1, atol=1e-12)
+    assert s.path.route is None and "KITTI format" in s.path.source
+    # with a calib.txt (another Tr) and times.txt beside it
+    Tr = rig.T_cam_velo()
+    Tr[:3, 3] += [0.1, -0.2, 0.3]
+    d = tmp_path / "b"
+    d.mkdir()
+    write_kitti_poses(d / "poses.txt", Tr @ T @ np.linalg.inv(Tr))
+    _kitti_calib(d / "calib.txt", Tr)
+    (d / "times.txt").write_text("".join(f"{t:.6f}\n" for t in ts))
+    s = SyntheticSequence(trajectory=d / "poses.txt")
+    np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
+    np.testing.assert_allclose(s.T_cam_velo, Tr, atol=1e-15)
+    np.testing.assert_allclose(s.timestamps, ts - ts[0], atol=1e-9)
+    # TUM: LiDAR poses with their timestamps
+    s = SyntheticSequence(trajectory=write_tum_poses(tmp_path / "c.tum", ts, T))
+    np.testing.assert_allclose(s.gt_poses, base, atol=1e-6)
+    np.testing.assert_allclose(s.timestamps, ts - ts[0], atol=1e-9)
+    # a KITTI root: poses/<seq>.txt, sequences/<seq>/calib.txt and times.txt
+    root = tmp_path / "root"
+    (root / "sequences" / "07").mkdir(parents=True)
+    write_kitti_poses(root / "poses" / "07.txt", Tr @ T @ np.linalg.inv(Tr))
+    _kitti_calib(root / "sequences" / "07" / "calib.txt", Tr)
+    (root / "sequences" / "07" / "times.txt").write_text("".join(f"{t:.6f}\n" for t in ts))
+    s = SyntheticSequence(trajectory=root, trajectory_seq="07")
+    np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
+    # bad input names the file
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 2 3\n")
+    for path, msg in ((bad, "bad.txt: 3 columns"), (tmp_path / "none.txt", "none.txt: trajectory file not found"),
+                      (tmp_path / "a", "no poses/00.txt")):
+        with pytest.raises(DatasetError, match=msg):
+            SyntheticSequence(trajectory=path)
+
+
+def test_renders_a_scan_along_a_given_trajectory(tmp_path):
+    """The town is built around the given path: frames along it see streets on both sides."""
+    T = np.asarray(generate_route(3).T_w_velo[1000:1400:4])
+    s = SyntheticSequence(trajectory=write_tum_poses(tmp_path / "t.tum", np.arange(len(T)) * 0.4, T),
+                          n_rings=16, n_azimuth=500, seed=2)
+    f = s[50]
+    assert len(f) > 3000 and s.town.path_xyz[:, :2].max(0)[0] - s.town.path_xyz[:, :2].min(0)[0] > 10
+    assert repr(s).startswith("SyntheticSequence(seed=2, town_seed=2, trajectory=")
+    # the exporter renders along it too, and says so
+    out = tmp_path / "export"
+    assert cli_main(["--out", str(out), "--trajectory", str(tmp_path / "t.tum"), "--frames", "50:51",
+                     "--seed", "2", "--channels", "16", "--n-azimuth", "500"]) == 0
+    meta = json.loads((out / "sequences" / "00" / "synthetic.json").read_text())
+    assert meta["trajectory"] == str(tmp_path / "t.tum") and "TUM format" in meta["source"]
+    raw = np.fromfile(out / "sequences" / "00" / "velodyne" / "000000.bin", dtype=np.float32).reshape(-1, 4)
+    np.testing.assert_array_equal(raw[:, :3], f.points.astype(np.float32))
+    assert cli_main(["--out", str(tmp_path / "x"), "--trajectory", str(tmp_path / "missing.txt")]) == 2
+
+
+@pytest.mark.slow
+def test_renders_along_the_real_kitti00_ground_truth(kitti00_gt_dir):
+    """The real KITTI 00 trajectory (../shared/data, never shipped) as the sensor path."""
+    s = SyntheticSequence(trajectory=kitti00_gt_dir / "00.txt", n_rings=16)
+    assert len(s) == 4541
     official = np.loadtxt(kitti00_gt_dir / "00.txt")
-    np.testing.assert_allclose(np.loadtxt(DATA / "poses.txt"), official, atol=1e-12)
+    T_cam = np.tile(np.eye(4), (4541, 1, 1))
+    T_cam[:, :3, :] = official.reshape(-1, 3, 4)
+    Tr = rig.T_cam_velo()  # no calib.txt beside the file: the rig's own Tr
+    T_velo = np.linalg.inv(Tr) @ T_cam @ Tr
+    np.testing.assert_allclose(s.gt_poses, np.linalg.inv(T_velo[0]) @ T_velo, atol=1e-6)
+    np.testing.assert_allclose(s.timestamps, np.loadtxt(kitti00_gt_dir / "times.txt"), atol=1e-9)
+    f = s[1000]
+    tall = (f.points[:, 2] > -1.0) & (np.hypot(f.points[:, 0], f.points[:, 1]) < 40)
+    assert (f.points[tall, 1] > 6).sum() > 200 and (f.points[tall, 1] < -6).sum() > 200
 
 
 def _polyline_distance(points: np.ndarray, path: np.ndarray) -> np.ndarray:
@@ -199,14 +279,14 @@ def test_nothing_stands_on_the_road_anywhere_along_the_path(seq):
     assert (_polyline_distance(poles[:, :2], path) - poles[:, 2]).min() > 5.6 - 0.1
 
 
-def test_sensor_rides_1_73_m_above_the_ground_where_the_path_is_consistent(seq):
+def test_sensor_rides_1_73_m_above_the_ground(seq):
     P = seq.gt_poses[:, :3, 3]
     h = P[:, 2] - seq.town.ground(P[:, :2])
-    # KITTI's GT height differs by up to ~1.2 m between passes over the same place; the one
-    # ground surface splits the difference there, elsewhere the sensor is at 1.73 m.
+    # the route's height is a function of place, so every pass of a street agrees with the
+    # one ground surface built from the path
     assert np.median(h) == pytest.approx(1.73, abs=0.01)
-    assert np.mean(np.abs(h - 1.73) < 0.07) > 0.6
-    assert 1.0 < h.min() and h.max() < 2.5
+    assert np.mean(np.abs(h - 1.73) < 0.03) > 0.95
+    assert np.abs(h - 1.73).max() < 0.1
 
 
 # ---------------------------------------------------------------- geometry vs GT --------
@@ -219,10 +299,23 @@ def _align(target: LidarFrame, source: LidarFrame, init: np.ndarray) -> np.ndarr
     return res.T_target_source
 
 
+def _revisit_pair(direction: str) -> tuple[int, int]:
+    """A frame of the route's first ``direction`` revisit and the earlier frame nearest to it."""
+    route = generate_route(0)
+    r = next(r for r in route.revisits if r.direction == direction)
+    j = (r.frames[0] + r.frames[1]) // 2
+    P = route.T_w_velo[:, :3, 3]
+    i = r.earlier[0] + int(np.argmin(np.linalg.norm(P[r.earlier[0]:r.earlier[1]] - P[j], axis=1)))
+    return i, j
+
+
 @pytest.mark.parametrize("i, j, from_identity", [(1000, 1003, False), (2000, 2001, True),
-                                                  (2387, 3331, False)])
+                                                  (*_revisit_pair("same"), False),
+                                                  (*_revisit_pair("opposite"), False)],
+                         ids=["odometry", "odometry-from-identity", "revisit", "revisit-opposite"])
 def test_frames_register_onto_their_ground_truth(seq, i, j, from_identity):
-    """small_gicp recovers the GT relative pose (odometry pairs and a loop revisit)."""
+    """small_gicp recovers the GT relative pose (odometry pairs and loop revisits, one driven
+    the other way on the other lane: the town renders the same structures again)."""
     T_gt = np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i]
     if from_identity:
         init = np.eye(4)  # plain odometry: no help from GT
@@ -253,13 +346,15 @@ def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
     times = np.loadtxt(sdir / "times.txt")
     np.testing.assert_array_equal(times, seq.timestamps[20:23])
     poses = np.loadtxt(out / "poses" / "00.txt")
-    np.testing.assert_allclose(poses, np.loadtxt(DATA / "poses.txt")[20:23], atol=1e-12)
+    np.testing.assert_allclose(poses, _camera_poses(seq.gt_poses[20:23])[:, :3, :].reshape(3, 12), atol=1e-9)
     calib = {l.split(":")[0]: np.array(l.split()[1:], float)
              for l in (sdir / "calib.txt").read_text().splitlines()}
     assert set(calib) == {"P0", "Tr"}
-    np.testing.assert_array_equal(calib["Tr"], _shipped_Tr()[:3].ravel())
+    np.testing.assert_allclose(calib["Tr"], rig.T_cam_velo()[:3].ravel(), rtol=1e-12)
+    np.testing.assert_allclose(calib["P0"], rig.P0().ravel(), rtol=1e-12)
     meta = json.loads((sdir / "synthetic.json").read_text())
     assert meta["first_frame"] == 20 and meta["n_frames"] == 3 and meta["seed"] == 0
+    assert meta["route_seed"] == 0 and meta["trajectory"] is None and "generated route" in meta["source"]
     # a second run into the same folder refuses to mix runs unless --overwrite
     assert cli_main(["--out", str(out), "--frames", "0:1"]) == 2
     assert cli_main(["--out", str(out), "--frames", "0:1", "--overwrite"]) == 0

@@ -1,4 +1,4 @@
-"""LiDAR sequences: KITTI odometry on disk and the synthetic KITTI-00 rendering."""
+"""LiDAR sequences: KITTI odometry on disk and the synthetic rendering (a generated route)."""
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence
 

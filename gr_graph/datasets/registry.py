@@ -1,4 +1,4 @@
-"""Open a LiDAR sequence by name: KITTI on disk when present, the synthetic KITTI 00 otherwise.
+"""Open a LiDAR sequence by name: KITTI on disk when present, the synthetic sequence otherwise.
 
 The KITTI root is looked for, in order: the ``data_root`` argument, the environment variable
 ``GR_GRAPH_KITTI_ROOT``, then ``./data/kitti`` and ``~/data/kitti``. A root that is given
@@ -164,8 +164,10 @@ def open_sequence(
     synthetic_seed: int = 0,
     point_format: str = "xyzi",
     kitti_vertical_correction_deg: float = 0.0,
+    route_seed: int = 0,
+    trajectory: str | os.PathLike[str] | None = None,
 ) -> tuple[LidarSequence, str]:
-    """Open a sequence for SLAM: KITTI if a root is given or found, else synthetic KITTI 00.
+    """Open a sequence for SLAM: KITTI if a root is given or found, else the synthetic sequence.
 
     Parameters
     ----------
@@ -178,7 +180,12 @@ def open_sequence(
     frames : "A:B", slice or (A, B), optional
         Frame range.
     synthetic_seed : int
-        Seed of the synthetic rendering.
+        Seed of the synthetic town and noise.
+    route_seed : int
+        Seed of the synthetic sequence's generated route.
+    trajectory : path, optional
+        Render the synthetic sequence along this trajectory (KITTI/TUM pose file or KITTI
+        root) instead of the generated route.
     point_format : {"xyzi", "xyz"}
         Layout of the KITTI ``.bin`` files: float32 x, y, z, intensity (KITTI) or x, y, z
         (12 bytes a point). Unused by the synthetic sequence.
@@ -196,6 +203,9 @@ def open_sequence(
     seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
     root = find_kitti_root(seq, data_root)
     base: LidarSequence
+    if root is not None and trajectory is not None:
+        raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
+                           f"it cannot be combined with the KITTI root {root}")
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
@@ -218,10 +228,11 @@ def open_sequence(
         if kitti_vertical_correction_deg:
             log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
                         "no effect", kitti_vertical_correction_deg)
-        base = SyntheticSequence(seed=synthetic_seed)
+        synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory)
+        base = synth
         source = (
-            "no KITTI root given or found: using the synthetic KITTI 00 (ray cast along the real "
-            f"KITTI 00 trajectory, seed {synthetic_seed})"
+            "no KITTI root given or found: using the synthetic sequence (ray cast along "
+            f"{synth.path.source}, town seed {synthetic_seed})"
         )
     start, stop = parse_frames(frames, len(base))
     transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
@@ -238,4 +249,5 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple
     """
     return open_sequence(seq=data.seq, data_root=data.data_root, channels=data.channels, frames=data.frames,
                          synthetic_seed=synthetic_seed, point_format=data.point_format,
-                         kitti_vertical_correction_deg=data.kitti_vertical_correction_deg)
+                         kitti_vertical_correction_deg=data.kitti_vertical_correction_deg,
+                         route_seed=data.route_seed, trajectory=data.trajectory)

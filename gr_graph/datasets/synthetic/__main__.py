@@ -1,4 +1,8 @@
-"""Render the synthetic KITTI-00 sequence to disk in KITTI layout.
+"""Render the synthetic sequence to disk in KITTI layout.
+
+By default the sensor drives the project's generated route (``--route-seed``); ``--trajectory``
+renders along a KITTI (12 floats a row, camera frame) or TUM pose file, or the poses of a KITTI
+root, instead.
 
 Writes ``DIR/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt, synthetic.json}`` and
 ``DIR/poses/00.txt`` (camera frame), readable by the KITTI loader (``--data-root DIR``).
@@ -31,6 +35,8 @@ EXAMPLES = (
     "python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth16 --frames 0:200 --channels 16 --no-progress",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_xyz --frames 0:10 --point-format xyz",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_r3 --frames 0:100 --route-seed 3",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_traj --frames 0:100 --trajectory poses.txt",
 )
 
 
@@ -40,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_out(ap, "dataset root to write", required=True)
     add_frames(ap, help="half-open frame range A:B of the sequence (default: all)")
     add_seed(ap, "seed of the town and the noise")
+    ap.add_argument("--route-seed", type=int, default=0, metavar="N", help="seed of the generated route")
+    ap.add_argument("--trajectory", default=None, metavar="PATH",
+                    help="render along this KITTI/TUM pose file or KITTI root instead of the generated route")
     add_channels(ap, help="laser rings rendered")
     add_point_format(ap, help="layout of the written .bin files: float32 x,y,z,intensity (KITTI, 16 bytes a point) "
                               "or x,y,z (12 bytes a point)")
@@ -58,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.log_level)
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.channels, max_range=args.max_range,
-                                n_azimuth=args.n_azimuth, nthreads=args.threads)
+                                n_azimuth=args.n_azimuth, nthreads=args.threads,
+                                route_seed=args.route_seed, trajectory=args.trajectory)
         frames = range(*parse_frames(args.frames, len(seq)))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite, progress=not args.no_progress,
                                  point_format=args.point_format)

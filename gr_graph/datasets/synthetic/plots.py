@@ -2,7 +2,7 @@
 
 Writes ``docs/images/synthetic_scan.png`` (a rendered 64-ring scan and its 16-ring
 subsample: bird's-eye views and range images) and ``docs/images/synthetic_town.png`` (the
-town around the KITTI 00 trajectory from above, with a zoom showing a scan in place).
+town around the generated route from above, with a zoom showing a scan in place).
 """
 
 from __future__ import annotations
@@ -95,8 +95,20 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
         for kind, colour in (("tree", "forestgreen"), ("bush", "yellowgreen"), ("pole", "k")):
             circles = [Circle((x, y), max(r, 0.4)) for x, y, r in fp[kind]]
             ax.add_collection(PatchCollection(circles, facecolor=colour, edgecolor="none", alpha=0.8))
-        ax.plot(traj[:, 0], traj[:, 1], color="red", lw=0.8 if k == 0 else 1.5, label="KITTI 00 path")
+        ax.plot(traj[:, 0], traj[:, 1], color="red", lw=0.8 if k == 0 else 1.5, label="route")
         ax.plot(*traj[0, :2], "o", color="red", ms=6)
+        route = seq.path.route
+        if route is not None and k == 0:
+            for n, r in enumerate(route.revisits):
+                a, b = r.frames
+                ax.plot(traj[a:b, 0], traj[a:b, 1], lw=3.5, alpha=0.6,
+                        color="orange" if r.direction == "same" else "deepskyblue",
+                        label=(f"driven again ({r.direction} direction)" if n == [
+                            q.direction for q in route.revisits].index(r.direction) else None))
+            for n, st in enumerate(route.stops):
+                ax.plot(*traj[st.frames[0], :2], "s", color="k", ms=6,
+                        label="stop (10 s or more)" if n == 0 else None)
+            ax.legend(loc="lower left", fontsize=8)
         ax.set_aspect("equal")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
@@ -110,7 +122,7 @@ def plot_town(out: Path, index: int = 1000, seed: int = 0) -> Path:
     axes[0].set_xlim(g["x"][0] + 100, g["x"][-1] - 100)
     axes[0].set_ylim(g["y"][0] + 100, g["y"][-1] - 100)
     n = {k: len(v) for k, v in town.footprints.items()}
-    axes[0].set_title(f"procedural town around KITTI 00 (seed {seed}): {n['building']} buildings, "
+    axes[0].set_title(f"procedural town (seed {seed}) around the generated route: {n['building']} buildings, "
                       f"{n['tree']} trees, {n['car']} cars, {len(town.triangles) / 1e6:.2f} M triangles",
                       fontsize=10)
     axes[1].set_title(f"zoom around frame {index}: buildings (grey), walls (black), trees, bushes, "

@@ -1,15 +1,16 @@
-"""``SyntheticSequence``: a LiDAR sequence rendered on demand along the KITTI 00 trajectory.
+"""``SyntheticSequence``: a LiDAR sequence rendered on demand along a generated route.
 
-Frames are ray cast (open3d ``RaycastingScene``) from the ground-truth LiDAR poses of KITTI
-odometry sequence 00 (shipped in ``gr_graph/data/kitti00``; KITTI: Geiger, Lenz, Urtasun,
-CVPR 2012, CC BY-NC-SA 3.0) into a procedural town (:mod:`.town`) with an HDL-64E-like
-beam model (:mod:`.sensor`). The town is built lazily, once per process and seed, and
-cached; frames are not cached.
+Frames are ray cast (open3d ``RaycastingScene``) from the poses of the sensor path
+(:mod:`.path`: by default the project's own route generated from ``route_seed``
+(:mod:`.route`), or a given trajectory) into a procedural town built around that path
+(:mod:`.town`) with an HDL-64E-like beam model (:mod:`.sensor`). The town is built lazily,
+once per process, town seed and path, and cached; frames are not cached.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -17,30 +18,30 @@ from collections.abc import Iterator
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame, check_index
-from gr_graph.datasets.synthetic.path import load_kitti00_path
+from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.sensor import BeamModel, NoiseModel, render_scan
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town
 
 log = logging.getLogger(__name__)
 
-_CACHE: "OrderedDict[int, tuple[Town, object]]" = OrderedDict()
+_CACHE: "OrderedDict[tuple[int, str], tuple[Town, object]]" = OrderedDict()
 _CACHE_SIZE = 2
 _LOCK = threading.Lock()
 
 
-def get_town_and_scene(town_seed: int) -> tuple[Town, object]:
-    """The town of ``town_seed`` around KITTI 00 and its RaycastingScene (cached, built once)."""
+def get_town_and_scene(town_seed: int, path: SensorPath) -> tuple[Town, object]:
+    """The town of ``town_seed`` around ``path`` and its RaycastingScene (cached, built once)."""
+    key = (int(town_seed), path.key())
     with _LOCK:
-        if town_seed in _CACHE:
-            _CACHE.move_to_end(town_seed)
-            return _CACHE[town_seed]
+        if key in _CACHE:
+            _CACHE.move_to_end(key)
+            return _CACHE[key]
         import open3d as o3d
 
-        path = load_kitti00_path()
         town = build_town(path.T_w_velo[:, :3, 3], seed=town_seed)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles))
-        _CACHE[town_seed] = (town, scene)
+        _CACHE[key] = (town, scene)
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
         return town, scene
@@ -53,13 +54,13 @@ def clear_scene_cache() -> None:
 
 
 class SyntheticSequence:
-    """KITTI 00's trajectory rendered through a procedural town (LidarSequence protocol).
+    """A generated route rendered through a procedural town (LidarSequence protocol).
 
     Parameters
     ----------
     seed : int
         Seeds the per-frame noise (from ``(seed, frame index)``) and, unless ``town_seed``
-        is given, the town. Same seed -> bit-identical frames.
+        is given, the town. Same seeds -> bit-identical frames.
     n_rings : int
         64, 32 or 16 (any divisor of 64): every ``64 // n_rings``-th HDL-64E beam. A
         lower-ring render equals those rings of the 64-ring render exactly.
@@ -73,15 +74,33 @@ class SyntheticSequence:
         Seed of the town layout (default: ``seed``).
     nthreads : int
         Ray-casting threads (0 = open3d's default, all cores).
+    route_seed : int
+        Seed of the generated route (:func:`~gr_graph.datasets.synthetic.route.generate_route`);
+        independent of ``seed``.
+    trajectory : path, optional
+        Render along this trajectory instead of the generated route: a KITTI or TUM pose
+        file or a KITTI root (see :func:`~gr_graph.datasets.synthetic.path.trajectory_path`).
+    trajectory_seq : str
+        The sequence whose poses are used when ``trajectory`` is a KITTI root.
+
+    Attributes
+    ----------
+    path : SensorPath
+        The sensor path (``path.route``: the generated route with its revisits and stops,
+        None for a given trajectory).
     """
 
     def __init__(self, seed: int = 0, n_rings: int = 64, max_range: float = 120.0,
                  n_azimuth: int = 2000, range_sigma: float = 0.02, dropout: float = 0.02,
-                 min_range: float = 1.0, town_seed: int | None = None, nthreads: int = 0):
+                 min_range: float = 1.0, town_seed: int | None = None, nthreads: int = 0,
+                 route_seed: int = 0, trajectory: str | os.PathLike[str] | None = None,
+                 trajectory_seq: str = "00"):
         self.seed = int(seed)
         self.town_seed = self.seed if town_seed is None else int(town_seed)
-        if self.seed < 0 or self.town_seed < 0:
-            raise ValueError(f"seeds must be >= 0, got seed={seed}, town_seed={town_seed}")
+        self.route_seed = int(route_seed)
+        if self.seed < 0 or self.town_seed < 0 or self.route_seed < 0:
+            raise ValueError(f"seeds must be >= 0, got seed={seed}, town_seed={town_seed}, "
+                             f"route_seed={route_seed}")
         self.beams = BeamModel(n_rings=int(n_rings), n_azimuth=int(n_azimuth))
         limit = TownConfig().ground_extent - 5.0
         if not 0 < max_range <= limit:
@@ -90,11 +109,13 @@ class SyntheticSequence:
         self.noise = NoiseModel(range_sigma=range_sigma, dropout=dropout, max_range=max_range,
                                 min_range=min_range)
         self.nthreads = int(nthreads)
-        path = load_kitti00_path()
+        self.trajectory = None if trajectory is None else str(trajectory)
+        self.path = (route_path(self.route_seed) if trajectory is None
+                     else trajectory_path(trajectory, trajectory_seq))
         self.name = "synthetic-00"
-        self.timestamps = path.times.copy()
-        self.T_cam_velo = path.T_cam_velo.copy()
-        self.gt_poses = path.T_w_velo.copy()
+        self.timestamps = self.path.times.copy()
+        self.T_cam_velo = self.path.T_cam_velo.copy()
+        self.gt_poses = self.path.T_w_velo.copy()
         self.motion_compensated = True  # every ray is cast from the frame's (mid-sweep) pose
 
     @property
@@ -104,14 +125,17 @@ class SyntheticSequence:
     @property
     def town(self) -> Town:
         """The (cached) procedural town; built on first use."""
-        return get_town_and_scene(self.town_seed)[0]
+        return get_town_and_scene(self.town_seed, self.path)[0]
 
     def __len__(self) -> int:
         return len(self.gt_poses)
 
     def __repr__(self) -> str:
-        return (f"SyntheticSequence(seed={self.seed}, n_rings={self.n_rings}, "
-                f"max_range={self.noise.max_range}, n_azimuth={self.beams.n_azimuth})")
+        where = (f"route_seed={self.route_seed}" if self.trajectory is None
+                 else f"trajectory={self.trajectory!r}")
+        return (f"SyntheticSequence(seed={self.seed}, town_seed={self.town_seed}, {where}, "
+                f"n_rings={self.n_rings}, max_range={self.noise.max_range}, "
+                f"n_azimuth={self.beams.n_azimuth})")
 
     def frame_rng(self, index: int) -> np.random.Generator:
         """The generator of frame ``index``'s noise: seeded by ``(seed, index)`` only."""
@@ -119,7 +143,7 @@ class SyntheticSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        town, scene = get_town_and_scene(self.town_seed)
+        town, scene = get_town_and_scene(self.town_seed, self.path)
         points, intensity, ring = render_scan(
             scene, town.albedo, town.material, self.gt_poses[i], self.beams, self.noise,
             self.frame_rng(i), nthreads=self.nthreads)

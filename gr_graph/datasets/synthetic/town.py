@@ -1,4 +1,4 @@
-"""A procedural town laid out around a driving path (the KITTI 00 trajectory).
+"""A procedural town laid out around any driving path (by default the generated route).
 
 The town is a fixed world (one triangle mesh) built once from a seed:
 

@@ -6,7 +6,7 @@
                                          x, y, z only with point_format="xyz")
     DIR/sequences/00/calib.txt           P0 and Tr lines (Tr = velodyne -> camera 0)
     DIR/sequences/00/times.txt           one timestamp (s) per frame
-    DIR/sequences/00/synthetic.json      how it was rendered (seed, rings, source frames)
+    DIR/sequences/00/synthetic.json      how it was rendered (seeds, rings, path, source frames)
     DIR/poses/00.txt                     ground truth in the camera-0 frame, 12 floats a row
 
 Frames ``A:B`` of the synthetic sequence are written as files ``000000 .. B-A-1`` with the
@@ -26,7 +26,7 @@ import numpy as np
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.datasets.base import velo_to_cam_poses
 from gr_graph.datasets.point_layout import POINT_FORMATS
-from gr_graph.datasets.synthetic.path import load_kitti00_path
+from gr_graph.datasets.synthetic import rig
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,8 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
             f.unlink()
 
     Tr = np.asarray(seq.T_cam_velo, dtype=np.float64)
-    P0 = load_kitti00_path().P0  # the rendering is of KITTI 00: its camera-0 projection
+    path = getattr(seq, "path", None)
+    P0 = path.P0 if path is not None else rig.P0()
     calib = f"P0: {_fmt_rows(P0.reshape(1, 12)).strip()}\nTr: {_fmt_rows(Tr[:3].reshape(1, 12)).strip()}\n"
     atomic_write_bytes(seq_dir / "calib.txt", calib.encode())
     idx = np.arange(frames.start, frames.stop)
@@ -101,8 +102,10 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "point_format": point_format,
         "first_frame": frames.start,
         "n_frames": len(frames),
-        "source": "trajectory: KITTI odometry 00 ground truth (Geiger, Lenz, Urtasun, CVPR 2012; "
-                  "CC BY-NC-SA 3.0)",
+        "town_seed": getattr(seq, "town_seed", None),
+        "route_seed": getattr(seq, "route_seed", None),
+        "trajectory": getattr(seq, "trajectory", None),
+        "source": path.source if path is not None else getattr(seq, "name", "sequence"),
     }
     atomic_write_bytes(seq_dir / "synthetic.json", (json.dumps(meta, indent=2) + "\n").encode())
 
