@@ -176,6 +176,7 @@ def test_slam_refuses_12_byte_scans_and_runs_them_as_xyz(kitti_root: Path, tmp_p
                                   read_kitti_poses(tmp_path / "xyzi/round_0/poses_kitti.txt"))
 
 
+@pytest.mark.slow
 def test_slam_on_exported_12_byte_scans(tmp_path: Path, capsys) -> None:
     """The same on the synthetic exporter's output (no real data needed): the x,y,z export is
     refused by default and gives the x,y,z,intensity export's poses with --point-format xyz."""

@@ -121,6 +121,7 @@ def test_deterministic_for_a_seed_and_independent_of_order(seq, frame1000):
         seq[4541]
 
 
+@pytest.mark.slow
 def test_town_rebuild_is_bit_identical(frame1000):
     clear_scene_cache()  # rebuild the town and its ray-casting scene from scratch
     again = SyntheticSequence(seed=0)[1000]

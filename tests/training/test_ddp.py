@@ -44,6 +44,7 @@ def memory_dir(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_average_gradients_like_one_process_on_both_pairs(memory_dir, tmp_path):
     out = tmp_path / "ddp"
     out.mkdir()
@@ -65,6 +66,7 @@ def test_ddp_two_processes_average_gradients_like_one_process_on_both_pairs(memo
     assert sorted(edges0 + edges1) == [0, 1, 2, 3]  # each pair seen exactly once per epoch
 
 
+@pytest.mark.slow
 def test_torchrun_entry_point(memory_dir, tmp_path):
     torchrun = Path(sys.executable).with_name("torchrun")
     cmd = ([str(torchrun)] if torchrun.exists() else [sys.executable, "-m", "torch.distributed.run"])

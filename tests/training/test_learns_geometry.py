@@ -48,6 +48,7 @@ def trained(tmp_path_factory):
     return {"pts": prob.points, "nrm": prob.normals, "ids": prob.ids, "C": C, "n_planes": prob.n_planes}
 
 
+@pytest.mark.slow
 def test_planes_normal_and_noise_level_are_learned(trained):
     m = trained["ids"] < trained["n_planes"]
     ang, _ = _angles(trained["C"][m], trained["nrm"][m])

@@ -63,6 +63,7 @@ def test_pose_nll_value_matches_formula():
     assert pose_nll(T_C, T_hat, H, G).item() == pytest.approx(ref, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_pose_nll_minimal_near_true_covariance_scale():
     """Toy problem: data drawn with d ~ N(0, 2 C_true), T̂ = T_true, Gamma ~ 0.
 

@@ -110,6 +110,7 @@ def test_resume_after_kill_equals_uninterrupted_run(memory_dir, tmp_path):
         Trainer(mem, tmp_path / "b", _cfg(epochs=3, lr=1e-2)).fit(resume=True)
 
 
+@pytest.mark.slow
 def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     cfg = {"epochs": 1, "progress": False, "max_corr": 200, "net": SMALL_NET}
     path = train_from_memory(memory_dir, tmp_path / "lib", cfg)
@@ -233,6 +234,7 @@ def test_trains_from_a_memory_written_by_gr_graph_slam(kitti_root, tmp_path):
     assert C.shape == (len(mem.scan(0)), 3, 3) and np.linalg.eigvalsh(C).min() > 0
 
 
+@pytest.mark.slow
 def test_sigkill_mid_epoch_then_resume_equals_uninterrupted_cli_run(memory_dir, tmp_path):
     """A real kill (SIGKILL) of ``python -m training.train``; rerunning the command resumes."""
     import os
