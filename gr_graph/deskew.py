@@ -174,13 +174,7 @@ def deskew(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
     np.ndarray
         ``(N, 3)`` float64 deskewed points.
     """
-    p, t = _check(points, times)
-    if len(p) == 0:
-        return p.copy()
-    xi = log_se3(np.asarray(sweep_motion, np.float64))
-    if not np.any(xi):
-        return p.copy()
-    return _apply_scaled_twist(p, t - reference_time, xi)
+    return _move(points, times, sweep_motion, reference_time, sign=1.0)
 
 
 def distort(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
@@ -190,10 +184,16 @@ def distort(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
     ``points`` are in the sensor frame at ``reference_time``; each is returned in the sensor
     frame at its own time, ``Exp(-(t - s) xi) p``. ``deskew(distort(p, t, M), t, M) == p``.
     """
+    return _move(points, times, sweep_motion, reference_time, sign=-1.0)
+
+
+def _move(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray, reference_time: float,
+          sign: float) -> np.ndarray:
+    """``Exp(sign * (t - reference_time) * xi) p`` for every point (``xi = Log(sweep_motion)``)."""
     p, t = _check(points, times)
     if len(p) == 0:
         return p.copy()
     xi = log_se3(np.asarray(sweep_motion, np.float64))
     if not np.any(xi):
         return p.copy()
-    return _apply_scaled_twist(p, reference_time - t, xi)
+    return _apply_scaled_twist(p, sign * (t - reference_time), xi)
