@@ -10,6 +10,8 @@ Frame conventions
 - ``intensity`` is ``float32`` of shape ``(N,)`` (reflectance in [0, 1] for KITTI).
 - ``ring`` is the laser index ``0..n_rings-1`` ordered from the *highest* elevation beam
   (0) to the lowest, ``int16`` of shape ``(N,)``; ``None`` when unknown.
+- ``time`` is each point's measurement time as a fraction of the sweep, ``float64`` in
+  ``[0, 1]`` of shape ``(N,)`` (0 = the sweep's start); ``None`` when the data has none.
 
 Pose conventions
 ----------------
@@ -52,6 +54,8 @@ class LidarFrame:
         Number of rings of the sensor this frame was taken (or subsampled) with.
     dropped_nonfinite : int
         Number of non-finite points removed when the frame was loaded.
+    time : np.ndarray or None
+        ``(N,)`` float64 per-point sweep fraction in ``[0, 1]``, or None if the data has none.
     """
 
     index: int
@@ -61,6 +65,7 @@ class LidarFrame:
     ring: np.ndarray | None = None
     n_rings: int = 64
     dropped_nonfinite: int = 0
+    time: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.points)
@@ -70,6 +75,11 @@ class LidarFrame:
             raise DatasetError(f"frame {self.index}: intensity shape {self.intensity.shape} != ({n},)")
         if self.ring is not None and self.ring.shape != (n,):
             raise DatasetError(f"frame {self.index}: ring shape {self.ring.shape} != ({n},)")
+        if self.time is not None:
+            if self.time.shape != (n,):
+                raise DatasetError(f"frame {self.index}: time shape {self.time.shape} != ({n},)")
+            if n and not (np.all(np.isfinite(self.time)) and self.time.min() >= 0.0 and self.time.max() <= 1.0):
+                raise DatasetError(f"frame {self.index}: per-point times must be finite sweep fractions in [0, 1]")
 
     def __len__(self) -> int:
         return len(self.points)
@@ -81,6 +91,7 @@ class LidarFrame:
             points=self.points[mask],
             intensity=self.intensity[mask],
             ring=None if self.ring is None else self.ring[mask],
+            time=None if self.time is None else self.time[mask],
             n_rings=self.n_rings if n_rings is None else n_rings,
         )
 

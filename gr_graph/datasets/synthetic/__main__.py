@@ -5,11 +5,15 @@ Examples::
     python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0
     python -m gr_graph.datasets.synthetic --out /tmp/synth --route-seed 3
     python -m gr_graph.datasets.synthetic --out /tmp/synth --trajectory poses.txt
+    python -m gr_graph.datasets.synthetic --out /tmp/synth --preset raw
 
 write ``/tmp/synth/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt}`` and
 ``/tmp/synth/poses/00.txt`` (camera frame), readable by the KITTI loader. By default the
 sensor drives the project's generated route (``--route-seed``); ``--trajectory`` renders
 along a KITTI (12 floats a row, camera frame) or TUM pose file, or the poses of a KITTI root.
+``--preset`` chooses the sensor effects (``clean``, ``kitti``, ``raw``; see
+``gr_graph.datasets.synthetic.effects``); ``raw`` scans also get
+``sequences/00/times/%06d.npy``, each point's sweep fraction (float32, in file order).
 """
 
 from __future__ import annotations
@@ -19,7 +23,8 @@ import logging
 import sys
 from pathlib import Path
 
-from gr_graph.datasets.synthetic.sequence import SyntheticSequence
+from gr_graph.datasets.synthetic.effects import PRESETS
+from gr_graph.datasets.synthetic.sequence import DEFAULT_PRESET, SyntheticSequence
 from gr_graph.datasets.synthetic.writer import parse_frames, write_kitti_layout
 
 
@@ -35,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-rings", type=int, default=64, help="64, 32 or 16 (default 64)")
     ap.add_argument("--max-range", type=float, default=120.0, help="metres (default 120)")
     ap.add_argument("--n-azimuth", type=int, default=2000, help="azimuth steps (default 2000)")
+    ap.add_argument("--preset", choices=PRESETS, default=None,
+                    help=f"sensor effects: clean, kitti or raw (default {DEFAULT_PRESET})")
     ap.add_argument("--threads", type=int, default=0, help="ray-casting threads (0 = all)")
     ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
     args = ap.parse_args(argv)
@@ -42,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.n_rings, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads,
-                                route_seed=args.route_seed, trajectory=args.trajectory)
+                                route_seed=args.route_seed, trajectory=args.trajectory,
+                                preset=args.preset)
         frames = parse_frames(args.frames, len(seq))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as exc:
