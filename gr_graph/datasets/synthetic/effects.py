@@ -56,14 +56,17 @@ mixed pixels (:class:`MixedPixels`)
     mixes foreground and background in proportion to the footprint covered (1-D footprint);
     when the two surfaces are closer than ``merge_distance_m`` = 2 m (assumption: the echoes of
     a few-ns pulse overlap) the sensor reports their weighted mean range, a point in mid-air;
-    otherwise it resolves the (stronger) own surface. Only depth edges (neighbour range
-    differences above ``min_edge_m`` = 0.1 m) mix. Only azimuth neighbours of the same laser
+    otherwise it resolves the (stronger) own surface. Only depth edges mix: a gap between
+    neighbours that exceeds the mean of the neighbouring gaps by more than ``min_edge_m`` =
+    0.1 m (a jump, not the steady range slope of an oblique plane). Only azimuth neighbours of the same laser
     are used, so a 16/32-ring render stays the corresponding rings of the 64-ring render.
 
 rough surfaces (:class:`Roughness`)
     Grass, gravel, bushes, bark and brick are not planes: each return is displaced along the
     surface normal by a fixed random height field of the material (0.1 m cells hashed from the
-    world position, so every frame sees the same bumps), uniform with standard deviation per
+    world position, so every frame sees the same bumps; a height ``h`` along the normal moves the
+    return by ``h / cos(theta)`` along the ray, theta capped at the sensor's grazing cut-off),
+    uniform with standard deviation per
     material: terrain (grass, gravel) 3 cm, foliage (bushes, crowns) 5 cm, trunk 1 cm,
     building (brick, plaster) 0.5 cm, wall 1 cm, sidewalk 0.3 cm, road 0.2 cm, poles/cars/glass 0
     (assumptions: the heights of lawn grass, gravel and leaves, and of mortar joints).

@@ -332,7 +332,7 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
         cells = np.floor(p_w / effects.roughness.cell_m)
         h = np.sqrt(3.0) * sig * hashed_uniform(cells, roughness_seed)  # height above the surface
         r = r.copy()
-        r[fin] -= h / np.maximum(cos_all[fin], 0.2)
+        r[fin] -= h / np.maximum(cos_all[fin], noise.grazing_cos)  # h along the normal
     if effects.mixed_pixels.enabled:
         r = _mix_pixels(r, u_mix, n_r, n_az, effects.mixed_pixels)
     if effects.range_noise.enabled:
@@ -372,7 +372,8 @@ def _mix_pixels(r: np.ndarray, u: np.ndarray, n_r: int, n_az: int, cfg) -> np.nd
     The edge between ray ``j`` and ``j + 1`` of a ring lies at ``u_j * step`` from ray ``j``;
     a ray whose footprint (half-width ``divergence / 2``) covers it returns the mean range
     of both surfaces weighted by the covered footprint fractions when they are closer than
-    ``merge_distance_m``, else its own surface.
+    ``merge_distance_m``, else its own surface. A depth edge is a gap that exceeds the mean
+    of the two neighbouring gaps by more than ``min_edge_m`` (a jump, not a slope).
     """
     step = 2.0 * np.pi / n_az
     half = 0.5 * cfg.divergence_rad
@@ -380,8 +381,15 @@ def _mix_pixels(r: np.ndarray, u: np.ndarray, n_r: int, n_az: int, cfg) -> np.nd
     Rn = np.roll(R, -1, axis=1)  # right neighbour (wraps around the revolution)
     x = u.reshape(n_r, n_az).astype(np.float64) * step
     with np.errstate(invalid="ignore"):
-        gap = np.abs(Rn - R)
-    edge = np.isfinite(gap) & (gap >= cfg.min_edge_m) & (gap <= cfg.merge_distance_m)
+        g = Rn - R  # gap between ray j and j + 1
+        # a depth edge is a jump, not a slope: the gap departs from the neighbouring gaps
+        # (on an oblique plane consecutive gaps change smoothly); a missing neighbour gap
+        # (no return) is no evidence of a jump
+        gl, gr = np.roll(g, 1, axis=1), np.roll(g, -1, axis=1)
+        gl = np.where(np.isfinite(gl), gl, g)
+        gr = np.where(np.isfinite(gr), gr, g)
+        jump = np.abs(g) - 0.5 * (np.abs(gl) + np.abs(gr))
+    edge = np.isfinite(g) & (jump >= cfg.min_edge_m) & (np.abs(g) <= cfg.merge_distance_m)
     out = R.copy()
     w_left = np.where(edge, np.clip((half - x) / cfg.divergence_rad, 0.0, None), 0.0)   # ray j covers the edge
     w_right = np.where(edge, np.clip((half - (step - x)) / cfg.divergence_rad, 0.0, None), 0.0)  # ray j+1 does
