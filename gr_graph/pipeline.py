@@ -490,6 +490,7 @@ class SlamPipeline:
                 seq=cfg.data.seq, data_root=cfg.data.data_root, channels=cfg.data.channels,
                 frames=cfg.data.frames, synthetic_seed=cfg.seed,
                 route_seed=cfg.data.route_seed, trajectory=cfg.data.trajectory,
+                synthetic_preset=cfg.data.synthetic_preset,
             )
         self.sequence = sequence
         self.source_description = source_description or getattr(sequence, "name", "sequence")

@@ -38,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--route-seed", type=int, default=None, help="synthetic: seed of the generated route (default 0)")
     p.add_argument("--trajectory", default=None,
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
+    p.add_argument("--synthetic-preset", choices=("clean", "kitti", "raw"), default=None,
+                   help="synthetic: sensor effects preset (default: the sequence's default)")
     p.add_argument("--rounds", type=int, default=None, help="learning rounds after round 0 (default 0)")
     p.add_argument("--out", default=None, help="output directory (default runs/slam)")
     p.add_argument("--config", default=None, help="YAML file with config sections (see gr_graph/config.py)")
@@ -65,6 +67,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["route_seed"] = args.route_seed
     if args.trajectory is not None:
         o["data"]["trajectory"] = args.trajectory
+    if args.synthetic_preset is not None:
+        o["data"]["synthetic_preset"] = args.synthetic_preset
     if args.rounds is not None:
         if args.rounds < 0:
             raise ValueError("--rounds must be >= 0")

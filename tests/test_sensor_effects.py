@@ -342,3 +342,21 @@ def test_render_frame_without_effects_is_render_scan():
     assert preset("kitti").motion.mode == "compensated" and preset("raw").motion.mode == "raw"
     with pytest.raises(ValueError):
         preset("kitti").with_effect("fog", True)
+
+
+def test_preset_reaches_open_sequence_config_and_cli(monkeypatch, tmp_path):
+    from gr_graph.config import SlamConfig
+    from gr_graph.datasets.registry import KITTI_ROOT_ENV, open_sequence
+    from gr_graph.slam import build_parser, overrides_from_args
+
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)  # no KITTI root found by default
+    view, desc = open_sequence(channels=16, frames="5:7", synthetic_preset="raw")
+    assert "raw" in desc and view.motion_compensated is False and view.scan_period == 0.1
+    f = view[0]
+    assert f.n_rings == 16 and f.time is not None and len(f.time) == len(f)
+    args = build_parser().parse_args(["--synthetic-preset", "kitti"])
+    assert overrides_from_args(args)["data"]["synthetic_preset"] == "kitti"
+    assert SlamConfig().data.synthetic_preset is None
+    with pytest.raises(ValueError):
+        SlamConfig(data={"synthetic_preset": "foggy"})

@@ -130,4 +130,5 @@ def subsample_channels(frame: LidarFrame, channels: int) -> LidarFrame:
         ring=(sub.ring // stride).astype(np.int16),
         n_rings=channels,
         dropped_nonfinite=sub.dropped_nonfinite,
+        time=sub.time,
     )

@@ -59,6 +59,9 @@ class SequenceView:
         self.timestamps = np.asarray(parent.timestamps)[start:stop]
         self.gt_poses = None if parent.gt_poses is None else np.asarray(parent.gt_poses)[start:stop]
         self.T_cam_velo = parent.T_cam_velo
+        self.motion_compensated = bool(getattr(parent, "motion_compensated", True))
+        if getattr(parent, "scan_period", None) is not None:
+            self.scan_period = float(parent.scan_period)
 
     def __len__(self) -> int:
         return self.stop - self.start
@@ -141,6 +144,7 @@ def open_sequence(
     synthetic_seed: int = 0,
     route_seed: int = 0,
     trajectory: str | os.PathLike[str] | None = None,
+    synthetic_preset: str | None = None,
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: KITTI if a root is given or found, else the synthetic sequence.
 
@@ -161,6 +165,9 @@ def open_sequence(
     trajectory : path, optional
         Render the synthetic sequence along this trajectory (KITTI/TUM pose file or KITTI
         root) instead of the generated route.
+    synthetic_preset : str, optional
+        Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
+        default preset). Ignored for KITTI data.
 
     Returns
     -------
@@ -188,11 +195,13 @@ def open_sequence(
             )
         from gr_graph.datasets.synthetic import SyntheticSequence
 
-        synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory)
+        synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory,
+                                  preset=synthetic_preset)
         base = synth
         source = (
             "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed})"
+            f"{synth.path.source}, town seed {synthetic_seed}, sensor preset {synth.preset!r}: "
+            f"{synth.effects.describe()})"
         )
     start, stop = parse_frames(frames, len(base))
     transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
