@@ -360,3 +360,22 @@ def test_preset_reaches_open_sequence_config_and_cli(monkeypatch, tmp_path):
     assert SlamConfig().data.synthetic_preset is None
     with pytest.raises(ValueError):
         SlamConfig(data={"synthetic_preset": "foggy"})
+
+
+def test_vertical_angle_error_is_undone_by_the_published_kitti_correction():
+    """KISS-ICP / CT-ICP correct KITTI scans by rotating every point up by ~0.22 deg about
+    ``p x z``; applied to our render of flat ground with only the global offset, it restores
+    the plane z = -H exactly (the sign and size of the modelled error match the literature)."""
+    from scipy.spatial.transform import Rotation
+
+    scene, albedo, material = _scene([(_quad(-300, 300, -300, 300, -H), "road")])
+    cfg = CalibrationErrors(enabled=True, elevation_sigma_deg=0, azimuth_sigma_deg=0,
+                            range_offset_sigma_m=0, range_scale_sigma=0)
+    out = render_frame(scene, albedo, material, np.eye(4), BeamModel(64, 500), NO_NOISE, np.random.default_rng(0),
+                       effects=SensorEffects(calibration=cfg), laser_calib=draw_laser_calibration(cfg, 0))
+    p = out.points[np.linalg.norm(out.points, axis=1) < 60]
+    assert p[:, 2].min() < -H - 0.1  # bent down: far ground points lie too low
+    axis = np.cross(p, [0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    q = Rotation.from_rotvec(axis * np.radians(0.22)).apply(p)
+    np.testing.assert_allclose(q[:, 2], -H, atol=1e-5)
