@@ -12,6 +12,9 @@ Run::
     python benchmarks/bench_realism.py [--frames 50] [--real ../shared/data/kitti]
 
 Writes ``benchmarks/results/realism.md`` (and ``realism.json`` beside it).
+``--export DIR --preset kitti`` instead writes those frame pairs in KITTI layout, for the
+realism CLI: ``python -m gr_graph.datasets.realism ../shared/data/kitti DIR --max-frames 50``
+(it picks frames 0, 2, 4, ... of the 100, i.e. the first frame of every pair).
 """
 
 from __future__ import annotations
@@ -57,6 +60,29 @@ def synthetic_statistics(effects: SensorEffects, frames: np.ndarray, n_rings: in
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS} | {"frames": len(rows)}
 
 
+class _Pairs:
+    """Frames ``(i, i + 1)`` for ``i`` in ``frames`` of a sequence, as one contiguous sequence
+    (so the exporter can write them and ``python -m gr_graph.datasets.realism`` reads pairs)."""
+
+    def __init__(self, seq: SyntheticSequence, frames: np.ndarray):
+        self.seq = seq
+        self.idx = np.stack([frames, frames + 1], axis=1).ravel()
+        self.name, self.seed, self.n_rings = seq.name, seq.seed, seq.n_rings
+        self.timestamps = seq.timestamps[self.idx]
+        self.gt_poses = seq.gt_poses[self.idx]
+        self.T_cam_velo = seq.T_cam_velo
+        self.preset, self.effects = seq.preset, seq.effects
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, k: int):
+        return self.seq[int(self.idx[k])]
+
+    def __repr__(self) -> str:
+        return f"pairs of {self.seq!r}"
+
+
 def configurations() -> list[tuple[str, SensorEffects]]:
     kitti = preset("kitti")
     out = [("clean", preset("clean")), ("kitti", kitti), ("raw", preset("raw"))]
@@ -79,7 +105,17 @@ def main() -> None:
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti")
     ap.add_argument("--only", default=None, help="comma-separated configuration names (default: all)")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--export", type=Path, default=None,
+                    help="only write the frame pairs of --preset to this KITTI-layout folder and exit")
+    ap.add_argument("--preset", default="kitti", help="preset of --export")
     args = ap.parse_args()
+    if args.export is not None:
+        from gr_graph.datasets.synthetic.writer import write_kitti_layout
+
+        seq = SyntheticSequence(seed=0, nthreads=1, preset=args.preset)
+        frames = np.unique(np.round(np.linspace(0, len(seq) - 2, args.frames)).astype(int))
+        write_kitti_layout(_Pairs(seq, frames), args.export, overwrite=True)
+        return
     load0 = os.getloadavg()
     n_route = len(SyntheticSequence(seed=0))
     frames = np.unique(np.round(np.linspace(0, n_route - 2, args.frames)).astype(int))
