@@ -295,7 +295,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     theta = np.linalg.norm(w, axis=-1)
     a, b, c = _so3_terms(theta)
     W = _hat(w)
-    W2 = W @ W
+    W2 = w[..., :, None] * w[..., None, :] - (theta * theta)[..., None, None] * np.eye(3)  # = W @ W
     eye = np.eye(3)
     R = eye + a[..., None, None] * W + b[..., None, None] * W2
     V = eye + b[..., None, None] * W + c[..., None, None] * W2

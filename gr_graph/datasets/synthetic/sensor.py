@@ -265,30 +265,36 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
     n_r = len(beam_idx)
     el_nom = np.radians(hdl64_elevations_deg())[beam_idx]
     az_col = phase + 2.0 * np.pi * np.arange(n_az) / n_az
-    el_true = np.broadcast_to(el_nom[:, None], (n_r, n_az))
-    az_true = np.broadcast_to(az_col[None, :], (n_r, n_az))
+    caz, saz = np.cos(az_col), np.sin(az_col)
+    el_true = el_nom
     cal = effects.calibration.enabled
     if cal:
         if laser_calib is None:
             raise ValueError("render_frame: calibration errors need the sensor's laser_calib")
-        el_true = el_true + laser_calib.elevation_rad[beam_idx, None]
-        az_true = az_true + laser_calib.azimuth_rad[beam_idx, None]
-    ce = np.cos(el_true)
-    d_true = np.stack(np.broadcast_arrays(ce * np.cos(az_true), ce * np.sin(az_true), np.sin(el_true)),
-                      axis=-1)  # (n_r, n_az, 3) in the sensor frame of each column's time
+        el_true = el_nom + laser_calib.elevation_rad[beam_idx]
+        daz = laser_calib.azimuth_rad[beam_idx]
+        cd, sd = np.cos(daz).astype(np.float32)[:, None], np.sin(daz).astype(np.float32)[:, None]
+        c32, s32 = caz.astype(np.float32)[None, :], saz.astype(np.float32)[None, :]
+        cos_az, sin_az = cd * c32 - sd * s32, sd * c32 + cd * s32  # cos/sin(az + daz), (n_r, n_az)
+    else:
+        cos_az = np.broadcast_to(caz.astype(np.float32)[None, :], (n_r, n_az))
+        sin_az = np.broadcast_to(saz.astype(np.float32)[None, :], (n_r, n_az))
+    ce_t = np.cos(el_true).astype(np.float32)[:, None]
+    se_t = np.sin(el_true).astype(np.float32)[:, None]
+    # true beam directions in the sensor frame of each column's time, (n_r, n_az) per axis
+    dx, dy, dz = ce_t * cos_az, ce_t * sin_az, np.broadcast_to(se_t, (n_r, n_az))
     rays = np.empty((n_r, n_az, 6), dtype=np.float32)
     if motion is None:
-        R, t = T_w_s[:3, :3], T_w_s[:3, 3]
+        R, t = T_w_s[:3, :3].astype(np.float32), T_w_s[:3, 3]
         rays[..., :3] = t
         for k in range(3):
-            rays[..., 3 + k] = d_true[..., 0] * R[k, 0] + d_true[..., 1] * R[k, 1] + d_true[..., 2] * R[k, 2]
+            rays[..., 3 + k] = dx * R[k, 0] + dy * R[k, 1] + dz * R[k, 2]
         ray_time = np.full(n_r * n_az, float(timestamp))
     else:
-        Rc, tc = motion.T_w_col[:, :3, :3], motion.T_w_col[:, :3, 3]
-        rays[..., :3] = tc[None, :, :]
+        Rc = motion.T_w_col[:, :3, :3].astype(np.float32)
+        rays[..., :3] = motion.T_w_col[None, :, :3, 3]
         for k in range(3):
-            rays[..., 3 + k] = (d_true[..., 0] * Rc[None, :, k, 0] + d_true[..., 1] * Rc[None, :, k, 1]
-                                + d_true[..., 2] * Rc[None, :, k, 2])
+            rays[..., 3 + k] = dx * Rc[None, :, k, 0] + dy * Rc[None, :, k, 1] + dz * Rc[None, :, k, 2]
         ray_time = np.broadcast_to(motion.column_time[None, :], (n_r, n_az)).ravel()
     rays = rays.reshape(-1, 6)
     sel = (beam_idx[:, None] * n_az + np.arange(n_az)[None, :]).ravel()
@@ -299,8 +305,9 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
     t_hit = hit["t_hit"].numpy().astype(np.float64)
     valid = np.flatnonzero(np.isfinite(t_hit))
     prim = hit["primitive_ids"].numpy()[valid]
-    normals = np.zeros((len(t_hit), 3), dtype=np.float32)
-    normals[valid] = hit["primitive_normals"].numpy()[valid]
+    normals = hit["primitive_normals"].numpy()  # used at hits only
+    if actors is not None:
+        normals = normals.copy()
     mat = np.zeros(len(t_hit), dtype=np.int64)
     alb = np.zeros(len(t_hit), dtype=np.float32)
     mat[valid] = material[prim]
@@ -328,8 +335,9 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
         sig = effects.roughness.sigma_by_material_id()[mat[fin]]
         rough = np.flatnonzero(sig > 0)
         fin, sig = fin[rough], sig[rough]
-        p_w = rays[fin, :3] + dirs[fin] * r[fin, None]
-        cells = np.floor(p_w / effects.roughness.cell_m)
+        r32 = np.where(np.isfinite(r), r, 0.0).astype(np.float32)
+        p_w = rays[:, :3] + dirs * r32[:, None]  # all rays: cheaper than gathering first
+        cells = np.floor(p_w[fin] / effects.roughness.cell_m)
         h = np.sqrt(3.0) * sig * hashed_uniform(cells, roughness_seed)  # height above the surface
         r = r.copy()
         r[fin] -= h / np.maximum(cos_all[fin], noise.grazing_cos)  # h along the normal
@@ -350,15 +358,21 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
     p_drop[glass] = np.maximum(p_drop[glass], noise.glass_dropout)
     idx = idx[u_drop[idx] >= p_drop]
     col = idx % n_az
-    ce_n = np.cos(el_nom)[ring_all[idx]]
-    az_n = az_col[col]
-    d_nom = np.stack([ce_n * np.cos(az_n), ce_n * np.sin(az_n), np.sin(el_nom)[ring_all[idx]]], axis=1)
-    points = d_nom * r[idx, None]
+    ring_idx = ring_all[idx]
+    r_idx = r[idx]
+    ce_r = np.cos(el_nom)[ring_idx] * r_idx
+    points = np.empty((len(idx), 3))
+    points[:, 0] = ce_r * caz[col]  # reported along the nominal beam directions
+    points[:, 1] = ce_r * saz[col]
+    points[:, 2] = np.sin(el_nom)[ring_idx] * r_idx
     time = None
     if motion is not None:
         if motion.T_mid_col_est is not None:  # compensated into the mid-sweep frame
-            E = motion.T_mid_col_est[col]
-            points = np.einsum("nij,nj->ni", E[:, :3, :3], points) + E[:, :3, 3]
+            E = motion.T_mid_col_est
+            x, y, z = points[:, 0].copy(), points[:, 1].copy(), points[:, 2].copy()
+            for k in range(3):
+                points[:, k] = (E[:, k, 0][col] * x + E[:, k, 1][col] * y + E[:, k, 2][col] * z
+                                + E[:, k, 3][col])
         else:
             time = motion.column_fraction[col].astype(np.float64)
     inten = alb[idx] * (0.25 + 0.75 * cos_all[idx]) * (1.0 + noise.intensity_noise * u_int[idx])
