@@ -7,7 +7,7 @@ stretch of frames against the ground truth.
 
 Run::
 
-    python benchmarks/bench_render.py [--frames 60] [--odometry 100]
+    python benchmarks/bench_render.py [--frames 60] [--odometry 100] [--presets clean,kitti,raw]
 
 Writes ``benchmarks/results/render.md``.
 """
@@ -59,8 +59,8 @@ def bench_build() -> tuple[float, float, int]:
     return t_town, t_bvh, len(town.triangles)
 
 
-def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray) -> tuple[float, float]:
-    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads)
+def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray, preset: str = "clean") -> tuple[float, float]:
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads, preset=preset)
     seq[int(frames[0])]  # warm up
     n_pts = 0
     t0 = time.perf_counter()
@@ -108,6 +108,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=60, help="frames timed per configuration")
     ap.add_argument("--odometry", type=int, default=100, help="frames of the odometry check (0: skip)")
+    ap.add_argument("--presets", default="clean",
+                    help="comma-separated sensor presets to time (clean, kitti, raw; default clean)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     load0 = os.getloadavg()
@@ -117,12 +119,14 @@ def main() -> None:
     seq_frames = np.arange(1000, 1000 + args.frames)
     rand_frames = np.sort(rng.choice(4541, args.frames, replace=False))
     rows = []
-    for n_rings in (64, 32, 16):
-        for nthreads in (1, 0):
-            fps, pts = bench_fps(n_rings, nthreads, seq_frames)
-            fps_r, _ = bench_fps(n_rings, nthreads, rand_frames)
-            rows.append((n_rings, "1" if nthreads == 1 else f"all ({os.cpu_count()})", fps, fps_r, pts))
-            print(rows[-1])
+    presets = args.presets.split(",")
+    for preset in presets:
+        for n_rings in (64, 32, 16):
+            for nthreads in (1, 0):
+                fps, pts = bench_fps(n_rings, nthreads, seq_frames, preset)
+                fps_r, _ = bench_fps(n_rings, nthreads, rand_frames, preset)
+                rows.append((preset, n_rings, "1" if nthreads == 1 else f"all ({os.cpu_count()})", fps, fps_r, pts))
+                print(rows[-1])
     odo = []
     if args.odometry:
         for n_rings in (64, 16):
@@ -134,7 +138,8 @@ def main() -> None:
     lines = [
         "# Synthetic renderer (generated route): speed",
         "",
-        f"Reproduce: `python benchmarks/bench_render.py --frames {args.frames} --odometry {args.odometry}`",
+        f"Reproduce: `python benchmarks/bench_render.py --frames {args.frames} --odometry {args.odometry} "
+        f"--presets {args.presets}`",
         "",
         f"- date (UTC): {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M}",
         f"- machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; load average "
@@ -150,10 +155,13 @@ def main() -> None:
         "",
         "## Frames rendered per second (target: >= 10 at 64 rings)",
         "",
-        "| rings | ray-cast threads | frames/s, sequential (1000..) | frames/s, random frames | points/frame |",
-        "|---:|---|---:|---:|---:|",
+        "Sensor presets (`gr_graph/datasets/synthetic/effects.py`): `clean` = no effect; `kitti` and `raw` = "
+        "every effect on (motion distortion, per-laser calibration, range noise, mixed pixels, roughness).",
+        "",
+        "| preset | rings | ray-cast threads | frames/s, sequential (1000..) | frames/s, random frames | points/frame |",
+        "|---|---:|---|---:|---:|---:|",
     ]
-    lines += [f"| {r} | {t} | {f:.1f} | {fr:.1f} | {p:,.0f} |" for r, t, f, fr, p in rows]
+    lines += [f"| {pr} | {r} | {t} | {f:.1f} | {fr:.1f} | {p:,.0f} |" for pr, r, t, f, fr, p in rows]
     if odo:
         lines += [
             "",

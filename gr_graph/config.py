@@ -52,6 +52,9 @@ class DataConfig(_Section):
     route_seed: int = Field(0, ge=0, description="synthetic sequence: seed of the generated route")
     trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
                                    "pose file or KITTI root instead of the generated route")
+    synthetic_preset: Literal["clean", "kitti", "raw"] | None = Field(
+        None, description="synthetic sequence: sensor effects (clean: ideal sensor; kitti: KITTI-like "
+        "errors; raw: kitti with the full motion distortion); None: the sequence's default")
 
     @field_validator("frames", mode="before")
     @classmethod

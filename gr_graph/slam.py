@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
     p.add_argument("--trajectory", default=None, metavar="PATH",
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
+    p.add_argument("--synthetic-preset", choices=("clean", "kitti", "raw"), default=None,
+                   help="synthetic data: sensor effects preset (default: the sequence's default)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
     add_out(p, f"output directory (default: {d.output.out_dir})")
@@ -102,6 +104,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["route_seed"] = args.route_seed
     if args.trajectory is not None:
         o["data"]["trajectory"] = args.trajectory
+    if args.synthetic_preset is not None:
+        o["data"]["synthetic_preset"] = args.synthetic_preset
     if args.rounds is not None:
         if args.rounds < 0:
             raise ValueError("--rounds must be >= 0")

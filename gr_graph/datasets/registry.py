@@ -166,6 +166,7 @@ def open_sequence(
     kitti_vertical_correction_deg: float = 0.0,
     route_seed: int = 0,
     trajectory: str | os.PathLike[str] | None = None,
+    synthetic_preset: str | None = None,
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: KITTI if a root is given or found, else the synthetic sequence.
 
@@ -192,6 +193,9 @@ def open_sequence(
     kitti_vertical_correction_deg : float
         KITTI only: elevation correction of every point (see
         :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
+    synthetic_preset : str, optional
+        Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
+        default preset). Ignored for KITTI data.
 
     Returns
     -------
@@ -228,11 +232,13 @@ def open_sequence(
         if kitti_vertical_correction_deg:
             log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
                         "no effect", kitti_vertical_correction_deg)
-        synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory)
+        synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory,
+                                  preset=synthetic_preset)
         base = synth
         source = (
             "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed})"
+            f"{synth.path.source}, town seed {synthetic_seed}, sensor preset {synth.preset!r}: "
+            f"{synth.effects.describe()})"
         )
     start, stop = parse_frames(frames, len(base))
     transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
@@ -250,4 +256,5 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple
     return open_sequence(seq=data.seq, data_root=data.data_root, channels=data.channels, frames=data.frames,
                          synthetic_seed=synthetic_seed, point_format=data.point_format,
                          kitti_vertical_correction_deg=data.kitti_vertical_correction_deg,
-                         route_seed=data.route_seed, trajectory=data.trajectory)
+                         route_seed=data.route_seed, trajectory=data.trajectory,
+                         synthetic_preset=data.synthetic_preset)

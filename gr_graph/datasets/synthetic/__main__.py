@@ -8,6 +8,9 @@ Writes ``DIR/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt, synthetic.js
 ``DIR/poses/00.txt`` (camera frame), readable by the KITTI loader (``--data-root DIR``).
 ``--point-format xyz`` writes 12-byte x,y,z points without intensity, as some public
 datasets do (read them back with ``--point-format xyz``).
+``--preset`` chooses the sensor effects (``clean``, ``kitti``, ``raw``; see
+``gr_graph.datasets.synthetic.effects``); ``raw`` scans also get
+``sequences/00/times/%06d.npy``, each point's sweep fraction (float32, in file order).
 """
 
 from __future__ import annotations
@@ -27,7 +30,8 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.datasets.synthetic.sequence import SyntheticSequence
+from gr_graph.datasets.synthetic.effects import PRESETS
+from gr_graph.datasets.synthetic.sequence import DEFAULT_PRESET, SyntheticSequence
 from gr_graph.datasets.registry import parse_frames
 from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
@@ -37,6 +41,7 @@ EXAMPLES = (
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_xyz --frames 0:10 --point-format xyz",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_r3 --frames 0:100 --route-seed 3",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_traj --frames 0:100 --trajectory poses.txt",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_raw --frames 0:100 --preset raw",
 )
 
 
@@ -54,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
                               "or x,y,z (12 bytes a point)")
     ap.add_argument("--max-range", type=float, default=120.0, metavar="M", help="largest range [m]")
     ap.add_argument("--n-azimuth", type=int, default=2000, metavar="N", help="azimuth steps of a revolution")
+    ap.add_argument("--preset", choices=PRESETS, default=None,
+                    help=f"sensor effects: clean, kitti or raw (default: {DEFAULT_PRESET})")
     add_threads(ap, "ray-casting threads (0 = all)", default=0)
     ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
     add_no_progress(ap)
@@ -68,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.channels, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads,
-                                route_seed=args.route_seed, trajectory=args.trajectory)
+                                route_seed=args.route_seed, trajectory=args.trajectory,
+                                preset=args.preset)
         frames = range(*parse_frames(args.frames, len(seq)))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite, progress=not args.no_progress,
                                  point_format=args.point_format)

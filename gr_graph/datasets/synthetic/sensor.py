@@ -16,14 +16,24 @@ All per-ray random draws are made for the full 64 × ``n_azimuth`` grid, in a fi
 from a generator seeded by ``(seed, frame index)``, so frame *i* does not depend on which
 frames were rendered before, and a 32/16-ring render is exactly the corresponding rings
 of the 64-ring render.
+
+:func:`render_scan` is that original (``clean``) render; :func:`render_frame` adds the
+sensor effects of :mod:`.effects` (motion distortion, per-laser calibration errors, range
+noise growing with range and incidence, mixed pixels, rough surfaces) and moving objects
+(an ``actors`` object, see :class:`Actors`); with no effect and no actors it returns
+:func:`render_scan`'s output unchanged (bit-identical). Its extra draws (mixed-pixel
+positions, then the compensation's velocity errors) come after the original ones, so they
+do not change them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from gr_graph.datasets.synthetic.effects import LaserCalibration, SensorEffects, SweepMotion, hashed_uniform
 from gr_graph.datasets.synthetic.meshes import MATERIAL
 
 N_BEAMS = 64
@@ -174,3 +184,232 @@ def render_scan(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarr
     inten = (np.round(np.clip(inten, 0.0, 1.0) * 100.0) / 100.0).astype(np.float32)
     ring = (idx // n_az).astype(np.int16)
     return points, inten, ring
+
+
+class Actors(Protocol):
+    """Moving objects ray-cast at each ray's own time (implemented by the world's actors)."""
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray,
+             times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` float32 world origins/unit directions, ``(N,)`` float64 times (s) ->
+        ``t_hit (N,)`` float32 (inf: no hit), ``normals (N, 3)`` float32, ``material (N,)`` int."""
+        ...
+
+
+class RenderedScan(NamedTuple):
+    """One rendered scan: as :func:`render_scan` plus each point's sweep fraction.
+
+    ``time`` is ``(N,)`` float64 in [0, 1] (0 = start of the sweep) when the motion
+    distortion is ``raw``, else None.
+    """
+
+    points: np.ndarray
+    intensity: np.ndarray
+    ring: np.ndarray
+    time: np.ndarray | None
+
+
+ACTOR_ALBEDO = 0.3
+"""Reflectance of actor hits whose material has no entry in ``material_albedo``."""
+
+
+def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarray,
+                 beams: BeamModel, noise: NoiseModel, rng: np.random.Generator,
+                 effects: SensorEffects | None = None, laser_calib: LaserCalibration | None = None,
+                 sweep=None, actors: Actors | None = None, timestamp: float = 0.0,
+                 material_albedo: np.ndarray | None = None, roughness_seed: int = 0,
+                 nthreads: int = 0) -> RenderedScan:
+    """Render one scan with sensor effects and moving objects.
+
+    Parameters
+    ----------
+    scene, albedo, material, T_w_s, beams, noise, rng, nthreads
+        As :func:`render_scan`; ``T_w_s`` is the pose at mid-sweep.
+    effects : SensorEffects, optional
+        Which effects are on (None: none).
+    laser_calib : LaserCalibration, optional
+        The sensor's drawn per-laser errors (required when ``effects.calibration`` is on).
+    sweep : callable, optional
+        ``sweep(phase, rng) -> SweepMotion`` (required when the motion distortion is on):
+        the sensor motion of this sweep, given the frame's azimuth phase.
+    actors : Actors, optional
+        Moving objects; each ray takes the nearer of the static and the actor hit.
+    timestamp : float
+        Time (s) of the frame (mid-sweep), the time of every ray without motion distortion.
+    material_albedo : np.ndarray, optional
+        Reflectance per material id, for actor hits.
+    roughness_seed : int
+        Seed of the fixed roughness height field.
+    """
+    effects = SensorEffects() if effects is None else effects
+    if effects.is_clean and actors is None:
+        return RenderedScan(*render_scan(scene, albedo, material, T_w_s, beams, noise, rng,
+                                         nthreads=nthreads), None)
+    import open3d as o3d
+
+    n_az = beams.n_azimuth
+    n_all = N_BEAMS * n_az
+    # the original draws first, in the original order, then the effects' draws
+    phase = rng.uniform(0.0, 2.0 * np.pi / n_az)
+    range_noise = rng.standard_normal(n_all, dtype=np.float32)
+    u_drop = rng.random(n_all, dtype=np.float32)
+    u_int = rng.standard_normal(n_all, dtype=np.float32)
+    u_mix = rng.random(n_all, dtype=np.float32)
+    motion: SweepMotion | None = None
+    if effects.motion.enabled:
+        if sweep is None:
+            raise ValueError("render_frame: motion distortion needs the sweep motion (sweep=...)")
+        motion = sweep(phase, rng)
+
+    beam_idx = beams.beam_indices
+    n_r = len(beam_idx)
+    el_nom = np.radians(hdl64_elevations_deg())[beam_idx]
+    az_col = phase + 2.0 * np.pi * np.arange(n_az) / n_az
+    caz, saz = np.cos(az_col), np.sin(az_col)
+    el_true = el_nom
+    cal = effects.calibration.enabled
+    if cal:
+        if laser_calib is None:
+            raise ValueError("render_frame: calibration errors need the sensor's laser_calib")
+        el_true = el_nom + laser_calib.elevation_rad[beam_idx]
+        daz = laser_calib.azimuth_rad[beam_idx]
+        cd, sd = np.cos(daz).astype(np.float32)[:, None], np.sin(daz).astype(np.float32)[:, None]
+        c32, s32 = caz.astype(np.float32)[None, :], saz.astype(np.float32)[None, :]
+        cos_az, sin_az = cd * c32 - sd * s32, sd * c32 + cd * s32  # cos/sin(az + daz), (n_r, n_az)
+    else:
+        cos_az = np.broadcast_to(caz.astype(np.float32)[None, :], (n_r, n_az))
+        sin_az = np.broadcast_to(saz.astype(np.float32)[None, :], (n_r, n_az))
+    ce_t = np.cos(el_true).astype(np.float32)[:, None]
+    se_t = np.sin(el_true).astype(np.float32)[:, None]
+    # true beam directions in the sensor frame of each column's time, (n_r, n_az) per axis
+    dx, dy, dz = ce_t * cos_az, ce_t * sin_az, np.broadcast_to(se_t, (n_r, n_az))
+    rays = np.empty((n_r, n_az, 6), dtype=np.float32)
+    if motion is None:
+        R, t = T_w_s[:3, :3].astype(np.float32), T_w_s[:3, 3]
+        rays[..., :3] = t
+        for k in range(3):
+            rays[..., 3 + k] = dx * R[k, 0] + dy * R[k, 1] + dz * R[k, 2]
+        ray_time = np.full(n_r * n_az, float(timestamp))
+    else:
+        Rc = motion.T_w_col[:, :3, :3].astype(np.float32)
+        rays[..., :3] = motion.T_w_col[None, :, :3, 3]
+        for k in range(3):
+            rays[..., 3 + k] = dx * Rc[None, :, k, 0] + dy * Rc[None, :, k, 1] + dz * Rc[None, :, k, 2]
+        ray_time = np.broadcast_to(motion.column_time[None, :], (n_r, n_az)).ravel()
+    rays = rays.reshape(-1, 6)
+    sel = (beam_idx[:, None] * n_az + np.arange(n_az)[None, :]).ravel()
+    if n_r != N_BEAMS:
+        range_noise, u_drop, u_int, u_mix = range_noise[sel], u_drop[sel], u_int[sel], u_mix[sel]
+
+    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
+    t_hit = hit["t_hit"].numpy().astype(np.float64)
+    valid = np.flatnonzero(np.isfinite(t_hit))
+    prim = hit["primitive_ids"].numpy()[valid]
+    normals = hit["primitive_normals"].numpy()  # used at hits only
+    if actors is not None:
+        normals = normals.copy()
+    mat = np.zeros(len(t_hit), dtype=np.int64)
+    alb = np.zeros(len(t_hit), dtype=np.float32)
+    mat[valid] = material[prim]
+    alb[valid] = albedo[prim]
+    if actors is not None:
+        ta, na, ma = actors.cast(np.ascontiguousarray(rays[:, :3]), np.ascontiguousarray(rays[:, 3:]),
+                                 np.asarray(ray_time, dtype=np.float64))
+        ta = np.asarray(ta, dtype=np.float64)
+        closer = np.flatnonzero(ta < t_hit)
+        if len(closer):
+            t_hit[closer] = ta[closer]
+            normals[closer] = np.asarray(na)[closer]
+            ma = np.asarray(ma)[closer].astype(np.int64)
+            mat[closer] = ma
+            a = np.full(len(ma), ACTOR_ALBEDO, dtype=np.float32)
+            if material_albedo is not None:
+                known = (ma >= 0) & (ma < len(material_albedo))
+                a[known] = material_albedo[ma[known]]
+            alb[closer] = a
+    dirs = rays[:, 3:]
+    cos_all = np.abs(np.einsum("ij,ij->i", normals, dirs))
+    r = t_hit
+    if effects.roughness.enabled:
+        fin = np.flatnonzero(np.isfinite(r))
+        sig = effects.roughness.sigma_by_material_id()[mat[fin]]
+        rough = np.flatnonzero(sig > 0)
+        fin, sig = fin[rough], sig[rough]
+        r32 = np.where(np.isfinite(r), r, 0.0).astype(np.float32)
+        p_w = rays[:, :3] + dirs * r32[:, None]  # all rays: cheaper than gathering first
+        cells = np.floor(p_w[fin] / effects.roughness.cell_m)
+        h = np.sqrt(3.0) * sig * hashed_uniform(cells, roughness_seed)  # height above the surface
+        r = r.copy()
+        r[fin] -= h / np.maximum(cos_all[fin], noise.grazing_cos)  # h along the normal
+    if effects.mixed_pixels.enabled:
+        r = _mix_pixels(r, u_mix, n_r, n_az, effects.mixed_pixels)
+    if effects.range_noise.enabled:
+        sigma = effects.range_noise.sigma(np.where(np.isfinite(r), r, 0.0), cos_all)
+        r = r + sigma * range_noise
+    else:
+        r = r + noise.range_sigma * range_noise
+    ring_all = np.repeat(np.arange(n_r), n_az)
+    if cal:
+        r = (1.0 + laser_calib.range_scale[beam_idx][ring_all]) * r + laser_calib.range_offset_m[beam_idx][ring_all]
+    idx = np.flatnonzero((r >= noise.min_range) & (r <= noise.max_range))
+    cos_inc, m = cos_all[idx], mat[idx]
+    p_drop = noise.dropout + (1 - noise.dropout) * np.clip(1.0 - cos_inc / noise.grazing_cos, 0.0, 1.0)
+    glass = m == MATERIAL["glass"]
+    p_drop[glass] = np.maximum(p_drop[glass], noise.glass_dropout)
+    idx = idx[u_drop[idx] >= p_drop]
+    col = idx % n_az
+    ring_idx = ring_all[idx]
+    r_idx = r[idx]
+    ce_r = np.cos(el_nom)[ring_idx] * r_idx
+    points = np.empty((len(idx), 3))
+    points[:, 0] = ce_r * caz[col]  # reported along the nominal beam directions
+    points[:, 1] = ce_r * saz[col]
+    points[:, 2] = np.sin(el_nom)[ring_idx] * r_idx
+    time = None
+    if motion is not None:
+        if motion.T_mid_col_est is not None:  # compensated into the mid-sweep frame
+            E = motion.T_mid_col_est
+            x, y, z = points[:, 0].copy(), points[:, 1].copy(), points[:, 2].copy()
+            for k in range(3):
+                points[:, k] = (E[:, k, 0][col] * x + E[:, k, 1][col] * y + E[:, k, 2][col] * z
+                                + E[:, k, 3][col])
+        else:
+            time = motion.column_fraction[col].astype(np.float64)
+    inten = alb[idx] * (0.25 + 0.75 * cos_all[idx]) * (1.0 + noise.intensity_noise * u_int[idx])
+    inten = (np.round(np.clip(inten, 0.0, 1.0) * 100.0) / 100.0).astype(np.float32)
+    return RenderedScan(points, inten, ring_all[idx].astype(np.int16), time)
+
+
+def _mix_pixels(r: np.ndarray, u: np.ndarray, n_r: int, n_az: int, cfg) -> np.ndarray:
+    """Mixed returns where a beam footprint straddles a depth edge to its azimuth neighbour.
+
+    The edge between ray ``j`` and ``j + 1`` of a ring lies at ``u_j * step`` from ray ``j``;
+    a ray whose footprint (half-width ``divergence / 2``) covers it returns the mean range
+    of both surfaces weighted by the covered footprint fractions when they are closer than
+    ``merge_distance_m``, else its own surface. A depth edge is a gap that exceeds the mean
+    of the two neighbouring gaps by more than ``min_edge_m`` (a jump, not a slope).
+    """
+    step = 2.0 * np.pi / n_az
+    half = 0.5 * cfg.divergence_rad
+    R = r.reshape(n_r, n_az)
+    Rn = np.roll(R, -1, axis=1)  # right neighbour (wraps around the revolution)
+    x = u.reshape(n_r, n_az).astype(np.float64) * step
+    with np.errstate(invalid="ignore"):
+        g = Rn - R  # gap between ray j and j + 1
+        # a depth edge is a jump, not a slope: the gap departs from the neighbouring gaps
+        # (on an oblique plane consecutive gaps change smoothly); a missing neighbour gap
+        # (no return) is no evidence of a jump
+        gl, gr = np.roll(g, 1, axis=1), np.roll(g, -1, axis=1)
+        gl = np.where(np.isfinite(gl), gl, g)
+        gr = np.where(np.isfinite(gr), gr, g)
+        jump = np.abs(g) - 0.5 * (np.abs(gl) + np.abs(gr))
+    edge = np.isfinite(g) & (jump >= cfg.min_edge_m) & (np.abs(g) <= cfg.merge_distance_m)
+    out = R.copy()
+    w_left = np.where(edge, np.clip((half - x) / cfg.divergence_rad, 0.0, None), 0.0)   # ray j covers the edge
+    w_right = np.where(edge, np.clip((half - (step - x)) / cfg.divergence_rad, 0.0, None), 0.0)  # ray j+1 does
+    with np.errstate(invalid="ignore"):
+        out = np.where(w_left > 0, (1 - w_left) * R + w_left * Rn, out)
+        out_r = np.where(w_right > 0, (1 - w_right) * Rn + w_right * R, np.nan)
+    out_r = np.roll(out_r, 1, axis=1)  # back onto ray j+1
+    out = np.where(np.isnan(out_r), out, out_r)
+    return out.ravel()

@@ -7,6 +7,8 @@
     DIR/sequences/00/calib.txt           P0 and Tr lines (Tr = velodyne -> camera 0)
     DIR/sequences/00/times.txt           one timestamp (s) per frame
     DIR/sequences/00/synthetic.json      how it was rendered (seeds, rings, path, source frames)
+    DIR/sequences/00/times/%06d.npy      (frames with per-point times only, e.g. preset raw)
+                                         float32 sweep fraction in [0, 1] per point, file order
     DIR/poses/00.txt                     ground truth in the camera-0 frame, 12 floats a row
 
 Frames ``A:B`` of the synthetic sequence are written as files ``000000 .. B-A-1`` with the
@@ -17,6 +19,7 @@ records ``first_frame = A``. Every file is written atomically (temp file + renam
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 from pathlib import Path
@@ -82,6 +85,8 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
                                   "pass overwrite=True (--overwrite) to replace them")
         for f in existing:
             f.unlink()
+        for f in sorted((seq_dir / "times").glob("*.npy")):
+            f.unlink()
 
     Tr = np.asarray(seq.T_cam_velo, dtype=np.float64)
     path = getattr(seq, "path", None)
@@ -105,6 +110,9 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "town_seed": getattr(seq, "town_seed", None),
         "route_seed": getattr(seq, "route_seed", None),
         "trajectory": getattr(seq, "trajectory", None),
+        "preset": getattr(seq, "preset", None),
+        "effects": (seq.effects.describe() if getattr(seq, "effects", None) is not None else None),
+        "motion_compensated": getattr(seq, "motion_compensated", True),
         "source": path.source if path is not None else getattr(seq, "name", "sequence"),
     }
     atomic_write_bytes(seq_dir / "synthetic.json", (json.dumps(meta, indent=2) + "\n").encode())
@@ -116,5 +124,11 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         if point_format == "xyzi":
             arr[:, 3] = f.intensity
         atomic_write_bytes(velo / f"{k:06d}.bin", arr.tobytes())
+        if f.time is not None:
+            tdir = seq_dir / "times"
+            tdir.mkdir(exist_ok=True)
+            buf = io.BytesIO()
+            np.save(buf, f.time.astype(np.float32))
+            atomic_write_bytes(tdir / f"{k:06d}.npy", buf.getvalue())
     log.info("wrote %d frames (%d..%d) to %s", len(frames), frames.start, frames.stop - 1, seq_dir)
     return seq_dir
