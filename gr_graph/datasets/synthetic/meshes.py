@@ -13,7 +13,7 @@ import numpy as np
 
 # Material ids (index into MATERIAL_NAMES); reflectance is stored per triangle separately.
 MATERIAL_NAMES = ("road", "sidewalk", "terrain", "building", "wall", "pole", "trunk",
-                  "foliage", "car", "glass")
+                  "foliage", "car", "glass", "person")
 MATERIAL = {name: i for i, name in enumerate(MATERIAL_NAMES)}
 
 

@@ -18,27 +18,30 @@ from collections.abc import Iterator
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame, check_index
+from gr_graph.datasets.synthetic.actors import Actors, ActorsConfig, SceneWithActors
 from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.sensor import BeamModel, NoiseModel, render_scan
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town
 
 log = logging.getLogger(__name__)
 
-_CACHE: "OrderedDict[tuple[int, str], tuple[Town, object]]" = OrderedDict()
+_CACHE: "OrderedDict[tuple, tuple[Town, object]]" = OrderedDict()
 _CACHE_SIZE = 2
 _LOCK = threading.Lock()
 
 
-def get_town_and_scene(town_seed: int, path: SensorPath) -> tuple[Town, object]:
+def get_town_and_scene(town_seed: int, path: SensorPath,
+                       town_config: TownConfig | None = None) -> tuple[Town, object]:
     """The town of ``town_seed`` around ``path`` and its RaycastingScene (cached, built once)."""
-    key = (int(town_seed), path.key())
+    town_config = town_config or TownConfig()
+    key = (int(town_seed), path.key(), town_config)
     with _LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
             return _CACHE[key]
         import open3d as o3d
 
-        town = build_town(path.T_w_velo[:, :3, 3], seed=town_seed)
+        town = build_town(path.T_w_velo[:, :3, 3], seed=town_seed, config=town_config)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles))
         _CACHE[key] = (town, scene)
@@ -82,6 +85,11 @@ class SyntheticSequence:
         file or a KITTI root (see :func:`~gr_graph.datasets.synthetic.path.trajectory_path`).
     trajectory_seq : str
         The sequence whose poses are used when ``trajectory`` is a KITTI root.
+    town_config : TownConfig, optional
+        The town's layout and world effects (default ``TownConfig()``: every effect off;
+        ``TownConfig.residential()``: every world effect on).
+    actors : ActorsConfig, optional
+        Moving vehicles and pedestrians (:mod:`.actors`, seeded by the town seed); None = none.
 
     Attributes
     ----------
@@ -94,7 +102,8 @@ class SyntheticSequence:
                  n_azimuth: int = 2000, range_sigma: float = 0.02, dropout: float = 0.02,
                  min_range: float = 1.0, town_seed: int | None = None, nthreads: int = 0,
                  route_seed: int = 0, trajectory: str | os.PathLike[str] | None = None,
-                 trajectory_seq: str = "00"):
+                 trajectory_seq: str = "00", town_config: TownConfig | None = None,
+                 actors: ActorsConfig | None = None):
         self.seed = int(seed)
         self.town_seed = self.seed if town_seed is None else int(town_seed)
         self.route_seed = int(route_seed)
@@ -109,6 +118,9 @@ class SyntheticSequence:
         self.noise = NoiseModel(range_sigma=range_sigma, dropout=dropout, max_range=max_range,
                                 min_range=min_range)
         self.nthreads = int(nthreads)
+        self.town_config = town_config or TownConfig()
+        self.actors_config = actors
+        self._actors: Actors | None = None
         self.trajectory = None if trajectory is None else str(trajectory)
         self.path = (route_path(self.route_seed) if trajectory is None
                      else trajectory_path(trajectory, trajectory_seq))
@@ -124,7 +136,16 @@ class SyntheticSequence:
     @property
     def town(self) -> Town:
         """The (cached) procedural town; built on first use."""
-        return get_town_and_scene(self.town_seed, self.path)[0]
+        return get_town_and_scene(self.town_seed, self.path, self.town_config)[0]
+
+    @property
+    def actors(self) -> Actors | None:
+        """The moving actors (None without ``actors``); built on first use."""
+        if self.actors_config is not None and self._actors is None:
+            self._actors = Actors(self.path.times, self.path.T_w_velo[:, :3, 3], seed=self.town_seed,
+                                  config=self.actors_config, ground=self.town.ground,
+                                  sensor_height=self.town_config.sensor_height)
+        return self._actors
 
     def __len__(self) -> int:
         return len(self.gt_poses)
@@ -134,7 +155,9 @@ class SyntheticSequence:
                  else f"trajectory={self.trajectory!r}")
         return (f"SyntheticSequence(seed={self.seed}, town_seed={self.town_seed}, {where}, "
                 f"n_rings={self.n_rings}, max_range={self.noise.max_range}, "
-                f"n_azimuth={self.beams.n_azimuth})")
+                f"n_azimuth={self.beams.n_azimuth}"
+                + (f", town_config={self.town_config}" if self.town_config != TownConfig() else "")
+                + (f", actors={self.actors_config}" if self.actors_config is not None else "") + ")")
 
     def frame_rng(self, index: int) -> np.random.Generator:
         """The generator of frame ``index``'s noise: seeded by ``(seed, index)`` only."""
@@ -142,9 +165,14 @@ class SyntheticSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        town, scene = get_town_and_scene(self.town_seed, self.path)
+        town, scene = get_town_and_scene(self.town_seed, self.path, self.town_config)
+        albedo, material = town.albedo, town.material
+        if self.actors is not None:
+            scene = SceneWithActors(scene, albedo, material, self.actors, self.gt_poses[i],
+                                    float(self.timestamps[i]))
+            albedo, material = scene.albedo, scene.material
         points, intensity, ring = render_scan(
-            scene, town.albedo, town.material, self.gt_poses[i], self.beams, self.noise,
+            scene, albedo, material, self.gt_poses[i], self.beams, self.noise,
             self.frame_rng(i), nthreads=self.nthreads)
         return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=points,
                           intensity=intensity, ring=ring, n_rings=self.n_rings)
