@@ -240,11 +240,12 @@ class Actors:
             s0 = self.s_ego(t0) + rng.uniform(80.0, 150.0)
             # alive until it is 60 m behind the ego vehicle (or 60 s)
             tt = t0 + np.arange(int(60.0 / dt) + 1) * dt
-            s = s0 - v * (tt - t0)
+            offset = 2.0 * c.lane_offset
+            s = self._lane_walk(offset, s0, -v, tt - t0)
             behind = np.flatnonzero(s < self.s_ego(tt) - 60.0)
             if len(behind):
                 tt, s = tt[:behind[0] + 1], s[:behind[0] + 1]
-            offset, backwards = 2.0 * c.lane_offset, True
+            backwards = True
             template = int(rng.integers(len(self.vehicle_meshes)))
         else:
             t_pass = rng.uniform(t_lo, t_hi)
@@ -253,8 +254,9 @@ class Actors:
             v = 0.0 if rng.uniform() < c.standing_fraction else rng.uniform(*c.walk_speed)
             sign = 1.0 if rng.uniform() < 0.5 else -1.0
             tt = t0 + np.arange(int(dur / dt) + 1) * dt
-            s = self.s_ego(t_pass) + rng.uniform(-30.0, 30.0) + sign * v * (tt - t_pass)
+            s_pass = self.s_ego(t_pass) + rng.uniform(-30.0, 30.0)
             offset = (1.0 if rng.uniform() < 0.5 else -1.0) * rng.uniform(*c.sidewalk)
+            s = self._lane_walk(offset, s_pass, sign * v, tt - t_pass)
             backwards = sign < 0
             template = int(rng.integers(len(self.pedestrian_meshes)))
         inside = (s >= 0.0) & (s <= self.s_end)
@@ -269,6 +271,19 @@ class Actors:
         return _Actor(kind=kind, template=template, offset=float(offset), backwards=bool(backwards),
                       t0=float(tt[0]), s_table=s.astype(np.float64), albedo=float(rng.uniform(0.15, 0.85)),
                       half_size=half, radius=float(np.hypot(*half)) + 0.1)
+
+    def _lane_walk(self, offset: float, s_ref: float, speed: float, dt: np.ndarray) -> np.ndarray:
+        """Ego-lane arc length of an actor moving at a constant ``speed`` (signed, m/s) along the
+        lane ``offset`` m left of the ego lane, at ``s_ref`` when ``dt = 0``: its own lane is
+        longer on the outside of a turn and shorter inside, so it is walked by its own length."""
+        lane = self.line[:, :2] + offset * self.left
+        seg = np.maximum(np.linalg.norm(np.diff(lane, axis=0), axis=1), 1e-3 * self.step)
+        own = np.concatenate([[0.0], np.cumsum(seg)])
+        grid = np.arange(len(self.line)) * self.step
+        ell = np.interp(s_ref, grid, own) + speed * np.asarray(dt, np.float64)
+        s = np.interp(ell, own, grid)
+        # beyond either end of the path: keep the distance (the actor is dropped there anyway)
+        return np.where(ell < 0, ell, np.where(ell > own[-1], grid[-1] + ell - own[-1], s))
 
     def _fill_ground(self, actor: _Actor) -> None:
         """Tabulate the ground height along the actor's lane stretch (every 0.5 m)."""
@@ -339,13 +354,16 @@ class Actors:
 
     def state(self, index: int, t: np.ndarray) -> dict[str, np.ndarray]:
         """Actor ``index`` at times ``t``: ``position`` (ground point under its centre), ``yaw``,
-        ``speed`` (m/s along its lane, from the arc-length table) and ``alive``."""
+        ``speed`` (m/s along its own lane, from the arc-length table) and ``alive``."""
         a = self.actors[index]
         t = np.atleast_1d(np.asarray(t, np.float64))
         s = self._s_at(a, t)
         p, yaw, _ = self._pose_s(a, s)
         k = np.clip(np.floor((t - a.t0) / self.config.time_step).astype(int), 0, len(a.s_table) - 2)
-        speed = np.abs(a.s_table[k + 1] - a.s_table[k]) / self.config.time_step
+        # ds/dt on the ego lane times the stretch of the actor's own (offset) lane there
+        p2 = self._pose_s(a, s + 1e-3)[0]  # the lane is piecewise linear between 0.5 m samples
+        stretch = np.linalg.norm(p2[:, :2] - p[:, :2], axis=1) / 1e-3
+        speed = np.abs(a.s_table[k + 1] - a.s_table[k]) / self.config.time_step * stretch
         alive = (t >= self._t_start[index]) & (t <= self._t_stop[index])
         return {"position": p, "yaw": yaw, "speed": speed, "alive": alive}
 
@@ -391,8 +409,8 @@ class Actors:
         """
         import open3d as o3d
 
-        o = np.asarray(origins, np.float64).reshape(-1, 3)
-        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        o = np.asarray(origins).reshape(-1, 3)  # kept in the caller's dtype; subsets go to float64
+        d = np.asarray(directions).reshape(-1, 3)
         t = np.asarray(times, np.float64).reshape(-1)
         n = len(o)
         if len(d) != n or len(t) != n:
@@ -412,7 +430,8 @@ class Actors:
             t_lo, t_hi = float(t.min()), float(t.max())
             t_mid = 0.5 * (t_lo + t_hi)
             half_span = 0.5 * float(t.max() - t.min())
-            az = np.arctan2(d[:, 1], d[:, 0])
+            # float32 pi rounds above np.pi: clip so that the wrapped intervals below see every ray
+            az = np.clip(np.arctan2(d[:, 1], d[:, 0]).astype(np.float64), -np.pi, np.pi)
             order = np.argsort(az, kind="stable")
             az_sorted = az[order]
         for i in live:
@@ -434,7 +453,7 @@ class Actors:
             if dist > reach:
                 half = float(np.arcsin(min(1.0, reach / dist)))
                 centre_az = float(np.arctan2(rel[1], rel[0]))
-                sel = np.concatenate([order[np.searchsorted(az_sorted, lo_):np.searchsorted(az_sorted, hi_)]
+                sel = np.concatenate([order[np.searchsorted(az_sorted, lo_):np.searchsorted(az_sorted, hi_, side="right")]
                                       for lo_, hi_ in _wrapped_intervals(centre_az - half, centre_az + half)])
                 # elevation window: the ray must pass between the actor's foot (-0.5 m) and top
                 # (+2 m) somewhere within [dist - reach, dist + reach] of horizontal distance
@@ -442,7 +461,7 @@ class Actors:
                 zb, ztop = centre[2] - 0.5 - o_hi[2], centre[2] + 2.0 - o_lo[2]
                 lo_slope = zb / near_h
                 hi_slope = ztop / near_h if ztop > 0 else ztop / (dist + reach)
-                ds = d[sel]
+                ds = d[sel].astype(np.float64)
                 slope = ds[:, 2] / np.maximum(np.sqrt(ds[:, 0] ** 2 + ds[:, 1] ** 2), 1e-9)
                 sel = sel[(slope >= lo_slope) & (slope <= hi_slope)
                           & (t[sel] >= self._t_start[i]) & (t[sel] <= self._t_stop[i])]
@@ -450,17 +469,18 @@ class Actors:
                 sel = np.flatnonzero((t >= self._t_start[i]) & (t <= self._t_stop[i]))
             if len(sel) == 0:
                 continue
+            ds = d[sel].astype(np.float64)
             s = self._s_at(a, t[sel])
             p, yaw, _ = self._pose_s(a, s)
             cy, sy = np.cos(yaw), np.sin(yaw)
-            rel_o = o[sel] - p
+            rel_o = o[sel].astype(np.float64) - p
             rays = np.empty((len(sel), 6), np.float32)
             rays[:, 0] = cy * rel_o[:, 0] + sy * rel_o[:, 1]
             rays[:, 1] = -sy * rel_o[:, 0] + cy * rel_o[:, 1]
             rays[:, 2] = rel_o[:, 2]
-            rays[:, 3] = cy * d[sel, 0] + sy * d[sel, 1]
-            rays[:, 4] = -sy * d[sel, 0] + cy * d[sel, 1]
-            rays[:, 5] = d[sel, 2]
+            rays[:, 3] = cy * ds[:, 0] + sy * ds[:, 1]
+            rays[:, 4] = -sy * ds[:, 0] + cy * ds[:, 1]
+            rays[:, 5] = ds[:, 2]
             hit = self._scene(a.kind, a.template).cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
             th = hit["t_hit"].numpy()
             better = th < t_hit[sel]
@@ -519,11 +539,13 @@ class SceneWithActors:
 
     def ray_times(self, directions: np.ndarray) -> np.ndarray:
         """Time of each world-frame ray direction from its azimuth in the sensor frame."""
-        R = self.T_w_s[:3, :3]
-        x = directions[:, 0] * R[0, 0] + directions[:, 1] * R[1, 0] + directions[:, 2] * R[2, 0]
-        y = directions[:, 0] * R[0, 1] + directions[:, 1] * R[1, 1] + directions[:, 2] * R[2, 1]
-        frac = ((np.arctan2(y, x) - self.sweep_start) % (2 * np.pi)) / (2 * np.pi)
-        return self.t_frame + (frac - 0.5) * self.sweep_seconds
+        R = self.T_w_s[:3, :3].astype(np.float32)
+        dx, dy, dz = (np.ascontiguousarray(directions[:, k], dtype=np.float32) for k in range(3))
+        x = dx * R[0, 0] + dy * R[1, 0] + dz * R[2, 0]
+        y = dx * R[0, 1] + dy * R[1, 1] + dz * R[2, 1]
+        frac = np.arctan2(y, x) - np.float32(self.sweep_start)
+        frac = (frac % np.float32(2 * np.pi)) / np.float32(2 * np.pi)
+        return self.t_frame + (frac.astype(np.float64) - 0.5) * self.sweep_seconds
 
     def cast_rays(self, rays, nthreads: int = 0) -> dict[str, _Array]:
         hit = self.scene.cast_rays(rays, nthreads=nthreads)
