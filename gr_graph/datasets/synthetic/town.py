@@ -15,6 +15,29 @@ Every object is checked against the *whole* path (a KD-tree of the path sampled 
 and on revisited stretches; objects are also checked against each other on an occupancy
 grid, so a revisited stretch keeps the objects placed on the first pass and renders the
 same structures again.
+
+World effects (``TownConfig`` flags, all off by default so that the ``clean`` town stays
+bit-identical; ``TownConfig.residential()`` turns them all on, the world side of the ``kitti``
+preset). Each draws from its own generator, so turning one on never moves the others' objects
+(except ``detached_houses``, which changes the building layout itself):
+
+- ``porous_vegetation``: crowns, bushes and hedges as volumes of small randomly oriented
+  leaf-cluster triangles at a one-sided leaf area density ``leaf_area_density`` (trees, 1 m²/m³;
+  broadleaf crowns measure about 0.5-2.5 m²/m³, e.g. Weiss et al. 2004, Béland et al. 2014)
+  and ``shrub_leaf_area_density`` (2 m²/m³), elements of ``leaf_size`` 0.25 m (clumps of
+  leaves and twigs) and 0.12 m; a beam travels a Beer-Lambert free path of mean
+  ``1 / (0.5 LAD)`` inside (2 m in a tree crown), so returns come from inside crowns and some
+  beams pass through; trees get 4-7 branches;
+- ``facade_details``: floor bands, window sills, balconies with railings, gable roofs
+  (25-45 degrees) with eaves or flat roofs with a parapet or cornice (storey height 3 m);
+- ``fences_hedges``: hedges (0.9-1.8 m), picket fences (0.9-1.3 m) and railings along the
+  property line 8.1-8.6 m off the path;
+- ``street_signs``: sign plates (0.5-0.8 m) on 2.2-3 m poles by the curb;
+- ``curved_cars``: parked cars as curved bodies with windows and wheels
+  (:func:`.meshes.car_mesh`) instead of two boxes (same sizes and places);
+- ``detached_houses``: 8-17.6 m buildings with 3-14 m gaps (residential streets);
+- ``garden_vegetation``: shrubs and small trees in the front gardens 8.8-16 m off the path;
+- ``terrain_roughness``: 1 m-scale height noise (σ, m) on lawns and verges beyond the sidewalk.
 """
 
 from __future__ import annotations
@@ -69,6 +92,14 @@ class TownConfig:
     """Traffic signs (a thin pole and a plate) along the curb."""
     curved_cars: bool = False
     """Parked cars with a curved body, windows and wheels (:func:`meshes.car_mesh`) instead of two boxes."""
+    detached_houses: bool = False
+    """Residential blocks: buildings 8-17.6 m long, always 3-14 m apart (views between them),
+    instead of 8-32 m blocks joined to the next one 45 % of the time."""
+    garden_vegetation: bool = False
+    """Front gardens: shrubs and small trees between the sidewalk and the houses (8.8-16 m off
+    the path), as in the residential streets of KITTI 00."""
+    garden_spacing: tuple[float, float] = (2.5, 8.0)
+    """Distance (m) along the street between two garden plantings (where there is room)."""
     terrain_roughness: float = 0.0
     """Standard deviation (m) of the fine-scale (1 m) height roughness of the terrain beyond
     the sidewalk (uneven lawns and verges); 0 = smooth."""
@@ -77,7 +108,8 @@ class TownConfig:
     def residential(cls, **overrides) -> "TownConfig":
         """Every world effect on (the world side of the ``kitti`` preset)."""
         base = dict(porous_vegetation=True, facade_details=True, fences_hedges=True,
-                    street_signs=True, curved_cars=True, terrain_roughness=0.04)
+                    street_signs=True, curved_cars=True, detached_houses=True, garden_vegetation=True,
+                    terrain_roughness=0.04)
         base.update(overrides)
         return cls(**base)
 
@@ -85,7 +117,8 @@ class TownConfig:
     def any_effect(self) -> bool:
         """True if any world effect is on."""
         return (self.porous_vegetation or self.facade_details or self.fences_hedges
-                or self.street_signs or self.curved_cars or self.terrain_roughness > 0)
+                or self.street_signs or self.curved_cars or self.garden_vegetation or self.detached_houses
+                or self.terrain_roughness > 0)
 
 
 @dataclass
@@ -475,6 +508,8 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
         s = rng.uniform(0.0, 10.0)
         while s < total:
             length = rng.uniform(8.0, 32.0)
+            if c.detached_houses:
+                length = 8.0 + 0.4 * (length - 8.0)
             depth = rng.uniform(8.0, 18.0)
             setback = rng.uniform(c.building_clearance + 0.5, 15.0)
             kind = rng.uniform()
@@ -499,7 +534,10 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             if c.facade_details:
                 _facade_details(mb, fx[1], centre, yaw, length, depth, float(hg.mean()), zt, albedo,
                                 roof=not has_tier)
-            s += length + (0.0 if gap_draw < 0.45 else rng.uniform(2.0, 14.0))
+            if c.detached_houses:
+                s += length + rng.uniform(3.0, 14.0)
+            else:
+                s += length + (0.0 if gap_draw < 0.45 else rng.uniform(2.0, 14.0))
 
     # ---- low walls / fences (fill some gaps) ------------------------------------------------
     rng = rngs[3]
@@ -684,6 +722,31 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
                     mb.add(box(q[0], q[1], yaw, plate, 0.03, g + h - plate, g + h), 0.9, MATERIAL["pole"])
                     fp["pole"].append((p[0], p[1], 0.035))
                 s += rng.uniform(25.0, 70.0)
+
+    if c.garden_vegetation:
+        rng = fx[7]
+        for side in (1.0, -1.0):
+            s = rng.uniform(0.0, 6.0)
+            while s < total:
+                k = frame_at(s)
+                p = xy[k] + side * left[k] * rng.uniform(8.8, 16.0)
+                if rng.uniform() < 0.35:
+                    add_tree(p[0], p[1], rng, crown_scale=rng.uniform(0.55, 0.9), crown_check=0.6)
+                else:
+                    rr, rz = rng.uniform(0.5, 1.5, 2), rng.uniform(0.5, 1.2)
+                    pts = layout.rect_samples(p[0], p[1], 0.0, 2 * rr.max(), 2 * rr.max(), spacing=0.4)
+                    if layout.try_place(pts, 8.0):
+                        g = float(ground(p[None])[0])
+                        centre_b, radii_b = np.array([p[0], p[1], g + 0.6 * rz]), np.array([rr[0], rr[1], rz])
+                        alb = rng.uniform(0.15, 0.35)
+                        if c.porous_vegetation:
+                            _porous_crown(mb, fx[3], centre_b, radii_b, c.shrub_leaf_area_density,
+                                          c.shrub_leaf_size, alb)
+                        else:
+                            mb.add(blob(centre_b, radii_b, rng, subdivisions=1, roughness=0.4), alb,
+                                   MATERIAL["foliage"])
+                        fp["bush"].append((p[0], p[1], rr.max()))
+                s += rng.uniform(*c.garden_spacing)
 
     verts, tris, albedo, material = mb.build()
     footprints = {k: np.asarray(v, dtype=np.float64) for k, v in fp.items()}
