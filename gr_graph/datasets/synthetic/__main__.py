@@ -5,6 +5,7 @@ Examples::
     python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:200 --seed 0
     python -m gr_graph.datasets.synthetic --out /tmp/synth --route-seed 3
     python -m gr_graph.datasets.synthetic --out /tmp/synth --trajectory poses.txt
+    python -m gr_graph.datasets.synthetic --out /tmp/synth --frames 0:100 --world residential
 
 write ``/tmp/synth/sequences/00/{velodyne/%06d.bin, calib.txt, times.txt}`` and
 ``/tmp/synth/poses/00.txt`` (camera frame), readable by the KITTI loader. By default the
@@ -19,7 +20,9 @@ import logging
 import sys
 from pathlib import Path
 
+from gr_graph.datasets.synthetic.actors import ActorsConfig
 from gr_graph.datasets.synthetic.sequence import SyntheticSequence
+from gr_graph.datasets.synthetic.town import TownConfig
 from gr_graph.datasets.synthetic.writer import parse_frames, write_kitti_layout
 
 
@@ -36,13 +39,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-range", type=float, default=120.0, help="metres (default 120)")
     ap.add_argument("--n-azimuth", type=int, default=2000, help="azimuth steps (default 2000)")
     ap.add_argument("--threads", type=int, default=0, help="ray-casting threads (0 = all)")
+    ap.add_argument("--world", choices=("clean", "residential"), default="clean",
+                    help="world effects: clean (none, default) or residential (porous vegetation, facade "
+                         "details, fences, hedges, gardens, curved cars, moving vehicles and pedestrians)")
     ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
+        world = {} if args.world == "clean" else {"town_config": TownConfig.residential(),
+                                                  "actors": ActorsConfig()}
         seq = SyntheticSequence(seed=args.seed, n_rings=args.n_rings, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads,
-                                route_seed=args.route_seed, trajectory=args.trajectory)
+                                route_seed=args.route_seed, trajectory=args.trajectory, **world)
         frames = parse_frames(args.frames, len(seq))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as exc:
