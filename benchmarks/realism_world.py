@@ -34,7 +34,7 @@ from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
 RESULTS = Path(__file__).resolve().parent / "results" / "realism_world.md"
 TOWN_EFFECTS = ("porous_vegetation", "facade_details", "fences_hedges", "street_signs", "curved_cars",
-                "detached_houses", "garden_vegetation", "terrain_roughness")
+                "sidewalk_parking", "detached_houses", "garden_vegetation", "terrain_roughness")
 EFFECTS = TOWN_EFFECTS + ("actors",)
 STATS = ("thickness_cm", "a90", "a99", "points_per_frame", "median_range_m", "frac_beyond_40m",
          "vgicp_inlier_rmse_cm")

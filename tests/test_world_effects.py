@@ -39,14 +39,15 @@ def test_effects_off_is_the_clean_town_bit_identical():
 def test_effects_keep_the_layout_and_add_geometry():
     P = _small_path()
     clean = build_town(P, seed=3)
-    rich = build_town(P, seed=3, config=TownConfig.residential())
-    rich = build_town(P, seed=3, config=TownConfig.residential(detached_houses=False))
+    # the two effects that move objects (houses, left parked cars) off: everything else only adds
+    cfg = TownConfig.residential(detached_houses=False, sidewalk_parking=False)
+    rich = build_town(P, seed=3, config=cfg)
     for kind in ("building", "car", "tree", "bush"):  # the same objects in the same places (gardens added)
         n = len(clean.footprints[kind])
         np.testing.assert_array_equal(clean.footprints[kind], rich.footprints[kind][:n])
     assert len(rich.footprints["wall"]) > len(clean.footprints["wall"])  # fences and hedges
     assert len(rich.triangles) > 1.5 * len(clean.triangles)
-    assert _digest(build_town(P, seed=3, config=TownConfig.residential())) == _digest(rich)
+    assert _digest(build_town(P, seed=3, config=cfg)) == _digest(rich)
 
 
 def _scene(mb: MeshBuilder):
@@ -249,3 +250,27 @@ def test_scene_with_actors_keeps_the_nearer_hit(actors):
     assert on_actor.any() and (~on_actor).any()
     assert set(wrap.material[prim[on_actor]]) <= {MATERIAL["car"], MATERIAL["glass"]}
     assert (prim[~on_actor & np.isfinite(t_out)] < len(alb)).all()
+
+
+def test_actors_avoid_obstacles():
+    times, pos = _test_path()
+    # parked cars (3 circles each) on the oncoming lane and trunks on the sidewalks every 25 m
+    xs = np.arange(10.0, 280.0, 25.0)
+    obstacles = np.concatenate([np.c_[xs + dx, np.full(len(xs), 3.3), np.full(len(xs), 0.9)] for dx in (-1.3, 0, 1.3)]
+                               + [np.c_[xs + 12.0, np.full(len(xs), y), np.full(len(xs), 0.35)] for y in (-6.0, 6.0)])
+    cfg = ActorsConfig(n_lead=4, n_oncoming=10, n_pedestrians=30)
+    free = Actors(times, pos, seed=5, config=cfg)
+    act = Actors(times, pos, seed=5, config=cfg, obstacles=obstacles)
+    assert act.n_rejected > free.n_rejected or len(act) < len(free) or any(
+        x.t0 != y.t0 for x, y in zip(act.actors, free.actors))
+    assert len(act) > 0
+    for i, a in enumerate(act.actors):
+        t = np.arange(act._t_start[i], act._t_stop[i], 0.05)
+        st = act.state(i, t)
+        hl, hw = a.half_size
+        u, v = np.meshgrid(np.linspace(-hl, hl, 9), np.linspace(-hw, hw, 5), indexing="ij")
+        c, s = np.cos(st["yaw"])[:, None], np.sin(st["yaw"])[:, None]
+        px = st["position"][:, :1] + c * u.ravel() - s * v.ravel()
+        py = st["position"][:, 1:2] + s * u.ravel() + c * v.ravel()
+        d = np.hypot(px[..., None] - obstacles[:, 0], py[..., None] - obstacles[:, 1])
+        assert (d >= obstacles[:, 2]).all(), (i, a.kind)

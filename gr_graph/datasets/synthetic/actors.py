@@ -10,8 +10,8 @@ actor at ``t`` and ``t + dt`` is displaced by ``speed * dt`` along its lane):
   rises again (it pulls away), plus a standstill gap ``g0`` of 7-9 m, so a lead vehicle brakes,
   stops and starts like the ego vehicle did ``tau`` seconds later and never reaches it (urban
   time headways of 1-3 s: e.g. Vogel 2003; standstill gaps 2-3 m bumper to bumper);
-- **oncoming vehicles** drive the other lane (``2 x 1.75 m`` left of the ego lane, right-hand
-  traffic) against the route at a constant 8-13 m/s (30-47 km/h, urban limits of 30-50 km/h),
+- **oncoming vehicles** drive the other lane (``oncoming_offset`` = 3.3 m left of the ego lane,
+  right-hand traffic) against the route at a constant 8-13 m/s (30-47 km/h, urban limits of 30-50 km/h),
   appearing 80-150 m ahead of the ego vehicle and vanishing 60 m behind it;
 - **pedestrians** walk on the sidewalks (5.4-7.6 m off the ego lane) at 1.2-1.5 m/s (typical
   free walking speeds, Knoblauch et al. 1996; Fruin 1971), some standing still, each for a
@@ -20,7 +20,9 @@ actor at ``t`` and ``t + dt`` is displaced by ``speed * dt`` along its lane):
 Every actor is checked against the ego vehicle's footprint (``ego_box``, inflated by
 ``clearance``) every ``time_step`` over its whole life, and redrawn (up to 20 times, then
 dropped: counted in ``n_rejected``) if they would overlap, so no actor ever touches the ego
-vehicle or stands where the sensor is.
+vehicle or stands where the sensor is. With ``obstacles`` (circles of the town's parked cars,
+tree trunks, poles and bushes: :func:`town_obstacles`), draws that would run through one are
+redrawn the same way.
 
 Shapes: vehicles are curved car meshes (:func:`meshes.car_mesh`, 3.8-4.9 x 1.7-1.95 x
 1.4-1.55 m), pedestrians lofted bodies of 1.55-1.90 m (:func:`meshes.pedestrian_mesh`); a few
@@ -36,6 +38,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+from scipy.spatial import cKDTree
 
 from gr_graph.datasets.synthetic.meshes import MATERIAL, car_mesh, pedestrian_mesh
 
@@ -55,8 +59,8 @@ class ActorsConfig:
     """Oncoming vehicles over the whole route (each alive while it passes, ~15-25 s)."""
     n_pedestrians: int = 100
     """Pedestrians over the whole route (each alive 30-90 s around the time the ego vehicle passes)."""
-    lane_offset: float = 1.75
-    """Half the distance between the ego lane and the oncoming lane (the route's lane offset)."""
+    oncoming_offset: float = 3.3
+    """Oncoming lane centre, m left of the ego lane (residential lanes are 2.75-3.5 m wide)."""
     sidewalk: tuple[float, float] = (5.4, 7.6)
     """Pedestrians walk this far left or right of the ego lane (the town's sidewalk is 5-8 m)."""
     walk_speed: tuple[float, float] = (1.2, 1.5)
@@ -107,6 +111,24 @@ def _rects_overlap(c1: np.ndarray, yaw1: np.ndarray, h1: np.ndarray,
     return overlap
 
 
+def town_obstacles(footprints: dict[str, np.ndarray]) -> np.ndarray:
+    """Circles ``(M, 3)`` ``x, y, r`` covering the town's parked cars (3 circles of half their
+    width along each), tree trunks (0.35 m), poles and bushes (their radius)."""
+    out = []
+    cars = np.asarray(footprints.get("car", np.zeros((0, 4, 2))))
+    if len(cars):
+        a, b = 0.5 * (cars[:, 0] + cars[:, 3]), 0.5 * (cars[:, 1] + cars[:, 2])  # end midpoints
+        half_w = 0.5 * np.linalg.norm(cars[:, 3] - cars[:, 0], axis=1)
+        for f in (0.2, 0.5, 0.8):
+            q = a + f * (b - a)
+            out.append(np.c_[q, half_w])
+    for kind, r in (("tree", 0.35), ("pole", None), ("bush", None)):
+        circ = np.asarray(footprints.get(kind, np.zeros((0, 3))))
+        if len(circ):
+            out.append(np.c_[circ[:, :2], np.full(len(circ), r) if r else circ[:, 2]])
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
 def _wrapped_intervals(lo: float, hi: float) -> list[tuple[float, float]]:
     """``[lo, hi]`` (radians, ``hi - lo < 2 pi``) as intervals inside ``[-pi, pi]``."""
     if lo < -np.pi:
@@ -152,10 +174,13 @@ class Actors:
         the sensor height minus ``sensor_height`` along the path.
     sensor_height : float
         Height of the sensor above the road (m), used without ``ground``.
+    obstacles : np.ndarray, optional
+        ``(M, 3)`` circles ``x, y, r`` that no actor may overlap (see :func:`town_obstacles`).
     """
 
     def __init__(self, times: np.ndarray, positions: np.ndarray, seed: int = 0,
-                 config: ActorsConfig | None = None, ground=None, sensor_height: float = 1.73):
+                 config: ActorsConfig | None = None, ground=None, sensor_height: float = 1.73,
+                 obstacles: np.ndarray | None = None):
         self.config = c = config or ActorsConfig()
         times = np.asarray(times, np.float64)
         positions = np.asarray(positions, np.float64)
@@ -176,6 +201,8 @@ class Actors:
         self._lane = np.c_[self.line, self.left, self.heading]
         self.sensor_height = sensor_height
         self.ground = ground
+        self.obstacles = None if obstacles is None or len(obstacles) == 0 else np.asarray(obstacles, np.float64)
+        self._obstacle_kd = None if self.obstacles is None else cKDTree(self.obstacles[:, :2])
         self.s_end = (len(self.line) - 1) * self.step
         veh_rng, ped_rng, shape_rng = (np.random.default_rng(s) for s in
                                        np.random.SeedSequence([self.seed, 0xAC7026]).spawn(3))
@@ -188,7 +215,7 @@ class Actors:
             for _ in range(count):
                 for _attempt in range(20):
                     actor = self._draw(kind, r)
-                    if actor is not None and not self._touches_ego(actor):
+                    if actor is not None and not self._touches_ego(actor) and not self._touches_obstacle(actor):
                         self._fill_ground(actor)
                         self.actors.append(actor)
                         break
@@ -240,7 +267,7 @@ class Actors:
             s0 = self.s_ego(t0) + rng.uniform(80.0, 150.0)
             # alive until it is 60 m behind the ego vehicle (or 60 s)
             tt = t0 + np.arange(int(60.0 / dt) + 1) * dt
-            offset = 2.0 * c.lane_offset
+            offset = c.oncoming_offset
             s = self._lane_walk(offset, s0, -v, tt - t0)
             behind = np.flatnonzero(s < self.s_ego(tt) - 60.0)
             if len(behind):
@@ -292,6 +319,26 @@ class Actors:
         s = np.arange(k_lo, k_hi) * self.step
         pos, _, _ = self._pose_s(actor, s)  # z from the ground model (no table yet)
         actor.z_table, actor.k_lo = pos[:, 2].copy(), k_lo
+
+    def _touches_obstacle(self, actor: _Actor) -> bool:
+        """Does the actor's footprint (+0.1 m) overlap an obstacle circle at any table time?"""
+        if self._obstacle_kd is None:
+            return False
+        # the pose is a function of the arc length only: check every 0.2 m of the stretch driven
+        s_grid = np.arange(actor.s_table.min(), actor.s_table.max() + 0.2, 0.2)
+        p, yaw, _ = self._pose_s(actor, s_grid)
+        r_max = float(self.obstacles[:, 2].max())
+        _, idx = self._obstacle_kd.query(p[:, :2], k=4, distance_upper_bound=actor.radius + r_max + 0.1)
+        ti, kk = np.nonzero(idx < len(self.obstacles))
+        if len(ti) == 0:
+            return False
+        oi = idx[ti, kk]
+        rel = self.obstacles[oi, :2] - p[ti, :2]
+        c, s = np.cos(yaw[ti]), np.sin(yaw[ti])
+        u, v = c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]
+        hl, hw = actor.half_size
+        du, dv = np.maximum(np.abs(u) - hl, 0.0), np.maximum(np.abs(v) - hw, 0.0)
+        return bool((np.hypot(du, dv) < self.obstacles[oi, 2] + 0.1).any())
 
     def _touches_ego(self, actor: _Actor) -> bool:
         c = self.config

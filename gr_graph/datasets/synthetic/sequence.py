@@ -18,7 +18,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame, check_index
-from gr_graph.datasets.synthetic.actors import Actors, ActorsConfig, SceneWithActors
+from gr_graph.datasets.synthetic.actors import Actors, ActorsConfig, SceneWithActors, town_obstacles
 from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.sensor import BeamModel, NoiseModel, render_scan
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town
@@ -144,7 +144,8 @@ class SyntheticSequence:
         if self.actors_config is not None and self._actors is None:
             self._actors = Actors(self.path.times, self.path.T_w_velo[:, :3, 3], seed=self.town_seed,
                                   config=self.actors_config, ground=self.town.ground,
-                                  sensor_height=self.town_config.sensor_height)
+                                  sensor_height=self.town_config.sensor_height,
+                                  obstacles=town_obstacles(self.town.footprints))
         return self._actors
 
     def __len__(self) -> int:

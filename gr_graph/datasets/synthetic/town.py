@@ -35,6 +35,8 @@ preset). Each draws from its own generator, so turning one on never moves the ot
 - ``street_signs``: sign plates (0.5-0.8 m) on 2.2-3 m poles by the curb;
 - ``curved_cars``: parked cars as curved bodies with windows and wheels
   (:func:`.meshes.car_mesh`) instead of two boxes (same sizes and places);
+- ``sidewalk_parking``: cars on the left park half on the sidewalk (5.4-5.8 m off the path),
+  clear of the oncoming lane;
 - ``detached_houses``: 8-17.6 m buildings with 3-14 m gaps (residential streets);
 - ``garden_vegetation``: shrubs and small trees in the front gardens 8.8-16 m off the path;
 - ``terrain_roughness``: 1 m-scale height noise (σ, m) on lawns and verges beyond the sidewalk.
@@ -92,6 +94,10 @@ class TownConfig:
     """Traffic signs (a thin pole and a plate) along the curb."""
     curved_cars: bool = False
     """Parked cars with a curved body, windows and wheels (:func:`meshes.car_mesh`) instead of two boxes."""
+    sidewalk_parking: bool = False
+    """Cars on the left of the path park half on the sidewalk (5.4-5.8 m off the path instead of
+    3.55-3.95 m, common in German residential streets), which leaves the oncoming lane free for
+    the moving vehicles of :mod:`.actors`."""
     detached_houses: bool = False
     """Residential blocks: buildings 8-17.6 m long, always 3-14 m apart (views between them),
     instead of 8-32 m blocks joined to the next one 45 % of the time."""
@@ -108,7 +114,8 @@ class TownConfig:
     def residential(cls, **overrides) -> "TownConfig":
         """Every world effect on (the world side of the ``kitti`` preset)."""
         base = dict(porous_vegetation=True, facade_details=True, fences_hedges=True,
-                    street_signs=True, curved_cars=True, detached_houses=True, garden_vegetation=True,
+                    street_signs=True, curved_cars=True, sidewalk_parking=True, detached_houses=True,
+                    garden_vegetation=True,
                     terrain_roughness=0.04)
         base.update(overrides)
         return cls(**base)
@@ -118,6 +125,7 @@ class TownConfig:
         """True if any world effect is on."""
         return (self.porous_vegetation or self.facade_details or self.fences_hedges
                 or self.street_signs or self.curved_cars or self.garden_vegetation or self.detached_houses
+                or self.sidewalk_parking
                 or self.terrain_roughness > 0)
 
 
@@ -664,6 +672,8 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             if parked:
                 L, W = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
                 off = rng.uniform(3.55, 3.95)
+                if c.sidewalk_parking and side > 0:  # half on the left sidewalk, clear of the oncoming lane
+                    off += 5.4 - 3.55
                 got = place_rect(s + slot / 2, side, off, L, W, c.car_clearance, yaw_jitter=0.06, rng=rng)
                 if got is not None:
                     centre, yaw, pts = got
