@@ -7,8 +7,14 @@ import hashlib
 import numpy as np
 import pytest
 
-from gr_graph.datasets.synthetic.actors import (KIND_LEAD, KIND_ONCOMING, KIND_PEDESTRIAN, Actors, ActorsConfig,
-                                                SceneWithActors)
+from gr_graph.datasets.synthetic.actors import (
+    KIND_LEAD,
+    KIND_ONCOMING,
+    KIND_PEDESTRIAN,
+    Actors,
+    ActorsConfig,
+    SceneWithActors,
+)
 from gr_graph.datasets.synthetic.meshes import MATERIAL, MeshBuilder, blob
 from gr_graph.datasets.synthetic.town import TownConfig, _porous_crown, build_town
 
@@ -233,7 +239,7 @@ def test_scene_with_actors_keeps_the_nearer_hit(actors):
     mb = MeshBuilder()
     from gr_graph.datasets.synthetic.meshes import box
     mb.add(box(far[0], far[1], yaw[0] + np.pi / 2, 80.0, 0.5, -5.0, 20.0), 0.5, MATERIAL["building"])
-    v, tri, alb, mat = mb.build()
+    _, _, alb, mat = mb.build()
     static = _scene(mb)
     wrap = SceneWithActors(static, alb, mat, actors, T, t_frame)
     # aimed at points above the actor's centre from 0.2 m to 3 m (over its roof: the wall)

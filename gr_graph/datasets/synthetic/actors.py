@@ -38,7 +38,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
 from scipy.spatial import cKDTree
 
 from gr_graph.datasets.synthetic.meshes import MATERIAL, car_mesh, pedestrian_mesh

@@ -18,7 +18,12 @@ from collections.abc import Iterator
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame, check_index
-from gr_graph.datasets.synthetic.actors import Actors, ActorsConfig, SceneWithActors, town_obstacles
+from gr_graph.datasets.synthetic.actors import (
+    Actors,
+    ActorsConfig,
+    SceneWithActors,
+    town_obstacles,
+)
 from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.sensor import BeamModel, NoiseModel, render_scan
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town

@@ -51,8 +51,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gr_graph.datasets.synthetic.meshes import (MATERIAL, MeshBuilder, blob, box, car_mesh, cylinder,
-                                                gable_roof, leaf_cloud, rod)
+from gr_graph.datasets.synthetic.meshes import (
+    MATERIAL,
+    MeshBuilder,
+    blob,
+    box,
+    car_mesh,
+    cylinder,
+    gable_roof,
+    leaf_cloud,
+    rod,
+)
 
 log = logging.getLogger(__name__)
 
@@ -113,10 +122,9 @@ class TownConfig:
     @classmethod
     def residential(cls, **overrides) -> "TownConfig":
         """Every world effect on (the world side of the ``kitti`` preset)."""
-        base = dict(porous_vegetation=True, facade_details=True, fences_hedges=True,
-                    street_signs=True, curved_cars=True, sidewalk_parking=True, detached_houses=True,
-                    garden_vegetation=True,
-                    terrain_roughness=0.04)
+        base = {"porous_vegetation": True, "facade_details": True, "fences_hedges": True,
+                "street_signs": True, "curved_cars": True, "sidewalk_parking": True,
+                "detached_houses": True, "garden_vegetation": True, "terrain_roughness": 0.04}
         base.update(overrides)
         return cls(**base)
 
