@@ -59,8 +59,10 @@ def bench_build() -> tuple[float, float, int]:
     return t_town, t_bvh, len(town.triangles)
 
 
-def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray, preset: str = "clean") -> tuple[float, float]:
-    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads, preset=preset)
+def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray, preset: str = "clean", town_config=None,
+              actors=None) -> tuple[float, float]:
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads, preset=preset, town_config=town_config,
+                            actors=actors)
     seq[int(frames[0])]  # warm up
     n_pts = 0
     t0 = time.perf_counter()
@@ -104,14 +106,68 @@ def bench_odometry(n_rings: int, start: int, n: int) -> dict[str, float]:
             "mean_r_deg": float(np.mean(errs_r)), "max_r_deg": float(np.max(errs_r))}
 
 
+def bench_world(n_frames: int, out: Path) -> None:
+    """Render speed with the world effects (64 rings, one ray-casting thread), written to ``out``."""
+    from gr_graph.datasets.synthetic.actors import ActorsConfig
+    from gr_graph.datasets.synthetic.town import TownConfig, build_town
+
+    load0 = os.getloadavg()
+    positions = route_path(0).T_w_velo[:, :3, 3]
+    frames = np.arange(1000, 1000 + n_frames)
+    variants = [("clean (every effect off)", TownConfig(), None),
+                ("world effects of the town (`TownConfig.residential()`)", TownConfig.residential(), None),
+                ("moving actors only (`ActorsConfig()`)", TownConfig(), ActorsConfig()),
+                ("every world effect (town + actors)", TownConfig.residential(), ActorsConfig())]
+    rows = []
+    for name, tc, ac in variants:
+        t0 = time.perf_counter()
+        town = build_town(positions, seed=0, config=tc)
+        t_build = time.perf_counter() - t0
+        clear_scene_cache()
+        fps, pts = bench_fps(64, 1, frames, town_config=tc, actors=ac)
+        clear_scene_cache()
+        rows.append((name, t_build, len(town.triangles), fps, pts))
+        print(rows[-1], flush=True)
+    load1 = os.getloadavg()
+    lines = [
+        "# Synthetic renderer: speed with the world effects",
+        "",
+        f"Reproduce: `python benchmarks/bench_render.py --world-effects --frames {n_frames}`",
+        "",
+        f"- date (UTC): {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M}",
+        f"- machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; load average "
+        f"{load0[0]:.1f} before / {load1[0]:.1f} after (shared machine: lower bounds)",
+        f"- 64 rings, 1 ray-casting thread, frames 1000..{1000 + n_frames} of the generated route, "
+        "seed 0, today's sensor model; target >= 10 frames/s with every effect on",
+        "",
+        "| world | town build [s] | triangles | frames/s | points/frame |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    lines += [f"| {n} | {b:.1f} | {t / 1e6:.2f} M | {f:.1f} | {p:,.0f} |" for n, b, t, f, p in rows]
+    text = "\n".join(lines) + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".md")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, out)
+    print(text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=60, help="frames timed per configuration")
     ap.add_argument("--odometry", type=int, default=100, help="frames of the odometry check (0: skip)")
     ap.add_argument("--presets", default="clean",
                     help="comma-separated sensor presets to time (clean, kitti, raw; default clean)")
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--out", type=Path, default=None,
+                    help=f"default {RESULTS} (with --world-effects: render_world.md beside it)")
+    ap.add_argument("--world-effects", action="store_true",
+                    help="only time the world effects (town effects, actors) at 64 rings, 1 thread")
     args = ap.parse_args()
+    if args.world_effects:
+        bench_world(args.frames, args.out or RESULTS.with_name("render_world.md"))
+        return
+    args.out = args.out or RESULTS
     load0 = os.getloadavg()
     t_town, t_bvh, n_tri = bench_build()
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

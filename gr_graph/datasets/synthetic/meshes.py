@@ -13,7 +13,7 @@ import numpy as np
 
 # Material ids (index into MATERIAL_NAMES); reflectance is stored per triangle separately.
 MATERIAL_NAMES = ("road", "sidewalk", "terrain", "building", "wall", "pole", "trunk",
-                  "foliage", "car", "glass")
+                  "foliage", "car", "glass", "person")
 MATERIAL = {name: i for i, name in enumerate(MATERIAL_NAMES)}
 
 
@@ -115,3 +115,155 @@ class MeshBuilder:
                     np.zeros(0, np.uint8))
         return (np.concatenate(self._v), np.concatenate(self._t).astype(np.uint32),
                 np.concatenate(self._albedo), np.concatenate(self._material))
+
+
+def leaf_cloud(points: np.ndarray, size: float | np.ndarray,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Small randomly oriented triangles (leaf clusters, twigs) centred on ``points`` ``(N, 3)``.
+
+    Each element is an equilateral triangle of side ``size`` (m, scalar or ``(N,)``) in a
+    uniformly random plane: ``N`` triangles, ``3 N`` vertices. A crown made of such elements
+    is porous: a ray travels a random free path between them (see ``town`` for the density).
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = len(points)
+    normal = rng.normal(size=(n, 3))
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(normal, u)
+    spin = rng.uniform(0.0, 2 * np.pi, n)[:, None]
+    e1 = np.cos(spin) * u + np.sin(spin) * v
+    e2 = np.cross(normal, e1)
+    r = (np.broadcast_to(np.asarray(size, np.float64), (n,)) / np.sqrt(3.0))[:, None]  # circumradius
+    verts = np.empty((n, 3, 3))
+    for k, ang in enumerate((0.0, 2 * np.pi / 3, 4 * np.pi / 3)):
+        verts[:, k] = points + r * (np.cos(ang) * e1 + np.sin(ang) * e2)
+    return verts.reshape(-1, 3), np.arange(3 * n).reshape(n, 3)
+
+
+def gable_roof(cx: float, cy: float, yaw: float, length: float, width: float, z0: float,
+               ridge_height: float, overhang: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A gable roof (triangular prism, ridge along ``yaw``) on a ``length`` x ``width`` block.
+
+    The eaves overhang the walls by ``overhang`` on every side (at height ``z0``).
+    """
+    c, s = np.cos(yaw), np.sin(yaw)
+    hl, hw = 0.5 * length + overhang, 0.5 * width + overhang
+    local = np.array([[-hl, -hw, z0], [hl, -hw, z0], [hl, hw, z0], [-hl, hw, z0],
+                      [-hl, 0.0, z0 + ridge_height], [hl, 0.0, z0 + ridge_height]])
+    xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + (cx, cy)
+    v = np.c_[xy, local[:, 2]]
+    t = np.array([[0, 1, 5], [0, 5, 4], [3, 2, 5], [3, 5, 4], [0, 4, 3], [1, 2, 5],
+                  [0, 1, 2], [0, 2, 3]])  # two slopes, two gables, the soffit
+    return v, t
+
+
+def _loft(sections: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh through closed cross-sections ``(S, P, 3)`` (quads between them, fans at the ends)."""
+    n_s, n_p, _ = sections.shape
+    v = sections.reshape(-1, 3)
+    i = np.arange(n_p)
+    j = (i + 1) % n_p
+    tris = []
+    for a in range(n_s - 1):
+        o0, o1 = a * n_p, (a + 1) * n_p
+        tris.append(np.c_[o0 + i, o0 + j, o1 + j])
+        tris.append(np.c_[o0 + i, o1 + j, o1 + i])
+    centres = sections.mean(axis=1)
+    v = np.concatenate([v, centres[[0, -1]]])
+    tris.append(np.c_[i, j, np.full(n_p, len(v) - 2)])
+    tris.append(np.c_[(n_s - 1) * n_p + i, (n_s - 1) * n_p + j, np.full(n_p, len(v) - 1)])
+    return v, np.concatenate(tris)
+
+
+def car_mesh(length: float, width: float, height: float, clearance: float,
+             rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A passenger car with a curved body in its own frame (x forward, z up, ground at z = 0).
+
+    A loft of 13 cross-sections: rounded bumpers and plan shape, a hood rising to a raked
+    windscreen, a roof, a sloping rear window and a trunk; the greenhouse (windows) is
+    narrower than the body (tumblehome); four wheels (8-sided) under the body. Typical
+    dimensions (compact to mid-size cars): length 3.8-4.9 m, width 1.7-1.95 m, height
+    1.4-1.55 m, ground clearance 0.14-0.2 m.
+
+    Returns ``(vertices, triangles, is_glass (T,) bool)``.
+    """
+    r = rng if rng is not None else np.random.default_rng(0)
+    hl, hw = 0.5 * length, 0.5 * width
+    belt = clearance + r.uniform(0.55, 0.65) * (height - clearance)
+    xs = hl * np.array([-1.0, -0.97, -0.9, -0.75, -0.55, -0.3, 0.0, 0.2, 0.35, 0.5, 0.75, 0.93, 1.0])
+    # roof line over x: trunk, rear window, roof, windscreen, hood, bumper (fractions of length)
+    roof = np.interp(xs / hl, [-1.0, -0.9, -0.72, -0.5, 0.1, 0.38, 0.55, 1.0],
+                     [belt - 0.12, belt + 0.02, belt + 0.05, height, height, belt + 0.08, belt + 0.03,
+                      belt - 0.1])
+    plan = np.sqrt(np.clip(1.0 - (np.maximum(np.abs(xs) / hl - 0.8, 0.0) / 0.2) ** 2, 0.15, 1.0))
+    sections = []
+    for x, top, p in zip(xs, roof, plan):
+        w = hw * p
+        upper = top > belt + 0.06
+        wg = w - (0.18 if upper else 0.05)
+        z_top = max(top, clearance + 0.25)
+        yz = [(-0.85 * w, clearance), (-w, clearance + 0.25), (-w, min(belt, z_top - 0.02)),
+              (-wg, z_top - 0.02), (-0.75 * wg, z_top), (0.75 * wg, z_top), (wg, z_top - 0.02),
+              (w, min(belt, z_top - 0.02)), (w, clearance + 0.25), (0.85 * w, clearance)]
+        sections.append([(x, y, z) for y, z in yz])
+    v, t = _loft(np.asarray(sections))
+    centroid = v[t].mean(axis=1)
+    cab = (centroid[:, 2] > belt + 0.03) & (centroid[:, 2] < height - 0.04)
+    wheels_v, wheels_t = [v], [t]
+    n_v = len(v)
+    rw = min(0.33, clearance + 0.17)
+    for wx in (0.68 * hl, -0.66 * hl):
+        for wy in (-hw + 0.12, hw - 0.12):
+            a = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+            ring = np.c_[wx + rw * np.cos(a), np.zeros(8), rw + rw * np.sin(a)]
+            wv = np.concatenate([ring + (0, wy - 0.1, 0), ring + (0, wy + 0.1, 0)])
+            i = np.arange(8)
+            j = (i + 1) % 8
+            wt = np.concatenate([np.c_[i, j, j + 8], np.c_[i, j + 8, i + 8],
+                                 np.c_[np.zeros(6, int), i[1:7], i[2:8]],
+                                 np.c_[np.full(6, 8), i[1:7] + 8, i[2:8] + 8]])
+            wheels_v.append(wv)
+            wheels_t.append(wt + n_v)
+            n_v += len(wv)
+    tris = np.concatenate(wheels_t)
+    glass = np.concatenate([cab, np.zeros(len(tris) - len(t), bool)])
+    return np.concatenate(wheels_v), tris, glass
+
+
+def pedestrian_mesh(height: float, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A standing/walking person in their own frame (x forward, z up, feet at z = 0).
+
+    A loft of elliptical cross-sections (legs as one section 0.3 x 0.2 m, hips, torso
+    0.45 x 0.25 m at the shoulders, neck, head 0.2 m): adult stature 1.55-1.90 m.
+    """
+    r = rng if rng is not None else np.random.default_rng(0)
+    s = height / 1.75
+    build = r.uniform(0.9, 1.15)
+    # (z fraction of height, half width across, half depth forward)
+    prof = [(0.0, 0.13, 0.12), (0.05, 0.15, 0.09), (0.45, 0.17, 0.10), (0.55, 0.19, 0.12),
+            (0.72, 0.21, 0.12), (0.81, 0.23, 0.12), (0.85, 0.06, 0.06), (0.88, 0.09, 0.1),
+            (0.95, 0.095, 0.105), (1.0, 0.04, 0.05)]
+    a = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    sections = [np.c_[d * build * s * np.cos(a), w * build * s * np.sin(a), np.full(8, z * height)]
+                for z, w, d in prof]
+    return _loft(np.asarray(sections))
+
+
+def rod(p0: np.ndarray, p1: np.ndarray, radius: float, n_seg: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """An open prism of ``n_seg`` sides and ``radius`` from ``p0`` to ``p1`` (a branch, a rail)."""
+    p0, p1 = np.asarray(p0, np.float64), np.asarray(p1, np.float64)
+    axis = p1 - p0
+    axis /= max(np.linalg.norm(axis), 1e-12)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    a = np.linspace(0, 2 * np.pi, n_seg, endpoint=False)
+    ring = radius * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * w)
+    v = np.concatenate([ring + p0, ring + p1])
+    i = np.arange(n_seg)
+    j = (i + 1) % n_seg
+    return v, np.concatenate([np.c_[i, j, j + n_seg], np.c_[i, j + n_seg, i + n_seg]])

@@ -19,6 +19,11 @@ from collections.abc import Iterator
 import numpy as np
 
 from gr_graph.datasets.base import LidarFrame, check_index
+from gr_graph.datasets.synthetic.actors import (
+    Actors,
+    ActorsConfig,
+    town_obstacles,
+)
 from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.effects import (PRESETS, SensorEffects, draw_laser_calibration,
                                                  preset as preset_effects, sweep_motion)
@@ -32,21 +37,23 @@ DEFAULT_PRESET = "clean"
 ``kitti`` sensor effects alone do not bring the realism statistics within the +-25 % target
 (``benchmarks/results/realism.md``); switch here once the world's effects close the gap."""
 
-_CACHE: "OrderedDict[tuple[int, str], tuple[Town, object]]" = OrderedDict()
+_CACHE: "OrderedDict[tuple, tuple[Town, object]]" = OrderedDict()
 _CACHE_SIZE = 2
 _LOCK = threading.Lock()
 
 
-def get_town_and_scene(town_seed: int, path: SensorPath) -> tuple[Town, object]:
+def get_town_and_scene(town_seed: int, path: SensorPath,
+                       town_config: TownConfig | None = None) -> tuple[Town, object]:
     """The town of ``town_seed`` around ``path`` and its RaycastingScene (cached, built once)."""
-    key = (int(town_seed), path.key())
+    town_config = town_config or TownConfig()
+    key = (int(town_seed), path.key(), town_config)
     with _LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
             return _CACHE[key]
         import open3d as o3d
 
-        town = build_town(path.T_w_velo[:, :3, 3], seed=town_seed)
+        town = build_town(path.T_w_velo[:, :3, 3], seed=town_seed, config=town_config)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles))
         _CACHE[key] = (town, scene)
@@ -98,9 +105,13 @@ class SyntheticSequence:
         ``time``). Default :data:`DEFAULT_PRESET`.
     effects : SensorEffects, optional
         Explicit effects, overriding ``preset`` (e.g. one effect alone).
-    actors : object, optional
-        Moving objects with ``cast(origins, directions, times)`` (see
-        :class:`~gr_graph.datasets.synthetic.sensor.Actors`).
+    town_config : TownConfig, optional
+        The town's layout and world effects (default ``TownConfig()``: every effect off;
+        ``TownConfig.residential()``: every world effect on).
+    actors : ActorsConfig or object, optional
+        Moving vehicles and pedestrians: an :class:`~gr_graph.datasets.synthetic.actors.ActorsConfig`
+        (built on first use, seeded by the town seed) or any object with
+        ``cast(origins, directions, times)``; None = none.
 
     Attributes
     ----------
@@ -118,7 +129,8 @@ class SyntheticSequence:
                  min_range: float = 1.0, town_seed: int | None = None, nthreads: int = 0,
                  route_seed: int = 0, trajectory: str | os.PathLike[str] | None = None,
                  trajectory_seq: str = "00", preset: str | None = None,
-                 effects: SensorEffects | None = None, actors=None):
+                 effects: SensorEffects | None = None, town_config: TownConfig | None = None,
+                 actors=None):
         self.seed = int(seed)
         self.town_seed = self.seed if town_seed is None else int(town_seed)
         self.route_seed = int(route_seed)
@@ -140,7 +152,9 @@ class SyntheticSequence:
         if effects is not None:
             self.preset = "custom"
         self.laser_calib = draw_laser_calibration(self.effects.calibration, self.seed)
-        self.actors = actors
+        self.town_config = town_config or TownConfig()
+        self.actors_config = actors if isinstance(actors, ActorsConfig) else None
+        self._actors = None if isinstance(actors, ActorsConfig) else actors
         self.motion_compensated = self.effects.motion.mode != "raw"
         self.scan_period = float(self.effects.motion.sweep_seconds)
         self._material_albedo: np.ndarray | None = None
@@ -159,7 +173,17 @@ class SyntheticSequence:
     @property
     def town(self) -> Town:
         """The (cached) procedural town; built on first use."""
-        return get_town_and_scene(self.town_seed, self.path)[0]
+        return get_town_and_scene(self.town_seed, self.path, self.town_config)[0]
+
+    @property
+    def actors(self) -> Actors | None:
+        """The moving actors (None without ``actors``); built on first use."""
+        if self.actors_config is not None and self._actors is None:
+            self._actors = Actors(self.path.times, self.path.T_w_velo[:, :3, 3], seed=self.town_seed,
+                                  config=self.actors_config, ground=self.town.ground,
+                                  sensor_height=self.town_config.sensor_height,
+                                  obstacles=town_obstacles(self.town.footprints))
+        return self._actors
 
     def __len__(self) -> int:
         return len(self.gt_poses)
@@ -170,7 +194,9 @@ class SyntheticSequence:
         return (f"SyntheticSequence(seed={self.seed}, town_seed={self.town_seed}, {where}, "
                 f"n_rings={self.n_rings}, max_range={self.noise.max_range}, "
                 f"n_azimuth={self.beams.n_azimuth}, preset={self.preset!r}, "
-                f"effects={self.effects.describe()!r})")
+                f"effects={self.effects.describe()!r}"
+                + (f", town_config={self.town_config}" if self.town_config != TownConfig() else "")
+                + (f", actors={self.actors_config}" if self.actors_config is not None else "") + ")")
 
     def frame_rng(self, index: int) -> np.random.Generator:
         """The generator of frame ``index``'s noise: seeded by ``(seed, index)`` only."""
@@ -178,7 +204,7 @@ class SyntheticSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        town, scene = get_town_and_scene(self.town_seed, self.path)
+        town, scene = get_town_and_scene(self.town_seed, self.path, self.town_config)
         if self.actors is not None and self._material_albedo is None:
             count = np.bincount(town.material, minlength=256)
             total = np.bincount(town.material, weights=town.albedo, minlength=256)

@@ -15,6 +15,31 @@ Every object is checked against the *whole* path (a KD-tree of the path sampled 
 and on revisited stretches; objects are also checked against each other on an occupancy
 grid, so a revisited stretch keeps the objects placed on the first pass and renders the
 same structures again.
+
+World effects (``TownConfig`` flags, all off by default so that the ``clean`` town stays
+bit-identical; ``TownConfig.residential()`` turns them all on, the world side of the ``kitti``
+preset). Each draws from its own generator, so turning one on never moves the others' objects
+(except ``detached_houses``, which changes the building layout itself):
+
+- ``porous_vegetation``: crowns, bushes and hedges as volumes of small randomly oriented
+  leaf-cluster triangles at a one-sided leaf area density ``leaf_area_density`` (trees, 1 m²/m³;
+  broadleaf crowns measure about 0.5-2.5 m²/m³, e.g. Weiss et al. 2004, Béland et al. 2014)
+  and ``shrub_leaf_area_density`` (2 m²/m³), elements of ``leaf_size`` 0.25 m (clumps of
+  leaves and twigs) and 0.12 m; a beam travels a Beer-Lambert free path of mean
+  ``1 / (0.5 LAD)`` inside (2 m in a tree crown), so returns come from inside crowns and some
+  beams pass through; trees get 4-7 branches;
+- ``facade_details``: floor bands, window sills, balconies with railings, gable roofs
+  (25-45 degrees) with eaves or flat roofs with a parapet or cornice (storey height 3 m);
+- ``fences_hedges``: hedges (0.9-1.8 m), picket fences (0.9-1.3 m) and railings along the
+  property line 8.1-8.6 m off the path;
+- ``street_signs``: sign plates (0.5-0.8 m) on 2.2-3 m poles by the curb;
+- ``curved_cars``: parked cars as curved bodies with windows and wheels
+  (:func:`.meshes.car_mesh`) instead of two boxes (same sizes and places);
+- ``sidewalk_parking``: cars on the left park half on the sidewalk (5.4-5.8 m off the path),
+  clear of the oncoming lane;
+- ``detached_houses``: 8-17.6 m buildings with 3-14 m gaps (residential streets);
+- ``garden_vegetation``: shrubs and small trees in the front gardens 8.8-16 m off the path;
+- ``terrain_roughness``: 1 m-scale height noise (σ, m) on lawns and verges beyond the sidewalk.
 """
 
 from __future__ import annotations
@@ -26,7 +51,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gr_graph.datasets.synthetic.meshes import MATERIAL, MeshBuilder, blob, box, cylinder
+from gr_graph.datasets.synthetic.meshes import (
+    MATERIAL,
+    MeshBuilder,
+    blob,
+    box,
+    car_mesh,
+    cylinder,
+    gable_roof,
+    leaf_cloud,
+    rod,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +82,59 @@ class TownConfig:
     building_clearance: float = 8.5
     car_clearance: float = 2.4
     furniture_clearance: float = 5.6
+    # ---- world effects (all off by default: the ``clean`` town, bit-identical to before) ----
+    porous_vegetation: bool = False
+    """Tree crowns, bushes and hedges as porous volumes of small leaf/twig elements instead of
+    closed blobs (returns from inside the crown, partial penetration)."""
+    leaf_area_density: float = 1.0
+    """One-sided leaf area per crown volume (m²/m³) of trees; measured values of broadleaf
+    crowns are about 0.5-2.5 m²/m³ (e.g. Weiss et al. 2004; Béland et al. 2014)."""
+    shrub_leaf_area_density: float = 2.0
+    """The same for bushes and hedges (denser, about 1-4 m²/m³)."""
+    leaf_size: float = 0.25
+    """Side (m) of one leaf-cluster element of a tree crown (a clump of leaves and twigs)."""
+    shrub_leaf_size: float = 0.12
+    """Side (m) of one element of a bush or hedge."""
+    facade_details: bool = False
+    """Buildings get eaves or gable roofs, floor bands, window sills and balconies."""
+    fences_hedges: bool = False
+    """Picket fences, railings and hedges along the property lines behind the sidewalk."""
+    street_signs: bool = False
+    """Traffic signs (a thin pole and a plate) along the curb."""
+    curved_cars: bool = False
+    """Parked cars with a curved body, windows and wheels (:func:`meshes.car_mesh`) instead of two boxes."""
+    sidewalk_parking: bool = False
+    """Cars on the left of the path park half on the sidewalk (5.4-5.8 m off the path instead of
+    3.55-3.95 m, common in German residential streets), which leaves the oncoming lane free for
+    the moving vehicles of :mod:`.actors`."""
+    detached_houses: bool = False
+    """Residential blocks: buildings 8-17.6 m long, always 3-14 m apart (views between them),
+    instead of 8-32 m blocks joined to the next one 45 % of the time."""
+    garden_vegetation: bool = False
+    """Front gardens: shrubs and small trees between the sidewalk and the houses (8.8-16 m off
+    the path), as in the residential streets of KITTI 00."""
+    garden_spacing: tuple[float, float] = (2.5, 8.0)
+    """Distance (m) along the street between two garden plantings (where there is room)."""
+    terrain_roughness: float = 0.0
+    """Standard deviation (m) of the fine-scale (1 m) height roughness of the terrain beyond
+    the sidewalk (uneven lawns and verges); 0 = smooth."""
+
+    @classmethod
+    def residential(cls, **overrides) -> "TownConfig":
+        """Every world effect on (the world side of the ``kitti`` preset)."""
+        base = {"porous_vegetation": True, "facade_details": True, "fences_hedges": True,
+                "street_signs": True, "curved_cars": True, "sidewalk_parking": True,
+                "detached_houses": True, "garden_vegetation": True, "terrain_roughness": 0.04}
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def any_effect(self) -> bool:
+        """True if any world effect is on."""
+        return (self.porous_vegetation or self.facade_details or self.fences_hedges
+                or self.street_signs or self.curved_cars or self.garden_vegetation or self.detached_houses
+                or self.sidewalk_parking
+                or self.terrain_roughness > 0)
 
 
 @dataclass
@@ -199,6 +287,154 @@ def _rect_corners(cx, cy, yaw, length, width) -> np.ndarray:
     return local @ np.array([[c, s], [-s, c]]) + (cx, cy)
 
 
+def _ellipsoid_volume_points(rng: np.random.Generator, centre: np.ndarray, radii: np.ndarray,
+                             n: int) -> np.ndarray:
+    """``n`` points uniform in the ellipsoid ``centre``, ``radii``."""
+    d = rng.normal(size=(n, 3))
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return centre + d * (rng.random(n) ** (1.0 / 3.0))[:, None] * radii
+
+
+def _leaf_count(volume: float, leaf_area_density: float, leaf_size: float) -> int:
+    """Elements of side ``leaf_size`` carrying ``leaf_area_density`` (one-sided) in ``volume``."""
+    return int(round(leaf_area_density * volume / (np.sqrt(3.0) / 4.0 * leaf_size ** 2)))
+
+
+def _porous_crown(mb: MeshBuilder, rng: np.random.Generator, centre: np.ndarray, radii: np.ndarray,
+                  leaf_area_density: float, leaf_size: float, albedo: float,
+                  trunk: tuple[float, float, float, float] | None = None, trunk_albedo: float = 0.3) -> None:
+    """A crown (or bush) as a porous volume of randomly oriented leaf-cluster elements.
+
+    With one-sided leaf area density ``LAD`` and randomly oriented elements (projection
+    factor G = 0.5, the spherical leaf angle distribution), a ray inside the crown travels a
+    free path of mean ``1 / (G LAD)`` (2 m for 1 m²/m³), so the beam returns from the
+    hull, from inside the crown or passes through (Beer-Lambert gap fraction). Elements
+    are ``leaf_size`` x U(0.7, 1.3); a tree also gets 4-7 branches from the trunk top.
+    """
+    volume = 4.0 / 3.0 * np.pi * float(np.prod(radii))
+    n = max(1, _leaf_count(volume, leaf_area_density, leaf_size))
+    pts = _ellipsoid_volume_points(rng, centre, radii, n)
+    size = leaf_size * rng.uniform(0.7, 1.3, n)
+    alb = np.clip(albedo + rng.normal(0.0, 0.03, n), 0.02, 1.0).astype(np.float32)
+    mb.add(leaf_cloud(pts, size, rng), alb, MATERIAL["foliage"])
+    if trunk is not None:
+        x, y, z, r = trunk
+        for _ in range(int(rng.integers(4, 8))):
+            a = rng.uniform(0, 2 * np.pi)
+            reach = rng.uniform(0.5, 0.85)
+            end = centre + np.array([np.cos(a) * radii[0] * reach, np.sin(a) * radii[1] * reach,
+                                     rng.uniform(-0.2, 0.5) * radii[2]])
+            mb.add(rod((x, y, z - rng.uniform(0.0, 0.6)), end, 0.35 * r), trunk_albedo, MATERIAL["trunk"])
+
+
+def _facade_details(mb: MeshBuilder, rng: np.random.Generator, centre: np.ndarray, yaw: float,
+                    length: float, depth: float, g: float, zt: float, albedo: float, roof: bool) -> None:
+    """Eaves or a gable roof, floor bands, window sills and balconies on one building block.
+
+    Storey height 3 m; sills 1.2 m wide protruding 0.1-0.15 m every 2.4-3.6 m; balconies
+    1.0-1.5 m deep and 2.4-4 m wide with a 1 m railing (residential building codes require
+    railings of about 0.9-1.1 m); roof pitch 25-45 degrees; eaves overhang 0.3-0.7 m.
+    """
+    ex = np.array([np.cos(yaw), np.sin(yaw)])
+    ey = np.array([-np.sin(yaw), np.cos(yaw)])
+    n_floors = max(1, int((zt - g) / 3.0))
+    bands, sills, balconies = rng.uniform() < 0.5, rng.uniform() < 0.8, rng.uniform() < 0.5
+    faces = [(ex, 0.5 * length, ey, depth), (-ex, 0.5 * length, -ey, depth),
+             (ey, 0.5 * depth, -ex, length), (-ey, 0.5 * depth, ex, length)]
+
+    def detail(n, dist, t, u, w, p, z0, z1, alb=albedo):
+        q = centre + n * (dist + 0.5 * p) + t * u
+        mb.add(box(q[0], q[1], np.arctan2(t[1], t[0]), w, p, z0, z1), alb, MATERIAL["building"])
+
+    for n, dist, t, fw in faces:
+        if bands:
+            p = rng.uniform(0.08, 0.2)
+            for f in range(1, n_floors):
+                detail(n, dist, t, 0.0, fw + 2 * p, p, g + 3.0 * f - 0.1, g + 3.0 * f + 0.15)
+        if sills and fw > 3.0:
+            spacing = rng.uniform(2.4, 3.6)
+            us = np.arange(-0.5 * fw + 1.2, 0.5 * fw - 1.2 + 1e-9, spacing)
+            p = rng.uniform(0.1, 0.15)
+            for f in range(n_floors):
+                for u in us:
+                    detail(n, dist, t, u, 1.2, p, g + 3.0 * f + 0.85, g + 3.0 * f + 0.95)
+        if balconies and fw > 6.0 and n_floors > 1 and abs(n @ ey) > 0.5:
+            for u in np.arange(-0.5 * fw + 3.0, 0.5 * fw - 2.0, rng.uniform(6.0, 9.0)):
+                if rng.uniform() < 0.4:
+                    continue
+                w, p = rng.uniform(2.4, 4.0), rng.uniform(1.0, 1.5)
+                for f in range(1, n_floors):
+                    z = g + 3.0 * f
+                    detail(n, dist, t, u, w, p, z - 0.15, z)
+                    detail(n, dist + p - 0.05, t, u, w, 0.05, z, z + 1.0, albedo * 0.7)
+    if not roof:
+        return
+    if zt - g < 13.0 and rng.uniform() < 0.6:
+        pitch = np.radians(rng.uniform(25.0, 45.0))
+        over = rng.uniform(0.3, 0.7)
+        if length >= depth:
+            mb.add(gable_roof(centre[0], centre[1], yaw, length, depth, zt, 0.5 * depth * np.tan(pitch), over),
+                   albedo * 0.6, MATERIAL["building"])
+        else:
+            mb.add(gable_roof(centre[0], centre[1], yaw + np.pi / 2, depth, length, zt,
+                              0.5 * length * np.tan(pitch), over), albedo * 0.6, MATERIAL["building"])
+    elif rng.uniform() < 0.5:  # a parapet around a flat roof
+        for n, dist, t, fw in faces:
+            detail(n, dist - 0.2, t, 0.0, fw, 0.2, zt, zt + rng.uniform(0.5, 1.0))
+    else:  # a cornice overhanging the walls
+        over = rng.uniform(0.3, 0.6)
+        mb.add(box(centre[0], centre[1], yaw, length + 2 * over, depth + 2 * over, zt - 0.3, zt),
+               albedo * 0.8, MATERIAL["building"])
+
+
+def _fence_or_hedge(mb: MeshBuilder, rng: np.random.Generator, c: TownConfig, kind: float,
+                    centre: np.ndarray, yaw: float, length: float, width: float, ground: GroundModel,
+                    fp: dict[str, list]) -> None:
+    """One property-line element: a hedge (``kind`` < 0.4), a picket fence (< 0.75) or a railing.
+
+    Hedges 0.9-1.8 m high and ``width`` thick (porous like bushes when
+    ``c.porous_vegetation``); picket fences 0.9-1.3 m with 8 cm pickets 12-20 cm apart;
+    railings 1.0-1.8 m with posts every 2.5 m and two rails.
+    """
+    ex = np.array([np.cos(yaw), np.sin(yaw)])
+    albedo = rng.uniform(0.25, 0.75)
+    if kind < 0.4:
+        h = rng.uniform(0.9, 1.8)
+        g = float(ground(centre[None])[0])
+        alb = rng.uniform(0.15, 0.35)
+        if c.porous_vegetation:
+            n = max(1, _leaf_count(length * width * h, c.shrub_leaf_area_density, c.shrub_leaf_size))
+            local = rng.uniform(-0.5, 0.5, (n, 3)) * (length, width, h)
+            pts = np.c_[centre[0] + ex[0] * local[:, 0] - ex[1] * local[:, 1],
+                        centre[1] + ex[1] * local[:, 0] + ex[0] * local[:, 1], g + 0.5 * h + local[:, 2]]
+            size = c.shrub_leaf_size * rng.uniform(0.7, 1.3, n)
+            mb.add(leaf_cloud(pts, size, rng), alb, MATERIAL["foliage"])
+        else:
+            mb.add(box(centre[0], centre[1], yaw, length, width, g - 0.1, g + h), alb, MATERIAL["foliage"])
+    elif kind < 0.75:
+        h, spacing = rng.uniform(0.9, 1.3), rng.uniform(0.12, 0.2)
+        us = np.arange(-0.5 * length + 0.05, 0.5 * length, spacing)
+        q = centre + us[:, None] * ex
+        gs = ground(q)
+        for (qx, qy), g in zip(q, gs):
+            mb.add(box(qx, qy, yaw, 0.08, 0.02, g - 0.05, g + h), albedo, MATERIAL["wall"])
+        g0 = float(gs.mean())
+        for z in (0.25, h - 0.2):
+            mb.add(box(centre[0], centre[1], yaw, length, 0.03, g0 + z, g0 + z + 0.08), albedo, MATERIAL["wall"])
+    else:
+        h = rng.uniform(1.0, 1.8)
+        us = np.arange(-0.5 * length, 0.5 * length + 1e-9, 2.5)
+        q = centre + us[:, None] * ex
+        gs = ground(q)
+        for (qx, qy), g in zip(q, gs):
+            mb.add(box(qx, qy, yaw, 0.06, 0.06, g - 0.1, g + h), albedo, MATERIAL["pole"])
+        g0 = float(gs.mean())
+        a, b = centre - 0.5 * length * ex, centre + 0.5 * length * ex
+        for z in (0.45 * h, h - 0.05):
+            mb.add(rod((a[0], a[1], g0 + z), (b[0], b[1], g0 + z), 0.025, 4), albedo, MATERIAL["pole"])
+    fp["wall"].append(_rect_corners(centre[0], centre[1], yaw, length, width))
+
+
 def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None = None) -> Town:
     """Build the town around the sensor path ``positions`` ``(K, 3)`` (world frame, z up).
 
@@ -213,6 +449,9 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
         raise ValueError("build_town: positions contain non-finite values")
     ss = np.random.SeedSequence([int(seed), 0x70776E])
     rngs = [np.random.default_rng(s) for s in ss.spawn(10)]
+    # the world effects draw from their own generators, so the layout (and, with every effect
+    # off, the whole town) is the same with and without them
+    fx = [np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), 0x70776E, 1]).spawn(8)]
     path = resample_path(positions, c.path_step)
     if len(path) < 4:
         raise ValueError("build_town: the path is shorter than 2 m")
@@ -230,6 +469,9 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
     vmask = np.isfinite(vd)
     vz = np.full(len(gxy), np.nan)
     vz[vmask] = ground(gxy[vmask], vd[vmask])
+    if c.terrain_roughness > 0:  # uneven lawns/verges beyond the sidewalk (not the road or sidewalk)
+        fade = _smoothstep((vd[vmask] - c.road_half_width - c.sidewalk_width - 0.5) / 1.5)
+        vz[vmask] += c.terrain_roughness * fx[0].standard_normal(int(vmask.sum())) * fade
     nx, ny = len(xs), len(ys)
     i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
     i, j = i.ravel(), j.ravel()
@@ -282,6 +524,8 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
         s = rng.uniform(0.0, 10.0)
         while s < total:
             length = rng.uniform(8.0, 32.0)
+            if c.detached_houses:
+                length = 8.0 + 0.4 * (length - 8.0)
             depth = rng.uniform(8.0, 18.0)
             setback = rng.uniform(c.building_clearance + 0.5, 15.0)
             kind = rng.uniform()
@@ -298,11 +542,18 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             z0, zt = hg.min() - 0.5, hg.mean() + height
             mb.add(box(centre[0], centre[1], yaw, length, depth, z0, zt), albedo, MATERIAL["building"])
             fp["building"].append(_rect_corners(centre[0], centre[1], yaw, length, depth))
-            if tier < 0.35 and length > 10 and depth > 9:
+            has_tier = tier < 0.35 and length > 10 and depth > 9
+            if has_tier:
                 # an upper tier set back 2 m from every side of the block
                 mb.add(box(centre[0], centre[1], yaw, length - 4.0, depth - 4.0, zt - 0.2,
                            zt + rng.uniform(3.0, 8.0)), albedo * 0.9, MATERIAL["building"])
-            s += length + (0.0 if gap_draw < 0.45 else rng.uniform(2.0, 14.0))
+            if c.facade_details:
+                _facade_details(mb, fx[1], centre, yaw, length, depth, float(hg.mean()), zt, albedo,
+                                roof=not has_tier)
+            if c.detached_houses:
+                s += length + rng.uniform(3.0, 14.0)
+            else:
+                s += length + (0.0 if gap_draw < 0.45 else rng.uniform(2.0, 14.0))
 
     # ---- low walls / fences (fill some gaps) ------------------------------------------------
     rng = rngs[3]
@@ -337,10 +588,18 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
         if not layout.try_place(trunk_pts, c.furniture_clearance, occupy_pts=crown_pts):
             return False
         g = float(ground(np.array([[x, y]]))[0])
-        mb.add(cylinder(x, y, trunk_r, g - 0.3, g + trunk_h + 0.5 * rz, 7), rng.uniform(0.25, 0.4),
+        trunk_albedo = rng.uniform(0.25, 0.4)
+        mb.add(cylinder(x, y, trunk_r, g - 0.3, g + trunk_h + 0.5 * rz, 7), trunk_albedo,
                MATERIAL["trunk"])
-        mb.add(blob(np.array([x, y, g + trunk_h + 0.8 * rz]), np.array([rc * stretch, rc / stretch, rz]),
-                    rng, subdivisions=2, roughness=0.3), rng.uniform(0.15, 0.3), MATERIAL["foliage"])
+        crown_c = np.array([x, y, g + trunk_h + 0.8 * rz])
+        crown_r = np.array([rc * stretch, rc / stretch, rz])
+        crown = blob(crown_c, crown_r, rng, subdivisions=2, roughness=0.3)  # draws kept either way
+        foliage_albedo = rng.uniform(0.15, 0.3)
+        if c.porous_vegetation:
+            _porous_crown(mb, fx[2], crown_c, crown_r, c.leaf_area_density, c.leaf_size, foliage_albedo,
+                          trunk=(x, y, g + trunk_h + 0.5 * rz, trunk_r), trunk_albedo=trunk_albedo)
+        else:
+            mb.add(crown, foliage_albedo, MATERIAL["foliage"])
         fp["tree"].append((x, y, rc))
         return True
 
@@ -387,8 +646,14 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             pts = layout.rect_samples(p[0], p[1], 0.0, 2 * rr.max(), 2 * rr.max(), spacing=0.4)
             if layout.try_place(pts, c.furniture_clearance + 1.0):
                 g = float(ground(p[None])[0])
-                mb.add(blob(np.array([p[0], p[1], g + 0.6 * rz]), np.array([rr[0], rr[1], rz]), rng,
-                            subdivisions=1, roughness=0.4), rng.uniform(0.15, 0.35), MATERIAL["foliage"])
+                bush_c, bush_r = np.array([p[0], p[1], g + 0.6 * rz]), np.array([rr[0], rr[1], rz])
+                bush = blob(bush_c, bush_r, rng, subdivisions=1, roughness=0.4)
+                bush_albedo = rng.uniform(0.15, 0.35)
+                if c.porous_vegetation:
+                    _porous_crown(mb, fx[3], bush_c, bush_r, c.shrub_leaf_area_density, c.shrub_leaf_size,
+                                  bush_albedo)
+                else:
+                    mb.add(bush, bush_albedo, MATERIAL["foliage"])
                 fp["bush"].append((p[0], p[1], rr.max()))
             s += rng.uniform(3.0, 14.0)
 
@@ -415,6 +680,8 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             if parked:
                 L, W = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
                 off = rng.uniform(3.55, 3.95)
+                if c.sidewalk_parking and side > 0:  # half on the left sidewalk, clear of the oncoming lane
+                    off += 5.4 - 3.55
                 got = place_rect(s + slot / 2, side, off, L, W, c.car_clearance, yaw_jitter=0.06, rng=rng)
                 if got is not None:
                     centre, yaw, pts = got
@@ -422,13 +689,82 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
                     hb, hc = rng.uniform(0.65, 0.9), rng.uniform(0.45, 0.65)
                     clear = rng.uniform(0.2, 0.32)
                     colour = rng.uniform(0.2, 0.85)
-                    mb.add(box(centre[0], centre[1], yaw, L, W, g + clear, g + clear + hb), colour, MATERIAL["car"])
                     shift = rng.uniform(-0.4, 0.1) * L / 2
-                    cc = centre + shift * np.array([np.cos(yaw), np.sin(yaw)])
-                    mb.add(box(cc[0], cc[1], yaw, rng.uniform(0.45, 0.6) * L, W - 0.15,
-                               g + clear + hb - 0.05, g + clear + hb + hc), 0.08, MATERIAL["glass"])
+                    cabin_length = rng.uniform(0.45, 0.6) * L
+                    if c.curved_cars:
+                        cv, ct, glass = car_mesh(L, W, clear + hb + hc, clearance=clear - 0.08, rng=fx[4])
+                        cs, sn = np.cos(yaw), np.sin(yaw)
+                        wv = np.c_[centre[0] + cs * cv[:, 0] - sn * cv[:, 1],
+                                   centre[1] + sn * cv[:, 0] + cs * cv[:, 1], g + cv[:, 2]]
+                        mb.add((wv, ct), np.where(glass, 0.08, colour).astype(np.float32),
+                               np.where(glass, MATERIAL["glass"], MATERIAL["car"]))
+                    else:
+                        mb.add(box(centre[0], centre[1], yaw, L, W, g + clear, g + clear + hb), colour,
+                               MATERIAL["car"])
+                        cc = centre + shift * np.array([np.cos(yaw), np.sin(yaw)])
+                        mb.add(box(cc[0], cc[1], yaw, cabin_length, W - 0.15,
+                                   g + clear + hb - 0.05, g + clear + hb + hc), 0.08, MATERIAL["glass"])
                     fp["car"].append(_rect_corners(centre[0], centre[1], yaw, L, W))
             s += slot
+
+    # ---- fences, hedges and signs (world effects; placed after everything else) --------------
+    if c.fences_hedges:
+        rng = fx[5]
+        for side in (1.0, -1.0):
+            s = rng.uniform(0.0, 10.0)
+            while s < total:
+                length = rng.uniform(4.0, 16.0)
+                kind = rng.uniform()
+                off = rng.uniform(8.1, 8.6)
+                width = 0.7 if kind < 0.4 else 0.12
+                got = place_rect(s + length / 2, side, off, length, width + 0.2, 7.8)
+                if got is not None:
+                    centre, yaw, pts = got
+                    _fence_or_hedge(mb, rng, c, kind, centre, yaw, length, width, ground, fp)
+                s += length + rng.uniform(1.0, 8.0)
+    if c.street_signs:
+        rng = fx[6]
+        for side in (1.0, -1.0):
+            s = rng.uniform(0.0, 30.0)
+            while s < total:
+                k = frame_at(s)
+                p = xy[k] + side * left[k] * rng.uniform(5.35, 5.7)
+                h, plate = rng.uniform(2.2, 3.0), rng.uniform(0.5, 0.8)
+                pts = layout.rect_samples(p[0], p[1], 0.0, 0.3, 0.3)
+                if layout.try_place(pts, 5.2):
+                    g = float(ground(p[None])[0])
+                    mb.add(cylinder(p[0], p[1], 0.035, g - 0.2, g + h, 6), 0.5, MATERIAL["pole"])
+                    # the plate faces the traffic: its plane is across the road direction
+                    yaw = heading[k] + np.pi / 2
+                    q = p + 0.05 * np.array([np.cos(heading[k]), np.sin(heading[k])])
+                    mb.add(box(q[0], q[1], yaw, plate, 0.03, g + h - plate, g + h), 0.9, MATERIAL["pole"])
+                    fp["pole"].append((p[0], p[1], 0.035))
+                s += rng.uniform(25.0, 70.0)
+
+    if c.garden_vegetation:
+        rng = fx[7]
+        for side in (1.0, -1.0):
+            s = rng.uniform(0.0, 6.0)
+            while s < total:
+                k = frame_at(s)
+                p = xy[k] + side * left[k] * rng.uniform(8.8, 16.0)
+                if rng.uniform() < 0.35:
+                    add_tree(p[0], p[1], rng, crown_scale=rng.uniform(0.55, 0.9), crown_check=0.6)
+                else:
+                    rr, rz = rng.uniform(0.5, 1.5, 2), rng.uniform(0.5, 1.2)
+                    pts = layout.rect_samples(p[0], p[1], 0.0, 2 * rr.max(), 2 * rr.max(), spacing=0.4)
+                    if layout.try_place(pts, 8.0):
+                        g = float(ground(p[None])[0])
+                        centre_b, radii_b = np.array([p[0], p[1], g + 0.6 * rz]), np.array([rr[0], rr[1], rz])
+                        alb = rng.uniform(0.15, 0.35)
+                        if c.porous_vegetation:
+                            _porous_crown(mb, fx[3], centre_b, radii_b, c.shrub_leaf_area_density,
+                                          c.shrub_leaf_size, alb)
+                        else:
+                            mb.add(blob(centre_b, radii_b, rng, subdivisions=1, roughness=0.4), alb,
+                                   MATERIAL["foliage"])
+                        fp["bush"].append((p[0], p[1], rr.max()))
+                s += rng.uniform(*c.garden_spacing)
 
     verts, tris, albedo, material = mb.build()
     footprints = {k: np.asarray(v, dtype=np.float64) for k, v in fp.items()}
