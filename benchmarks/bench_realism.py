@@ -54,8 +54,19 @@ def real_statistics(root: Path) -> dict[str, float]:
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS} | {"frames": len(rows)}
 
 
-def synthetic_statistics(effects: SensorEffects, frames: np.ndarray, n_rings: int = 64) -> dict[str, float]:
-    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=1, effects=effects)
+def world_kwargs(world: str) -> dict:
+    """SyntheticSequence arguments of a world: ``clean`` (the plain town) or ``residential``."""
+    if world == "clean":
+        return {}
+    from gr_graph.datasets.synthetic.actors import ActorsConfig
+    from gr_graph.datasets.synthetic.town import TownConfig
+
+    return {"town_config": TownConfig.residential(), "actors": ActorsConfig()}
+
+
+def synthetic_statistics(effects: SensorEffects, frames: np.ndarray, n_rings: int = 64,
+                         world: str = "clean") -> dict[str, float]:
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=1, effects=effects, **world_kwargs(world))
     rows = [pair_statistics(seq[int(i)].points, seq[int(i) + 1].points) for i in frames]
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS} | {"frames": len(rows)}
 
@@ -108,11 +119,13 @@ def main() -> None:
     ap.add_argument("--export", type=Path, default=None,
                     help="only write the frame pairs of --preset to this KITTI-layout folder and exit")
     ap.add_argument("--preset", default="kitti", help="preset of --export")
+    ap.add_argument("--world", choices=("clean", "residential"), default="clean",
+                    help="town of every configuration (and of --export): plain or with every world effect")
     args = ap.parse_args()
     if args.export is not None:
         from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
-        seq = SyntheticSequence(seed=0, nthreads=1, preset=args.preset)
+        seq = SyntheticSequence(seed=0, nthreads=1, preset=args.preset, **world_kwargs(args.world))
         frames = np.unique(np.round(np.linspace(0, len(seq) - 2, args.frames)).astype(int))
         write_kitti_layout(_Pairs(seq, frames), args.export, overwrite=True)
         return
@@ -128,7 +141,7 @@ def main() -> None:
         configs = [c for c in configs if c[0] in wanted]
     for name, fx in configs:
         t0 = time.perf_counter()
-        results[name] = synthetic_statistics(fx, frames)
+        results[name] = synthetic_statistics(fx, frames, world=args.world)
         print(name, f"{time.perf_counter() - t0:.0f} s", results[name], flush=True)
 
     def within(k: str, v: float) -> str:
