@@ -27,6 +27,7 @@ __all__ = [
     "check_pose",
     "check_rotation",
     "exp_se3",
+    "exp_se3_batch",
     "log_se3",
     "inverse_se3",
     "adjoint_se3",
@@ -273,6 +274,32 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = np.eye(3) + A * W + B * W2
     T[:3, 3] = (np.eye(3) + B * W + C * W2) @ v
+    return T
+
+
+def exp_se3_batch(xi: np.ndarray) -> np.ndarray:
+    """:func:`exp_se3` of every tangent vector of a batch: ``(..., 6) [omega, v] -> (..., 4, 4)``."""
+    xi = np.asarray(xi, dtype=np.float64)
+    if xi.shape[-1:] != (6,):
+        raise ValueError(f"xi must have shape (..., 6), got {xi.shape}")
+    w, v = xi[..., :3], xi[..., 3:]
+    theta = np.linalg.norm(w, axis=-1)
+    t2 = theta * theta
+    series = theta < _SERIES_ANGLE
+    ts = np.where(series, 1.0, theta)
+    A = np.where(series, 1.0 - t2 / 6.0 + t2 * t2 / 120.0 - t2**3 / 5040.0, np.sin(ts) / ts)
+    B = np.where(series, 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0,
+                 2.0 * np.sin(0.5 * ts) ** 2 / (ts * ts))
+    C = np.where(series, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0,
+                 (ts - np.sin(ts)) / (ts * ts * ts))
+    W = hat(w)
+    W2 = W @ W
+    eye = np.eye(3)
+    T = np.zeros(xi.shape[:-1] + (4, 4))
+    T[..., :3, :3] = eye + A[..., None, None] * W + B[..., None, None] * W2
+    V = eye + B[..., None, None] * W + C[..., None, None] * W2
+    T[..., :3, 3] = np.einsum("...ij,...j->...i", V, v)
+    T[..., 3, 3] = 1.0
     return T
 
 

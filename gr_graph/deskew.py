@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.se3 import log_se3
+from factors.se3 import hat, log_se3
 
 __all__ = ["times_from_azimuth", "normalise_times", "deskew", "distort", "sweep_motion_from_velocity"]
 
@@ -81,27 +81,6 @@ def sweep_motion_from_velocity(frame_motion: np.ndarray, frame_period: float = 0
     return exp_se3(log_se3(np.asarray(frame_motion, np.float64)) * (scan_period / frame_period))
 
 
-def _exp_se3_batch(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotations ``(N, 3, 3)`` and translations ``(N, 3)`` of ``Exp(xi_i)`` for ``xi (N, 6)``."""
-    w, v = xi[:, :3], xi[:, 3:]
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-6
-    th = np.where(small, 1.0, theta)
-    th2 = th * th
-    # coefficients of R = I + A W + B W^2 and V = I + B W + C W^2, Taylor series for small angles
-    A = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
-    B = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th2)
-    C = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / (th2 * th))
-    W = np.zeros((len(xi), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    W2 = W @ W
-    eye = np.eye(3)[None]
-    R = eye + A[:, None, None] * W + B[:, None, None] * W2
-    V = eye + B[:, None, None] * W + C[:, None, None] * W2
-    return R, np.einsum("nij,nj->ni", V, v)
-
-
 def _check(points: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     p = np.asarray(points, np.float64)
     t = np.asarray(times, np.float64)
@@ -124,7 +103,7 @@ def _apply_scaled_twist(p: np.ndarray, s: np.ndarray, xi: np.ndarray) -> np.ndar
     turning less than ~6 degrees) A, B, C come from their Taylor series.
     """
     w, v = xi[:3], xi[3:]
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    W = hat(w)
     W2 = W @ W
     norm_w = float(np.linalg.norm(w))
     if float(np.abs(s).max()) * norm_w < _TAYLOR_BELOW:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from factors.se3 import (
+    exp_se3_batch,
     adjoint_se3,
     check_pose,
     check_poses,
@@ -154,3 +155,25 @@ def test_pose_validator_one_and_many():
         check_rotation(reflection[:3, :3])
     with pytest.raises(ValueError, match=r"\(3, 3\)"):
         check_rotation(np.eye(4))
+
+
+def test_exp_se3_batch_equals_exp_se3_and_the_matrix_exponential():
+    """Batched Exp (tiny, series-range and large angles) against exp_se3 row by row and scipy's expm."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(1)
+    xi = rng.normal(size=(12, 6)) * [0.5, 0.5, 0.5, 2, 2, 2]
+    xi[0, :3] = 0.0
+    xi[1, :3] = [1e-9, -2e-9, 0.0]
+    xi[2, :3] = [0.01, 0.02, -0.015]  # below the series threshold
+    batch = exp_se3_batch(xi)
+    for k in range(len(xi)):
+        np.testing.assert_allclose(batch[k], exp_se3(xi[k]), atol=1e-14)
+        M = np.zeros((4, 4))
+        M[:3, :3] = hat(xi[k, :3])
+        M[:3, 3] = xi[k, 3:]
+        np.testing.assert_allclose(batch[k], scipy.linalg.expm(M), atol=1e-10)
+        np.testing.assert_allclose(log_se3(batch[k]), xi[k], atol=1e-9)
+    assert exp_se3_batch(xi.reshape(3, 4, 6)).shape == (3, 4, 4, 4)
+    with pytest.raises(ValueError, match="shape"):
+        exp_se3_batch(np.zeros((2, 5)))

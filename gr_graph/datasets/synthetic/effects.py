@@ -78,10 +78,11 @@ times).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from factors.se3 import exp_se3_batch, log_se3
 from gr_graph.datasets.synthetic.meshes import MATERIAL, MATERIAL_NAMES
 
 PRESETS = ("clean", "kitti", "raw")
@@ -233,10 +234,6 @@ def preset(name: str) -> SensorEffects:
     return fx
 
 
-def effect_fields() -> tuple[str, ...]:
-    return tuple(f.name for f in fields(SensorEffects))
-
-
 # ----------------------------------------------------------------------------- calibration
 
 @dataclass(frozen=True)
@@ -265,57 +262,6 @@ def draw_laser_calibration(cfg: CalibrationErrors, seed: int, n_beams: int = 64)
     off = cfg.range_offset_sigma_m * rng.standard_normal(n_beams)
     scale = cfg.range_scale_sigma * rng.standard_normal(n_beams)
     return LaserCalibration(el + np.radians(cfg.vertical_offset_deg), az, off, scale)
-
-
-# ----------------------------------------------------------------------------- SE(3)
-
-def _hat(w: np.ndarray) -> np.ndarray:
-    """``(..., 3) -> (..., 3, 3)`` skew matrices."""
-    W = np.zeros(w.shape[:-1] + (3, 3))
-    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    return W
-
-
-def _so3_terms(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``sin(t)/t, (1-cos t)/t^2, (t - sin t)/t^3`` with series near 0."""
-    t2 = theta * theta
-    small = theta < 1e-4
-    ts = np.where(small, 1.0, theta)
-    a = np.where(small, 1 - t2 / 6, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - t2 / 24, (1 - np.cos(ts)) / ts ** 2)
-    c = np.where(small, 1 / 6 - t2 / 120, (ts - np.sin(ts)) / ts ** 3)
-    return a, b, c
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """``(..., 6)`` twists ``(v, w)`` -> ``(..., 4, 4)`` transforms."""
-    xi = np.asarray(xi, dtype=np.float64)
-    v, w = xi[..., :3], xi[..., 3:]
-    theta = np.linalg.norm(w, axis=-1)
-    a, b, c = _so3_terms(theta)
-    W = _hat(w)
-    W2 = w[..., :, None] * w[..., None, :] - (theta * theta)[..., None, None] * np.eye(3)  # = W @ W
-    eye = np.eye(3)
-    R = eye + a[..., None, None] * W + b[..., None, None] * W2
-    V = eye + b[..., None, None] * W + c[..., None, None] * W2
-    T = np.zeros(xi.shape[:-1] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = np.einsum("...ij,...j->...i", V, v)
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def se3_log(T: np.ndarray) -> np.ndarray:
-    """``(4, 4)`` transform -> ``(6,)`` twist ``(v, w)`` (rotation angle below pi)."""
-    from scipy.spatial.transform import Rotation
-
-    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
-    theta = np.linalg.norm(w)
-    _, b, c = _so3_terms(np.array(theta))
-    W = _hat(w)
-    V = np.eye(3) + b * W + c * (W @ W)
-    return np.concatenate([np.linalg.solve(V, T[:3, 3]), w])
 
 
 def column_times(phase: float, n_azimuth: int) -> np.ndarray:
@@ -348,9 +294,9 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, t: np.ndarray, i: in
         if n < 2 or times[b] <= times[a]:
             out[mask] = poses[i]
             continue
-        xi = se3_log(np.linalg.inv(poses[a]) @ poses[b])
+        xi = log_se3(np.linalg.inv(poses[a]) @ poses[b])
         u = (t[mask] - times[a]) / (times[b] - times[a])
-        out[mask] = poses[a] @ se3_exp(u[:, None] * xi)
+        out[mask] = poses[a] @ exp_se3_batch(u[:, None] * xi)
     return out
 
 
@@ -392,11 +338,12 @@ def sweep_motion(cfg: MotionDistortion, times: np.ndarray, poses: np.ndarray, i:
         n = len(poses)
         a, b = max(i - 1, 0), min(i + 1, n - 1)
         if b > a and times[b] > times[a]:
-            xi = se3_log(np.linalg.inv(poses[a]) @ poses[b]) / (times[b] - times[a])
+            xi = log_se3(np.linalg.inv(poses[a]) @ poses[b]) / (times[b] - times[a])
         else:
             xi = np.zeros(6)
-        xi = xi + np.concatenate([cfg.velocity_sigma * err[:3], np.radians(cfg.rate_sigma_deg) * err[3:]])
-        est = se3_exp((t_col - times[i])[:, None] * xi)
+        # gtsam order [omega, v]: err[:3] perturbs the velocity, err[3:] the rate
+        xi = xi + np.concatenate([np.radians(cfg.rate_sigma_deg) * err[3:], cfg.velocity_sigma * err[:3]])
+        est = exp_se3_batch((t_col - times[i])[:, None] * xi)
     return SweepMotion(T_w_col, est, frac, t_col)
 
 
