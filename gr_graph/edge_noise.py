@@ -20,7 +20,7 @@ logged and counted (:meth:`LearnedEdgeNoise.summary`, stored in the round's summ
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict, defaultdict
+from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -164,9 +164,6 @@ class LearnedEdgeNoise:
     counts edges with H(C), floored ones and fallbacks per reason.
     """
 
-    #: KdTrees kept over the most recent target frames (odometry edges reuse the last one)
-    TREES_KEPT = 5
-
     def __init__(self, predictions: Predictions, cfg: SlamConfig) -> None:
         self.predictions = predictions
         self.cfg = cfg
@@ -174,14 +171,6 @@ class LearnedEdgeNoise:
         self.n_floored = 0
         self.fallbacks: dict[str, int] = defaultdict(int)
         self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
-        self._trees: OrderedDict[int, Any] = OrderedDict()
-
-    def _tree(self, frame: int, points: np.ndarray) -> Any:
-        if frame not in self._trees:
-            if len(self._trees) >= self.TREES_KEPT:
-                self._trees.popitem(last=False)
-            self._trees[frame] = target_tree(points, self.cfg.odometry.num_threads)
-        return self._trees[frame]
 
     def apply(self, edge: RegistrationEdge, source_frame: int, target_frame: int) -> RegistrationEdge:
         """Set ``edge.information`` to the learned information when possible; return the edge."""
@@ -198,7 +187,7 @@ class LearnedEdgeNoise:
                     edge.T, ps[0], pt[0], pt[1], max_distance=self.cfg.odometry.corr_max_distance,
                     min_correspondences=tc.learned_noise_min_correspondences,
                     min_eigenvalue=self.cfg.graph.min_information_eigenvalue, scale=tc.learned_noise_scale,
-                    degeneracy_rel=tc.learned_noise_degeneracy_rel, tree=self._tree(target_frame, pt[0]),
+                    degeneracy_rel=tc.learned_noise_degeneracy_rel,
                     num_threads=self.cfg.odometry.num_threads,
                 )
                 reason, detail = res.reason, res.detail
