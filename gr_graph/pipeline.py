@@ -123,12 +123,12 @@ class SlamPipeline:
                 summary = self.compute_round(r, resume_training=self.cfg.output.resume and not recomputed)
                 recomputed = True
             metrics["rounds"][str(r)] = summary
-            write_metrics(self.out, metrics)
             poses = read_round_poses(self.round_dir(r))
-            if previous_poses is not None and self.converged(r, summary, previous_poses, poses):
+            converged = previous_poses is not None and self.converged(r, summary, previous_poses, poses)
+            write_metrics(self.out, metrics)  # after converged() added trajectory_change to the summary
+            if converged:
                 break
             previous_poses = poses
-        write_metrics(self.out, metrics)
         if self.cfg.output.plot:
             self.plot(max(int(k) for k in metrics["rounds"]))
         return metrics
@@ -150,10 +150,8 @@ class SlamPipeline:
         """Fail fast (before round 0) when a learning round could not run."""
         if not self.cfg.output.write_memory:
             raise ValueError("learning rounds train on the memory of the previous round: output.write_memory must be true")
-        from training.trainer import TrainConfig
-
-        # unknown keys in training.trainer fail here, before round 0, not after it
-        TrainConfig.from_dict(self.cfg.training.trainer_config(self.cfg.device, False))
+        # the trainer's run configuration is built (and validated) here, before round 0, not after it
+        self.cfg.training.trainer_config(self.cfg.device, False)
 
     def finished_round(self, r: int) -> dict[str, Any] | None:
         """The summary of round ``r`` if it is finished with the current configuration (resume)."""
@@ -188,9 +186,9 @@ class SlamPipeline:
     def plot(self, r: int) -> None:
         """``trajectory.png``: round ``r`` against the ground truth."""
         name = self.sequence.name
-        n = len(read_round_poses(self.round_dir(r)))
         plot_round(self.round_dir(r), self.out / "trajectory.png", self.gt,
-                   title=f"gr_graph round {r}: {name}, {n} frames, {self.cfg.data.channels} channels")
+                   title=f"gr_graph round {r}: {name}, {len(self.sequence)} frames, "
+                         f"{self.cfg.data.channels} channels")
 
     # -------------------------------------------------------------- one round
     def round_dir(self, r: int) -> Path:

@@ -142,12 +142,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from gr_graph.datasets.base import DatasetError
-    from gr_graph.datasets.registry import open_configured_sequence
     from gr_graph.pipeline import SlamPipeline
 
     try:
-        sequence, source = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
-        pipe = SlamPipeline(cfg, sequence, source)
+        pipe = SlamPipeline(cfg)
         metrics = pipe.run()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
