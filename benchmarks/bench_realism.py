@@ -24,13 +24,12 @@ import datetime as dt
 import json
 import os
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from gr_graph.atomic import atomic_write_bytes
-from gr_graph.datasets.realism import HELD_OUT, STATISTICS, frame_statistics, vgicp_inlier_rmse
+from gr_graph.datasets.realism import HELD_OUT, STATISTICS, pair_statistics
 from gr_graph.datasets.synthetic import SyntheticSequence
 from gr_graph.datasets.synthetic.effects import EFFECT_NAMES, SensorEffects, preset
 
@@ -39,12 +38,6 @@ KEYS = list(STATISTICS) + list(HELD_OUT)
 SHORT = {"thickness_cm": "thickness [cm]", "a90": "a90", "a99": "a99", "points_per_frame": "points/frame",
          "median_range_m": "median range [m]", "frac_beyond_40m": "frac > 40 m",
          "vgicp_inlier_rmse_cm": "VGICP inlier RMSE [cm] (held out)"}
-
-
-def pair_statistics(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
-    row = asdict(frame_statistics(a))
-    row["vgicp_inlier_rmse_cm"] = 100.0 * vgicp_inlier_rmse(a, b)
-    return row
 
 
 def real_statistics(root: Path) -> dict[str, float]:

@@ -98,7 +98,11 @@ def local_eigenvalues(points: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
 
 def frame_statistics(points: np.ndarray) -> FrameStatistics:
     """Statistics of one frame's raw points (LiDAR frame, any count of columns >= 3)."""
-    ds = downsample(points)
+    return downsampled_statistics(downsample(points))
+
+
+def downsampled_statistics(ds: np.ndarray) -> FrameStatistics:
+    """:func:`frame_statistics` of points already passed through :func:`downsample`."""
     ev = np.maximum(local_eigenvalues(ds), 0.0)
     anisotropy = 1.0 - ev[:, 0] / np.maximum(ev[:, 2], 1e-300)
     rng = np.linalg.norm(ds, axis=1)
@@ -114,9 +118,13 @@ def frame_statistics(points: np.ndarray) -> FrameStatistics:
 
 def vgicp_inlier_rmse(source: np.ndarray, target: np.ndarray) -> float:
     """RMSE [m] of source-to-target distances below 1 m after VGICP aligns source onto target."""
+    return downsampled_vgicp_inlier_rmse(downsample(source), downsample(target))
+
+
+def downsampled_vgicp_inlier_rmse(src: np.ndarray, tgt: np.ndarray) -> float:
+    """:func:`vgicp_inlier_rmse` of points already passed through :func:`downsample`."""
     import small_gicp
 
-    src, tgt = downsample(source), downsample(target)
     result = small_gicp.align(tgt, src, registration_type="VGICP", voxel_resolution=VGICP_VOXEL_M,
                               max_correspondence_distance=INLIER_DISTANCE_M, num_threads=1)
     T = np.asarray(result.T_target_source)
@@ -124,6 +132,15 @@ def vgicp_inlier_rmse(source: np.ndarray, target: np.ndarray) -> float:
     d, _ = cKDTree(tgt).query(moved, k=1)
     inl = d[d < INLIER_DISTANCE_M]
     return float(np.sqrt(np.mean(inl**2))) if len(inl) else float("nan")
+
+
+def pair_statistics(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    """Every statistic of frame ``a`` and the held-out VGICP inlier RMSE [cm] of ``a`` onto ``b``
+    (each frame downsampled once)."""
+    ds_a = downsample(a)
+    row = asdict(downsampled_statistics(ds_a))
+    row["vgicp_inlier_rmse_cm"] = 100.0 * downsampled_vgicp_inlier_rmse(ds_a, downsample(b))
+    return row
 
 
 def chosen_frames(n_frames: int, max_frames: int) -> np.ndarray:
@@ -154,10 +171,7 @@ def folder_statistics(root: str | Path, seq: str = "00", max_frames: int = 50,
     frames = chosen_frames(len(seq_obj), max_frames)
     rows: list[dict[str, float]] = []
     for i in tqdm(frames, desc=f"realism {Path(root).name}", unit="frame", disable=not progress):
-        a, b = seq_obj[int(i)].points, seq_obj[int(i) + 1].points
-        row = asdict(frame_statistics(a))
-        row["vgicp_inlier_rmse_cm"] = 100.0 * vgicp_inlier_rmse(a, b)
-        rows.append(row)
+        rows.append(pair_statistics(seq_obj[int(i)].points, seq_obj[int(i) + 1].points))
     keys = list(STATISTICS) + list(HELD_OUT)
     table = np.array([[r[k] for k in keys] for r in rows])
     return {
