@@ -29,6 +29,9 @@ import textwrap
 from collections.abc import Sequence
 from typing import Any
 
+from gr_graph.datasets.channels import SUPPORTED_CHANNELS
+from gr_graph.datasets.point_layout import POINT_FORMATS
+
 __all__ = [
     "LOG_LEVELS",
     "HelpFormatter",
@@ -50,8 +53,8 @@ __all__ = [
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 DEVICES: tuple[str, ...] = ("cpu", "cuda")
-CHANNELS: tuple[int, ...] = (64, 32, 16)
-POINT_FORMAT_CHOICES: tuple[str, ...] = ("xyzi", "xyz")
+CHANNELS: tuple[int, ...] = SUPPORTED_CHANNELS
+POINT_FORMAT_CHOICES: tuple[str, ...] = tuple(POINT_FORMATS)
 _WIDTH = 79
 
 

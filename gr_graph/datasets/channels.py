@@ -24,6 +24,8 @@ The paper makes its 32- and 16-channel scans by keeping every 2nd / 4th of the 6
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame
@@ -217,25 +219,16 @@ class RingIndexer:
         self.n_rings = n_rings
         self.reference_source = reference_source
         self.counts: dict[str, int] = {"storage_order": 0, "reference": 0, "elevation": 0}
-        self._samples: list[np.ndarray] = []
+        self.reference: np.ndarray | None = None
+        """Per-ring median elevation (deg, ring 0 highest) of the probe frames; None until probed."""
         self._probed = False
-
-    @property
-    def reference(self) -> np.ndarray | None:
-        """Per-ring median elevation (deg, ring 0 highest) or None before any good frame."""
-        if not self._samples:
-            return None
-        return np.median(np.stack(self._samples), axis=0)
-
-    def _learn(self, points: np.ndarray, ring: np.ndarray) -> None:
-        elev = elevation_deg(points)
-        self._samples.append(np.array([np.median(elev[ring == r]) for r in range(self.n_rings)]))
 
     def _probe(self) -> None:
         """Build a reference from other frames of the sequence (once)."""
         if self._probed or self.reference_source is None:
             return
         self._probed = True
+        samples: list[np.ndarray] = []
         for k in range(PROBE_FRAMES):
             pts = self.reference_source(k)
             if pts is None:
@@ -244,9 +237,12 @@ class RingIndexer:
                 ring = recover_rings(pts, self.n_rings)
             except RingRecoveryError:
                 continue
-            self._learn(pts, ring)
-            if len(self._samples) >= REFERENCE_FRAMES:
+            elev = elevation_deg(pts)
+            samples.append(np.array([np.median(elev[ring == r]) for r in range(self.n_rings)]))
+            if len(samples) >= REFERENCE_FRAMES:
                 break
+        if samples:
+            self.reference = np.median(np.stack(samples), axis=0)
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, str, str]:
         """``(ring, method, problem)`` for one frame; ``problem`` is "" unless a fallback was used."""
@@ -314,13 +310,4 @@ def subsample_channels(frame: LidarFrame, channels: int) -> LidarFrame:
     stride = frame.n_rings // channels
     keep = (frame.ring % stride) == 0
     sub = frame.select(keep, n_rings=channels)
-    return LidarFrame(
-        index=sub.index,
-        timestamp=sub.timestamp,
-        points=sub.points,
-        intensity=sub.intensity,
-        ring=(sub.ring // stride).astype(np.int16),
-        n_rings=channels,
-        dropped_nonfinite=sub.dropped_nonfinite,
-        time=sub.time,
-    )
+    return replace(sub, ring=(sub.ring // stride).astype(np.int16))
