@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.config import PreprocessConfig, TrainingConfig
-from gr_graph.datasets.base import LidarFrame, LidarSequence
+from gr_graph.datasets.base import LidarFrame, LidarSequence, inherit_sweep_attributes
 from gr_graph.preprocess import preprocess_scan
 
 log = logging.getLogger(__name__)
@@ -106,9 +106,7 @@ class DensifiedSequence:
         self.timestamps = parent.timestamps
         self.gt_poses = parent.gt_poses
         self.T_cam_velo = parent.T_cam_velo
-        self.motion_compensated = bool(getattr(parent, "motion_compensated", True))
-        if getattr(parent, "scan_period", None) is not None:
-            self.scan_period = float(parent.scan_period)
+        inherit_sweep_attributes(self, parent)
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()

@@ -37,7 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gr_graph.config import SlamConfig, loop_max_rmse
-from gr_graph.datasets.base import LidarFrame, LidarSequence
+from gr_graph.datasets.base import LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
@@ -99,7 +99,7 @@ def deskew_enabled(mode: str, sequence: LidarSequence) -> tuple[bool, str]:
         return True, "odometry.deskew: on"
     if mode == "off":
         return False, "odometry.deskew: off"
-    compensated = bool(getattr(sequence, "motion_compensated", True))
+    compensated = is_motion_compensated(sequence)
     if compensated:
         return False, "auto: the sequence's scans are motion-compensated"
     return True, "auto: the sequence's scans are not motion-compensated"

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -121,6 +121,19 @@ class LidarSequence(Protocol):
     def __getitem__(self, index: int) -> LidarFrame: ...
 
     def __iter__(self) -> Iterator[LidarFrame]: ...
+
+
+def is_motion_compensated(sequence: Any) -> bool:
+    """A sequence's ``motion_compensated`` attribute; True when it has none (see the module docstring)."""
+    return bool(getattr(sequence, "motion_compensated", True))
+
+
+def inherit_sweep_attributes(view: Any, parent: Any) -> None:
+    """Give a view of ``parent`` (a frame subset, densified scans) the parent's sweep attributes:
+    ``motion_compensated`` and, when the parent has one, ``scan_period``."""
+    view.motion_compensated = is_motion_compensated(parent)
+    if getattr(parent, "scan_period", None) is not None:
+        view.scan_period = float(parent.scan_period)
 
 
 def check_index(index: int, length: int, name: str) -> int:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index, inherit_sweep_attributes
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
 
 if TYPE_CHECKING:
@@ -63,9 +63,7 @@ class SequenceView:
         self.timestamps = np.asarray(parent.timestamps)[start:stop]
         self.gt_poses = None if parent.gt_poses is None else np.asarray(parent.gt_poses)[start:stop]
         self.T_cam_velo = parent.T_cam_velo
-        self.motion_compensated = bool(getattr(parent, "motion_compensated", True))
-        if getattr(parent, "scan_period", None) is not None:
-            self.scan_period = float(parent.scan_period)
+        inherit_sweep_attributes(self, parent)
 
     def __len__(self) -> int:
         return self.stop - self.start
