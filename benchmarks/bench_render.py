@@ -19,13 +19,13 @@ import datetime as dt
 import os
 import platform
 import resource
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from factors.se3 import rotation_angle
+from gr_graph.atomic import atomic_write_text
 from gr_graph.datasets.synthetic import SyntheticSequence
 from gr_graph.datasets.synthetic.path import route_path
 from gr_graph.datasets.synthetic.sequence import clear_scene_cache, get_town_and_scene
@@ -145,11 +145,7 @@ def bench_world(n_frames: int, out: Path) -> None:
     ]
     lines += [f"| {n} | {b:.1f} | {t / 1e6:.2f} M | {f:.1f} | {p:,.0f} |" for n, b, t, f, p in rows]
     text = "\n".join(lines) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".md")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, out)
+    atomic_write_text(out, text)
     print(text)
 
 
@@ -201,7 +197,7 @@ def main() -> None:
         f"- machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; load average "
         f"{load0[0]:.1f} before / {load1[0]:.1f} after (the machine is shared: other jobs run "
         "at the same time, so these are lower bounds)",
-        f"- open3d RaycastingScene (Embree), seed 0, 2000 azimuth steps, max range 120 m",
+        "- open3d RaycastingScene (Embree), seed 0, 2000 azimuth steps, max range 120 m",
         "",
         "## Scene build (once per process and seed)",
         "",
@@ -234,11 +230,7 @@ def main() -> None:
                   f"{o['mean_t_cm']:.1f} / {o['max_t_cm']:.1f} | {o['mean_r_deg']:.3f} / {o['max_r_deg']:.3f} |"
                   for r, s, o in odo]
     text = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".md")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, args.out)
+    atomic_write_text(args.out, text)
     print(text)
 
 

@@ -27,7 +27,7 @@ from gr_graph.datasets.synthetic.actors import (
 from gr_graph.datasets.synthetic.path import SensorPath, route_path, trajectory_path
 from gr_graph.datasets.synthetic.effects import (PRESETS, SensorEffects, draw_laser_calibration,
                                                  preset as preset_effects, sweep_motion)
-from gr_graph.datasets.synthetic.sensor import BeamModel, NoiseModel, render_frame
+from gr_graph.datasets.synthetic.sensor import ACTOR_ALBEDO, BeamModel, NoiseModel, render_frame
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town
 
 log = logging.getLogger(__name__)
@@ -208,7 +208,8 @@ class SyntheticSequence:
         if self.actors is not None and self._material_albedo is None:
             count = np.bincount(town.material, minlength=256)
             total = np.bincount(town.material, weights=town.albedo, minlength=256)
-            self._material_albedo = np.where(count > 0, total / np.maximum(count, 1), 0.3).astype(np.float32)
+            mean_albedo = np.where(count > 0, total / np.maximum(count, 1), ACTOR_ALBEDO)
+            self._material_albedo = mean_albedo.astype(np.float32)
 
         def sweep(phase: float, rng: np.random.Generator):
             return sweep_motion(self.effects.motion, self.timestamps, self.gt_poses, i, phase,
