@@ -48,17 +48,19 @@ def is_kitti_raw_drive(path: Path) -> bool:
     return (path / "velodyne_points" / "data").is_dir()
 
 
-def parse_kitti_datetime(text: str) -> float:
-    """Seconds since the epoch (UTC, naive) of ``"YYYY-MM-DD HH:MM:SS.fffffffff"`` (nanoseconds kept
-    as far as float64 allows)."""
+def parse_kitti_datetime(text: str) -> int:
+    """Nanoseconds since the epoch (UTC, naive) of ``"YYYY-MM-DD HH:MM:SS.fffffffff"`` (exact integers:
+    a float64 of seconds since 1970 would keep only about 0.2 microseconds)."""
     date_part, _, frac = text.strip().partition(".")
     base = datetime.strptime(date_part, "%Y-%m-%d %H:%M:%S")
-    seconds = (base - datetime(1970, 1, 1)).total_seconds()
-    return seconds + (float("0." + frac) if frac else 0.0)
+    if frac and (not frac.isdigit() or len(frac) > 9):
+        raise ValueError(f"fraction of a second {frac!r}")
+    seconds = int((base - datetime(1970, 1, 1)).total_seconds())
+    return seconds * 1_000_000_000 + (int(frac.ljust(9, "0")) if frac else 0)
 
 
 def read_raw_timestamps(path: Path) -> np.ndarray:
-    """Seconds since the epoch of each line of a raw-drive ``timestamps*.txt``."""
+    """Nanoseconds since the epoch (int64) of each line of a raw-drive ``timestamps*.txt``."""
     out = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         if not line.strip():
@@ -67,7 +69,7 @@ def read_raw_timestamps(path: Path) -> np.ndarray:
             out.append(parse_kitti_datetime(line))
         except ValueError as exc:
             raise DatasetError(f"{path}:{lineno}: not a 'YYYY-MM-DD HH:MM:SS.fff' date ({line[:40]!r})") from exc
-    return np.asarray(out, np.float64)
+    return np.asarray(out, np.int64)
 
 
 def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -176,13 +178,13 @@ class KittiRawSequence:
         absolute = read_raw_timestamps(times_path)
         if len(absolute) != n:
             raise DatasetError(f"{times_path}: {len(absolute)} timestamps for {n} scans")
-        self.timestamps = absolute - absolute[0]
+        self.timestamps = (absolute - absolute[0]).astype(np.float64) * 1e-9
         self.scan_period = frame_period(self.timestamps)
         start_path, end_path = velo / "timestamps_start.txt", velo / "timestamps_end.txt"
         if start_path.is_file() and end_path.is_file():
             starts, ends = read_raw_timestamps(start_path), read_raw_timestamps(end_path)
             if len(starts) == len(ends) == n and np.all(ends > starts):
-                self.scan_period = float(np.median(ends - starts))
+                self.scan_period = float(np.median(ends - starts)) * 1e-9
         self.gt_poses: np.ndarray | None = None
         oxts = self.drive / "oxts" / "data"
         if oxts.is_dir():
