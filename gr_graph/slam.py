@@ -39,7 +39,6 @@ from gr_graph.datasets.registry import DATASETS, parse_frames
 
 EXAMPLES = (
     "python -m gr_graph.slam recording.bag --topic /velodyne_points --out runs/my_bag",
-    "python -m gr_graph.slam path/to/pcd_folder --poses path/to/poses_tum.txt --out runs/my_scans",
     "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
     "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
     "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
