@@ -74,8 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folders of scans and bags: ground-truth LiDAR poses, KITTI or TUM format, one a scan")
     p.add_argument("--seq", default=None, help=f"KITTI odometry sequence (default: {d.data.seq})")
     add_data_root(p)
-    add_point_format(p, default=None, help="layout of the KITTI .bin files: float32 x,y,z,intensity (16 bytes a "
-                                           f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
+    add_point_format(p, default=None, help="layout of .bin scans (KITTI folders, raw drives, folders of .bin): float32 "
+                                           "x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes, no intensity) "
+                                           f"(default: {d.data.point_format})")
     add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
     p.add_argument("--route-seed", type=int, default=None, metavar="N",

@@ -47,8 +47,8 @@ def _open_reader(path: Path) -> Any:
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
-    reader = AnyReader([path], default_typestore=store)
     try:
+        reader = AnyReader([path], default_typestore=store)
         reader.open()
     except Exception as exc:  # rosbags raises its own error classes per format
         raise DatasetError(f"{path}: unreadable bag ({type(exc).__name__}: {exc})") from exc
@@ -110,6 +110,9 @@ class RosbagSequence:
         self.path = Path(path)
         if not self.path.exists():
             raise DatasetError(f"{self.path}: no such bag")
+        if not is_bag(self.path):
+            raise DatasetError(f"{self.path}: not a ROS bag (a {'/'.join(BAG_SUFFIXES)} file or a ROS2 bag folder "
+                               "with metadata.yaml)")
         self._lock = threading.Lock()
         self._reader = _open_reader(self.path)
         self.topic = choose_topic(self.path, self._reader, topic)
