@@ -175,3 +175,28 @@ def test_broken_folders_name_the_file(tmp_path: Path, frames: list) -> None:
         open_sequence(path=tmp_path / "empty_dir")
     with pytest.raises(DatasetError, match=r"nowhere: no such file or folder"):
         open_sequence(path=tmp_path / "nowhere")
+
+
+def test_real_ply_pair_matches_open3d(small_gicp_pair_dir: Path) -> None:
+    """CloudCompare's binary PLY (x, y, z, scalar_intensity) of a real scan, against open3d's reader."""
+    import open3d as o3d
+
+    path = small_gicp_pair_dir / "source.ply"
+    cloud = read_ply(path)
+    reference = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+    assert len(cloud.points) == len(reference) == 69792
+    np.testing.assert_array_equal(cloud.points, reference)
+    assert cloud.intensity is not None and np.ptp(cloud.intensity) > 0
+
+
+def test_real_kitti_velodyne_folder_matches_the_odometry_loader(kitti_root: Path) -> None:
+    from gr_graph.datasets.kitti import KittiSequence
+
+    folder = kitti_root / "sequences" / "00" / "velodyne"
+    assert guess_dataset(folder) == "folder"
+    seq = FolderSequence(folder)
+    kitti = KittiSequence(kitti_root, "00")
+    assert len(seq) == len(kitti) == 6
+    for i in (0, 5):
+        np.testing.assert_array_equal(seq[i].points, kitti[i].points)
+        np.testing.assert_array_equal(seq[i].intensity, kitti[i].intensity)

@@ -6,7 +6,8 @@ A PointCloud2 is a byte buffer of ``height x width`` points, each ``point_step``
 structured dtype from the fields, so any field order, padding and byte order (``is_bigendian``)
 is read without copying point by point.
 
-Fields read: ``x``, ``y``, ``z`` (required), ``intensity`` (optional), the per-point time
+Fields read: ``x``, ``y``, ``z`` (required), ``intensity`` (optional; also ``scalar_intensity``,
+``reflectance``), the per-point time
 ``t`` / ``time`` / ``timestamp`` (optional, the first present in that order) and ``ring``
 (optional). Points with a non-finite coordinate (organized clouds mark missing returns with
 NaN) are dropped and counted. Anything else is a :class:`~gr_graph.datasets.base.DatasetError`
@@ -28,6 +29,8 @@ TIME_FIELDS = ("t", "time", "timestamp")
 """Names of the per-point time field, in order of preference (Ouster ``t``, Velodyne ``time``,
 Hesai/Livox ``timestamp``)."""
 RING_FIELDS = ("ring",)
+INTENSITY_FIELDS = ("intensity", "scalar_intensity", "reflectance")
+"""Names of the intensity field, in order of preference (CloudCompare writes ``scalar_intensity``)."""
 
 
 @dataclass(frozen=True)
@@ -109,7 +112,8 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     if dropped:
         xyz = xyz[finite]
         flat = flat[finite]
-    intensity = flat["intensity"].astype(np.float32) if "intensity" in names else None
+    intensity_field = next((n for n in INTENSITY_FIELDS if n in names), None)
+    intensity = flat[intensity_field].astype(np.float32) if intensity_field else None
     time_field = next((n for n in TIME_FIELDS if n in names), None)
     time = flat[time_field].astype(np.float64) if time_field else None
     ring_field = next((n for n in RING_FIELDS if n in names), None)
