@@ -103,8 +103,8 @@ def pointcloud2(typestore: object, arr: np.ndarray, stamp_ns: int, frame_id: str
         fields.append(PointField(name=name, offset=offset, datatype=POINTFIELD_CODES[base.str[1:]], count=1))
     height, width = organized_shape or (1, len(arr))
     bigendian = arr.dtype[arr.dtype.names[0]].byteorder == ">"
-    header_args = dict(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
-                       frame_id=frame_id)
+    header_args = {"stamp": Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+                   "frame_id": frame_id}
     if ros1:
         header_args["seq"] = 0
     data = np.frombuffer(arr.tobytes(), dtype=np.uint8)

@@ -88,7 +88,7 @@ class FieldConventions:
     flip_rings: bool = False
 
     @classmethod
-    def probe(cls, cloud: DecodedCloud, frame_period: float, source: str) -> "FieldConventions":
+    def probe(cls, cloud: DecodedCloud, frame_period: float, source: str) -> FieldConventions:
         """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart."""
         conv = cls(scan_period=float(frame_period))
         if cloud.time is not None and len(cloud.time) and np.ptp(cloud.time) > 0:
