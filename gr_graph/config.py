@@ -242,9 +242,12 @@ class SlamConfig(_Section):
     @model_validator(mode="after")
     def _channels_fit_sensor(self) -> "SlamConfig":
         try:
-            self.sensor.effective_beams(self.data.channels)
+            n = self.sensor.effective_beams(self.data.channels)
         except SensorError as exc:
             raise ValueError(f"data.channels: {exc}") from None
+        if n != self.sensor.beams and self.sensor.has_ring is False:
+            raise ValueError(f"data.channels: subsampling to {n} channels needs ring indices, but sensor.has_ring "
+                             "is false")
         return self
 
     @property

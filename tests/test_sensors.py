@@ -94,6 +94,8 @@ def test_channel_subsampling_only_for_64_beam_sensors():
     assert load_config(None, {"data": {"channels": 32}}).channels == 32
     with pytest.raises(ConfigError, match="data.channels.*64-beam sensors"):
         load_config(None, {"sensor": {"model": "vlp16"}, "data": {"channels": 32}})
+    with pytest.raises(ConfigError, match="needs ring indices"):
+        load_config(None, {"sensor": {"has_ring": False}, "data": {"channels": 16}})
     with pytest.raises(ConfigError, match="sensor.n_rings"):
         load_config(None, {"sensor": {"n_rings": 16}})  # unknown key, named with its section
 
