@@ -7,6 +7,8 @@ resolved configuration is written as ``config.yaml`` next to every result.
 Sections
 --------
 data        which sequence, where, how many channels, which frames
+sensor      the LiDAR that took the scans (gr_graph.sensors.SensorConfig): beams, vertical field of
+            view, rings / per-point times in the data and their units, scan period
 preprocess  range crop and voxel downsampling (the stored scans are the downsampled ones)
 odometry    the VGICP front end (small_gicp) and its failure detection
 loops       loop-closure candidates (proximity, Scan Context) and geometric verification
@@ -22,10 +24,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from gr_graph.atomic import atomic_write_text
 from gr_graph.config_errors import describe_validation_error
+from gr_graph.sensors import SensorConfig, SensorError, loop_rmse_threshold
 from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
 
@@ -50,7 +53,9 @@ class DataConfig(_Section):
                                    "times.txt/timestamps.txt next to the scans, else 0.1 s apart")
     poses: str | None = Field(None, description="folders of scans and bags: ground-truth LiDAR poses, KITTI "
                               "(12 columns) or TUM (8), one a scan; None: poses.txt next to the scans")
-    channels: Literal[64, 32, 16] = 64
+    channels: Literal[64, 32, 16] | None = Field(
+        None, description="rings kept: every 1st, 2nd or 4th of a 64-beam sensor (sensor.n_beams == 64 only); "
+        "None: all the sensor's beams")
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
     point_format: Literal["xyzi", "xyz"] = Field(
@@ -135,7 +140,9 @@ class LoopConfig(_Section):
     max_correspondence_distance: float = Field(1.0, gt=0.0, description="verification, final stage [m]")
     min_inlier_ratio: float = Field(0.6, ge=0.0, le=1.0, description="fraction of source points within 1 m")
     max_rmse: float | None = Field(
-        None, gt=0.0, description="RMSE of inlier distances, final stage [m]; None: 0.35 * (64 / channels) ** 0.25"
+        None, gt=0.0, description="RMSE of inlier distances, final stage [m]; None: from the sensor's ring spacing, "
+        "0.35 * (s / s_HDL64) ** 0.25 with s = vertical field of view / rings kept (gr_graph.sensors."
+        "loop_rmse_threshold; HDL-64E: 0.350 / 0.416 / 0.495 at 64 / 32 / 16 channels, VLP-16 0.51, OS1-64 0.40)"
     )
     max_correction: float = Field(
         30.0, gt=0.0, description="reject when verification moves the guess further than this [m]"
@@ -234,6 +241,7 @@ class SlamConfig(_Section):
     """The whole configuration of ``python -m gr_graph.slam``."""
 
     data: DataConfig = DataConfig()
+    sensor: SensorConfig = SensorConfig()
     preprocess: PreprocessConfig = PreprocessConfig()
     odometry: OdometryConfig = OdometryConfig()
     loops: LoopConfig = LoopConfig()
@@ -243,16 +251,34 @@ class SlamConfig(_Section):
     device: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
 
+    @model_validator(mode="after")
+    def _channels_fit_sensor(self) -> "SlamConfig":
+        try:
+            n = self.sensor.effective_beams(self.data.channels)
+        except SensorError as exc:
+            raise ValueError(f"data.channels: {exc}") from None
+        if n != self.sensor.beams and self.sensor.has_ring is False:
+            raise ValueError(f"data.channels: subsampling to {n} channels needs ring indices, but sensor.has_ring "
+                             "is false")
+        return self
 
-def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
-    """Loop verification RMSE threshold: explicit, or scaled with ring sparsity (0.35 m at 64).
+    @property
+    def channels(self) -> int:
+        """Rings in the scans SLAM runs on: ``data.channels``, or all the sensor's beams."""
+        return self.sensor.effective_beams(self.data.channels)
+
+
+def loop_max_rmse(loops: LoopConfig, sensor: SensorConfig, channels: int | None = None) -> float:
+    """Loop verification RMSE threshold: ``loops.max_rmse``, or scaled with the sensor's ring
+    spacing after subsampling (:func:`gr_graph.sensors.loop_rmse_threshold`: 0.35 m for the full
+    HDL-64E, exactly ``0.35 * (64 / channels) ** 0.25`` for its subsampled scans).
 
     Nearest-neighbour distances between correctly aligned scans grow as rings get sparser
     (16-channel KITTI-like scans: 0.31-0.47 m RMSE for correct loops on synthetic KITTI 00).
     """
     if loops.max_rmse is not None:
         return loops.max_rmse
-    return 0.35 * (64.0 / channels) ** 0.25
+    return loop_rmse_threshold(sensor, channels)
 
 
 class ConfigError(ValueError):

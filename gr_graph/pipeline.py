@@ -97,7 +97,8 @@ class SlamPipeline:
         if sequence is None:
             from gr_graph.datasets.registry import open_configured_sequence
 
-            sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+            sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed,
+                                                                    sensor=cfg.sensor)
         self.sequence = sequence
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
@@ -114,7 +115,8 @@ class SlamPipeline:
         """Run round 0 and the learning rounds; write every output; return the metrics dict."""
         self.prepare()
         metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
-                                   "channels": self.cfg.data.channels, "provenance": self.provenance(),
+                                   "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
+                                   "provenance": self.provenance(),
                                    "rounds": {}}
         previous_poses, recomputed = None, False
         for r in range(self.cfg.training.rounds + 1):
@@ -188,7 +190,7 @@ class SlamPipeline:
         name = self.sequence.name
         plot_round(self.round_dir(r), self.out / "trajectory.png", self.gt,
                    title=f"gr_graph round {r}: {name}, {len(self.sequence)} frames, "
-                         f"{self.cfg.data.channels} channels")
+                         f"{self.cfg.channels} channels, {self.cfg.sensor.model}")
 
     # -------------------------------------------------------------- one round
     def round_dir(self, r: int) -> Path:
@@ -284,8 +286,8 @@ class SlamPipeline:
                 raise RuntimeError(f"round {r}: round 0 memory has {raw.n_scans} scans, this round {len(res.scans)}")
             scans = [np.array(raw.scan(k)) for k in range(raw.n_scans)]
             del raw
-        info = {"round": r, "channels": self.cfg.data.channels, "source": self.source_description,
-                "edge_H": EDGE_H_DESCRIPTION}
+        info = {"round": r, "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
+                "source": self.source_description, "edge_H": EDGE_H_DESCRIPTION}
         build_memory(res, self.cfg, info=info, scans=scans).save(self.round_dir(r) / "memory")
 
     def _anchored_gt(self) -> np.ndarray | None:

@@ -107,6 +107,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "graph_error": list(res.graph_error),
         "mean_points_per_scan": mean_points_per_scan,
         "deskew": res.info.get("deskew"),
+        "sensor": res.info.get("sensor"),
     }
 
 

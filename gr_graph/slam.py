@@ -30,6 +30,7 @@ from gr_graph.cli_common import (
     add_out,
     add_point_format,
     add_seed,
+    add_sensor,
     make_parser,
     setup_logging,
 )
@@ -42,7 +43,7 @@ EXAMPLES = (
     "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
     "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
     "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
-    "python -m gr_graph.slam --seq 00 --route-seed 3 --channels 16 --out runs/route3_c16",
+    "python -m gr_graph.slam --seq 00 --sensor vlp16 --frames 0:300 --out runs/vlp16_0_300",
     "python -m gr_graph.slam --seq 00 --trajectory /path/to/kitti/poses/00.txt --frames 0:300 --out runs/along_kitti00",
 )
 
@@ -77,7 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_point_format(p, default=None, help="layout of .bin scans (KITTI folders, raw drives, folders of .bin): float32 "
                                            "x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes, no intensity) "
                                            f"(default: {d.data.point_format})")
-    add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
+    add_channels(p, default=None, help="laser rings kept of a 64-beam sensor: every 1st, 2nd or 4th "
+                                       "(default: all the sensor's beams)")
+    add_sensor(p, help="the sensor that took the scans (synthetic data: the beam model rendered); sets "
+                       f"sensor.model and its beams, keeping the other sensor keys (default: {d.sensor.model})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
     p.add_argument("--route-seed", type=int, default=None, metavar="N",
                    help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
@@ -117,6 +121,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["data_root"] = args.data_root
     if args.channels is not None:
         o["data"]["channels"] = args.channels
+    if args.sensor is not None:  # a catalogue model: its beams replace those of --config
+        o["sensor"] = {"model": args.sensor, "n_beams": None, "vertical_fov_deg": None, "elevations_deg": None}
     if args.point_format is not None:
         o["data"]["point_format"] = args.point_format
     if args.frames is not None:

@@ -19,7 +19,7 @@ from gr_graph.datasets.channels import subsample_channels
 from gr_graph.datasets.distortion import MotionDistortedSequence
 from gr_graph.datasets.registry import SequenceView
 from gr_graph.deskew import times_from_azimuth
-from gr_graph.frame_loop import FrameDeskewer, _FrameLoop, deskew_enabled
+from gr_graph.frame_loop import _FrameLoop, deskew_enabled
 
 XI_FRAME = np.array([0.004, -0.002, 0.06, 1.3, 0.04, 0.01])  # per frame: 13 m/s, 34 deg/s yaw at 10 Hz
 DT = 0.1

@@ -26,6 +26,7 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index, inherit_sweep_attributes
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
+from gr_graph.sensors import CUSTOM, SensorConfig, SensorError, frame_sensor_problem
 
 if TYPE_CHECKING:
     from gr_graph.config import DataConfig
@@ -241,7 +242,7 @@ def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timesta
 def open_sequence(
     seq: str = "00",
     data_root: str | os.PathLike[str] | None = None,
-    channels: int = 64,
+    channels: int | None = None,
     frames: str | slice | tuple[int, int] | None = None,
     synthetic_seed: int = 0,
     point_format: str = "xyzi",
@@ -254,6 +255,7 @@ def open_sequence(
     topic: str | None = None,
     timestamps: str | os.PathLike[str] | None = None,
     poses: str | os.PathLike[str] | None = None,
+    sensor: SensorConfig | str | None = None,
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: ``path`` of any supported format, else KITTI if a root is given or
     found, else the synthetic sequence.
@@ -275,8 +277,9 @@ def open_sequence(
         KITTI sequence name. The synthetic fallback exists for ``"00"`` only.
     data_root : path, optional
         KITTI odometry root; see the module docstring for where else it is looked for.
-    channels : {64, 32, 16}
-        Keep every 1st / 2nd / 4th laser ring.
+    channels : {64, 32, 16}, optional
+        Keep every 1st / 2nd / 4th laser ring of a 64-beam sensor; None (default): every ring
+        of the sensor.
     frames : "A:B", slice or (A, B), optional
         Frame range.
     synthetic_seed : int
@@ -295,14 +298,25 @@ def open_sequence(
     synthetic_preset : str, optional
         Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
         default preset). Ignored for KITTI data.
+    sensor : SensorConfig or str, optional
+        The sensor (a ``SensorConfig`` or a catalogue name; default: the HDL-64E). The synthetic
+        sequence renders with its beam model (catalogue models only); a KITTI-layout folder is
+        read with its beam count (ring recovery expects ``n_beams`` scan lines). Frames are
+        checked against its ``has_ring`` / ``has_time``. The view's ``sensor`` attribute.
 
     Returns
     -------
     (sequence, description)
         The sequence and a one-line description of where it comes from.
     """
-    if channels not in SUPPORTED_CHANNELS:
-        raise DatasetError(f"channels must be one of {SUPPORTED_CHANNELS}, got {channels}")
+    if channels is not None and channels not in SUPPORTED_CHANNELS:
+        raise DatasetError(f"channels must be one of {SUPPORTED_CHANNELS} (or None: all), got {channels}")
+    try:
+        sensor = (SensorConfig() if sensor is None else SensorConfig(model=sensor) if isinstance(sensor, str)
+                  else sensor)
+        n_rings = sensor.effective_beams(channels)
+    except (SensorError, ValueError) as exc:
+        raise DatasetError(f"sensor: {exc}") from None
     if dataset not in DATASETS:
         raise DatasetError(f"dataset must be one of {DATASETS}, got {dataset!r}")
     seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
@@ -325,7 +339,7 @@ def open_sequence(
                                    f"it cannot be combined with {p}")
             base, source = _open_path(kind, p, point_format, topic, None if timestamps is None else str(timestamps),
                                       None if poses is None else str(poses))
-            return _view(base, source, frames, channels)
+            return _view(base, source, frames, sensor, n_rings)
     elif kind in ("kitti_raw", "folder", "rosbag"):
         raise DatasetError(f"dataset {kind!r} needs a path (python -m gr_graph.slam PATH, or data.path)")
     root = None if kind == "synthetic" else find_kitti_root(seq, data_root)
@@ -340,11 +354,14 @@ def open_sequence(
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
-        base = KittiSequence(root, seq, point_format=point_format,
-                             vertical_correction_deg=kitti_vertical_correction_deg)
+        base = KittiSequence(root, seq, point_format=point_format, n_rings=sensor.beams,
+                             vertical_correction_deg=kitti_vertical_correction_deg,
+                             recover_ring_index=sensor.has_ring is not False)
         source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
         if kitti_vertical_correction_deg:
             source += f", vertical-angle correction {kitti_vertical_correction_deg:g} deg"
+        if sensor.model != "hdl64e":
+            source += f", sensor {sensor.model} ({sensor.beams} beams)"
     else:
         if seq != "00":
             raise DatasetError(
@@ -359,31 +376,44 @@ def open_sequence(
         if kitti_vertical_correction_deg:
             log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
                         "no effect", kitti_vertical_correction_deg)
+        if sensor.model == CUSTOM:
+            raise DatasetError("the synthetic sequence renders catalogue sensors only (sensor.model: "
+                               "hdl64e, vlp16, os1-64), not a custom sensor")
         synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory,
-                                  preset=synthetic_preset)
+                                  preset=synthetic_preset, sensor=sensor.model)
         base = synth
         source = (
             "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed}, sensor preset {synth.preset!r}: "
+            f"{synth.path.source}, town seed {synthetic_seed}, {synth.beams.describe()}, sensor preset "
+            f"{synth.preset!r}: "
             f"{synth.effects.describe()})"
         )
-    return _view(base, source, frames, channels)
+    return _view(base, source, frames, sensor, n_rings)
 
 
 def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int] | None,
-          channels: int) -> tuple[LidarSequence, str]:
-    """The frame range and channel subsampling of ``base`` as a :class:`SequenceView`."""
+          sensor: SensorConfig, n_rings: int) -> tuple[LidarSequence, str]:
+    """The frame range and channel subsampling (to ``n_rings`` of ``sensor``'s beams) of ``base``
+    as a :class:`SequenceView` whose ``sensor`` is ``sensor``; frames are checked against it."""
     start, stop = parse_frames(frames, len(base))
-    transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
-    label = "" if channels == 64 else f"-{channels}ch"
+    name = base.name
+
+    def transform(frame: LidarFrame) -> LidarFrame:
+        problem = frame_sensor_problem(frame, sensor)
+        if problem is not None:
+            raise DatasetError(f"{name}, frame {frame.index}: {problem}")
+        return frame if n_rings == sensor.beams else subsample_channels(frame, n_rings)
+
+    label = "" if n_rings == sensor.beams else f"-{n_rings}ch"
     view = SequenceView(base, start, stop, transform, label)
-    n_rings = int(getattr(base, "n_rings", 64))
-    rings = f"{channels} channels" if channels != 64 or n_rings == 64 else f"all {n_rings} rings"
-    return view, f"{source}, frames {start}:{stop}, {rings}"
+    view.sensor = sensor
+    return view, f"{source}, frames {start}:{stop}, {n_rings} channels"
 
 
-def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple[LidarSequence, str]:
-    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``).
+def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0,
+                             sensor: SensorConfig | None = None) -> tuple[LidarSequence, str]:
+    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``)
+    and the ``sensor`` section (``cfg.sensor``; default: the HDL-64E).
 
     The one place that maps the ``data`` config section to a sequence, so that a key added
     there (e.g. ``point_format``) reaches the loader from every caller.
@@ -393,4 +423,4 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple
                          kitti_vertical_correction_deg=data.kitti_vertical_correction_deg,
                          route_seed=data.route_seed, trajectory=data.trajectory,
                          synthetic_preset=data.synthetic_preset, path=data.path, dataset=data.dataset,
-                         topic=data.topic, timestamps=data.timestamps, poses=data.poses)
+                         topic=data.topic, timestamps=data.timestamps, poses=data.poses, sensor=sensor)

@@ -29,6 +29,7 @@ from gr_graph.cli_common import (
     add_out,
     add_point_format,
     add_seed,
+    add_sensor,
     add_threads,
     make_parser,
     setup_logging,
@@ -46,6 +47,7 @@ EXAMPLES = (
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_r3 --frames 0:100 --route-seed 3",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_raw --frames 0:100 --preset raw",
     "python -m gr_graph.datasets.synthetic --out /tmp/synth_world --frames 0:100 --world residential --preset kitti",
+    "python -m gr_graph.datasets.synthetic --out /tmp/synth_vlp16 --frames 0:100 --sensor vlp16",
 )
 
 
@@ -58,11 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--route-seed", type=int, default=0, metavar="N", help="seed of the generated route")
     ap.add_argument("--trajectory", default=None, metavar="PATH",
                     help="render along this KITTI/TUM pose file or KITTI root instead of the generated route")
-    add_channels(ap, help="laser rings rendered")
+    add_sensor(ap, help="beam model rendered (gr_graph.sensors)", default="hdl64e")
+    add_channels(ap, help="laser rings rendered of a 64-beam sensor (default: all the sensor's beams)", default=None)
     add_point_format(ap, help="layout of the written .bin files: float32 x,y,z,intensity (KITTI, 16 bytes a point) "
                               "or x,y,z (12 bytes a point)")
-    ap.add_argument("--max-range", type=float, default=120.0, metavar="M", help="largest range [m]")
-    ap.add_argument("--n-azimuth", type=int, default=2000, metavar="N", help="azimuth steps of a revolution")
+    ap.add_argument("--max-range", type=float, default=None, metavar="M",
+                    help="largest range [m] (default: the sensor's: 120 HDL-64E and OS1-64, 100 VLP-16)")
+    ap.add_argument("--n-azimuth", type=int, default=None, metavar="N",
+                    help="azimuth steps of a revolution (default: the sensor's: 2000, 1800, 1024)")
     ap.add_argument("--preset", choices=PRESETS, default=None,
                     help=f"sensor effects: clean, kitti or raw (default: {DEFAULT_PRESET})")
     ap.add_argument("--world", choices=("clean", "residential"), default="clean",
@@ -85,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = SyntheticSequence(seed=args.seed, n_rings=args.channels, max_range=args.max_range,
                                 n_azimuth=args.n_azimuth, nthreads=args.threads,
                                 route_seed=args.route_seed, trajectory=args.trajectory,
-                                preset=args.preset, **world)
+                                preset=args.preset, sensor=args.sensor, **world)
         frames = range(*parse_frames(args.frames, len(seq)))
         out = write_kitti_layout(seq, args.out, frames, overwrite=args.overwrite, progress=not args.no_progress,
                                  point_format=args.point_format)

@@ -103,6 +103,7 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "sequence": getattr(seq, "name", type(seq).__name__),
         "seed": getattr(seq, "seed", None),
         "n_rings": getattr(seq, "n_rings", None),
+        "sensor": getattr(getattr(seq, "beams", None), "sensor", None),
         "repr": repr(seq),
         "point_format": point_format,
         "first_frame": frames.start,
