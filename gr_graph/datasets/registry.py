@@ -192,8 +192,9 @@ def open_sequence(
         KITTI only: elevation correction of every point (see
         :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
     synthetic_preset : str, optional
-        Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
-        default preset). Ignored for KITTI data.
+        Preset of the synthetic sequence, its world and sensor effects (``clean``, ``kitti``,
+        ``raw``; default: ``kitti``, see
+        :data:`gr_graph.datasets.synthetic.sequence.DEFAULT_PRESET`). Ignored for KITTI data.
 
     Returns
     -------
@@ -234,8 +235,9 @@ def open_sequence(
                                   preset=synthetic_preset)
         base = synth
         source = (
-            "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed}, sensor preset {synth.preset!r}: "
+            f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
+            f"along {synth.path.source}, town seed {synthetic_seed}, {synth.world} world"
+            f"{' with moving actors' if synth.actors_config is not None else ''}, sensor effects: "
             f"{synth.effects.describe()})"
         )
     start, stop = parse_frames(frames, len(base))
