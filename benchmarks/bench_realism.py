@@ -50,10 +50,10 @@ def real_statistics(root: Path) -> dict[str, float]:
 def world_of(world: str, configuration: str) -> str:
     """The world of a configuration: ``world`` unless it is ``preset``, then the world of the
     preset the configuration starts from (``clean`` and ``only <effect>``: the plain town;
-    ``kitti``, ``raw`` and ``kitti without <effect>``: the residential world)."""
+    ``kitti``, ``raw`` and ``kitti without <effect>``: the kitti world)."""
     if world != "preset":
         return world
-    return "clean" if configuration == "clean" or configuration.startswith("only ") else "residential"
+    return "clean" if configuration == "clean" or configuration.startswith("only ") else "kitti"
 
 
 def synthetic_statistics(effects: SensorEffects, frames: np.ndarray, n_rings: int = 64,
@@ -111,9 +111,10 @@ def main() -> None:
     ap.add_argument("--export", type=Path, default=None,
                     help="only write the frame pairs of --preset to this KITTI-layout folder and exit")
     ap.add_argument("--preset", default="kitti", help="preset of --export")
-    ap.add_argument("--world", choices=("preset", "clean", "residential"), default="preset",
+    ap.add_argument("--world", choices=("preset", "clean", "residential", "kitti"), default="preset",
                     help="world of every configuration (and of --export): preset (that of the preset: clean for "
-                         "clean, residential for the others), clean (the plain town) or residential (every world "
+                         "clean, kitti for the others), clean (the plain town), kitti (the kitti world) or "
+                         "residential (every world "
                          "effect and the moving actors)")
     args = ap.parse_args()
     if args.export is not None:

@@ -11,7 +11,10 @@ edges, roofs).
 
 Run::
 
-    python benchmarks/realism_diagnosis.py [--frames 12] [--preset kitti] [--world residential]
+    python benchmarks/realism_diagnosis.py [--frames 12] [--preset kitti] [--world kitti]
+
+(``--world residential``: the world before the kitti world, ``TownConfig.residential()`` and the
+moving actors.)
 """
 
 from __future__ import annotations
@@ -69,12 +72,7 @@ def real_tables(root: Path) -> list[dict[str, np.ndarray]]:
 def synthetic_tables(frames: int, preset: str, world: str) -> list[dict[str, np.ndarray]]:
     from gr_graph.datasets.synthetic import SyntheticSequence
 
-    kw = {}
-    if world == "residential":
-        from gr_graph.datasets.synthetic.actors import ActorsConfig
-        from gr_graph.datasets.synthetic.town import TownConfig
-        kw = {"town_config": TownConfig.residential(), "actors": ActorsConfig()}
-    seq = SyntheticSequence(seed=0, nthreads=1, preset=preset, **kw)
+    seq = SyntheticSequence(seed=0, nthreads=1, preset=preset, world=world)
     idx = np.round(np.linspace(0, len(seq) - 2, frames)).astype(int)
     return [point_table(downsample(seq[int(i)].points)) for i in idx]
 
@@ -83,7 +81,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--preset", default="kitti")
-    ap.add_argument("--world", default="residential")
+    ap.add_argument("--world", default="kitti", choices=("clean", "residential", "kitti"))
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti")
     args = ap.parse_args()
     cols = {"real KITTI 00": summarise(real_tables(args.real)),

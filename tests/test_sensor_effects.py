@@ -89,7 +89,7 @@ def test_presets_selectable_and_raw_carries_per_point_times():
     raw = SyntheticSequence(seed=0, n_rings=16, nthreads=1, preset="raw")
     kitti = SyntheticSequence(seed=0, n_rings=16, nthreads=1, preset="kitti")
     assert not raw.motion_compensated and kitti.motion_compensated and raw.scan_period == 0.1
-    assert raw.world == kitti.world == "residential" and SyntheticSequence().preset == "kitti"
+    assert raw.world == kitti.world == "kitti" and SyntheticSequence().preset == "kitti"
     f = raw[200]
     assert f.time is not None and f.time.min() >= 0 and f.time.max() <= 1
     # the sensor faces forward (+x) at mid-sweep and backwards at the start/end

@@ -318,11 +318,12 @@ def test_kitti_world_keeps_the_residential_effects_and_adds_its_composition():
                  "sidewalk_parking", "detached_houses", "garden_vegetation"):
         assert getattr(KITTI_TOWN, flag) and getattr(res, flag)
     assert KITTI_TOWN.window_recesses and not KITTI_TOWN.low_walls
-    assert preset_world("clean") == "clean" and preset_world("kitti") == preset_world("raw") == "residential"
+    assert preset_world("clean") == "clean" and preset_world("kitti") == preset_world("raw") == "kitti"
     clean, kitti = SyntheticSequence(preset="clean"), SyntheticSequence(preset="kitti")
     assert clean.town_config == TownConfig() and clean.actors_config is None
     assert kitti.town_config == KITTI_TOWN and kitti.actors_config == ActorsConfig()
     # explicit parts override the preset's world; the sensor effects stay the preset's
+    assert SyntheticSequence(world="residential").town_config == res
     mixed = SyntheticSequence(preset="kitti", world="clean")
     assert mixed.town_config == TownConfig() and mixed.actors_config is None and not mixed.effects.is_clean
     assert SyntheticSequence(preset="kitti", actors=None).actors_config is None

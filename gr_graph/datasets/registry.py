@@ -236,7 +236,7 @@ def open_sequence(
         base = synth
         source = (
             f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
-            f"along {synth.path.source}, town seed {synthetic_seed}, {synth.world} world"
+            f"along {synth.path.source}, town seed {synthetic_seed}, the {synth.world} world"
             f"{' with moving actors' if synth.actors_config is not None else ''}, sensor effects: "
             f"{synth.effects.describe()})"
         )

@@ -13,8 +13,9 @@ with moving actors and KITTI-like sensor effects; ``clean``: the plain town and 
 sensor; ``raw``: ``kitti`` with the full motion distortion; see
 ``gr_graph.datasets.synthetic.effects``, ``.town`` and ``.actors``); ``raw`` scans also get
 ``sequences/00/times/%06d.npy``, each point's sweep fraction (float32, in file order).
-``--world`` overrides the preset's world (``residential``: every world effect of the town
-and the moving actors; ``clean``: the plain town).
+``--world`` overrides the preset's world (``kitti``: the world of the ``kitti`` preset;
+``residential``: every world effect at its first amounts (``TownConfig.residential()``) and the
+moving actors; ``clean``: the plain town).
 """
 
 from __future__ import annotations
@@ -67,9 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
                          f"with moving actors, KITTI-like sensor effects) or raw (kitti with the full motion "
                          f"distortion) (default: {DEFAULT_PRESET})")
     ap.add_argument("--world", choices=WORLDS, default=None,
-                    help="override the preset's world: clean (no world effect) or residential (porous vegetation, "
-                         "windows, facade details, fences, hedges, gardens, curved cars, moving vehicles and "
-                         "pedestrians)")
+                    help="override the preset's world: clean (no world effect), residential (porous vegetation, "
+                         "facade details, fences, hedges, gardens, curved cars, moving vehicles and pedestrians at "
+                         "their first amounts) or kitti (residential with recessed windows and the composition of "
+                         "KITTI 00's streets: the world of the kitti preset)")
     add_threads(ap, "ray-casting threads (0 = all)", default=0)
     ap.add_argument("--overwrite", action="store_true", help="replace existing .bin files in DIR")
     add_no_progress(ap)

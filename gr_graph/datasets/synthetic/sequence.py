@@ -40,9 +40,10 @@ DEFAULT_PRESET = "kitti"
 effects and world effects, see :func:`preset_world`). Unit tests that need an ideal world ask
 for ``clean`` explicitly."""
 
-WORLDS = ("clean", "residential")
-"""The worlds: ``clean`` (``TownConfig()``, no moving actors) and ``residential``
-(:data:`KITTI_TOWN` and ``ActorsConfig()``)."""
+WORLDS = ("clean", "residential", "kitti")
+"""The worlds: ``clean`` (``TownConfig()``, no moving actors), ``residential``
+(``TownConfig.residential()``, every world effect at its first amounts, and ``ActorsConfig()``)
+and ``kitti`` (:data:`KITTI_TOWN` and ``ActorsConfig()``, the world of the ``kitti`` preset)."""
 
 KITTI_TOWN = TownConfig.kitti()
 """The town of the ``kitti`` and ``raw`` presets: every world effect on, at the amounts of
@@ -53,14 +54,14 @@ _FROM_WORLD = object()
 
 
 def preset_world(preset: str) -> str:
-    """The world of preset ``preset``: ``clean`` for ``clean``, ``residential`` for ``kitti``/``raw``.
+    """The world of preset ``preset``: ``clean`` for ``clean``, ``kitti`` for ``kitti``/``raw``.
 
     A preset is the whole KITTI-like world: the sensor effects of :func:`.effects.preset` and
     this world (town effects and moving actors).
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown synthetic preset {preset!r}; choose from {PRESETS}")
-    return "clean" if preset == "clean" else "residential"
+    return "clean" if preset == "clean" else "kitti"
 
 
 def world_parts(world: str) -> tuple[TownConfig, ActorsConfig | None]:
@@ -68,6 +69,8 @@ def world_parts(world: str) -> tuple[TownConfig, ActorsConfig | None]:
     if world == "clean":
         return TownConfig(), None
     if world == "residential":
+        return TownConfig.residential(), ActorsConfig()
+    if world == "kitti":
         return KITTI_TOWN, ActorsConfig()
     raise ValueError(f"unknown synthetic world {world!r}; choose from {WORLDS}")
 
@@ -143,7 +146,8 @@ class SyntheticSequence:
         Explicit sensor effects, overriding those of ``preset`` (e.g. one effect alone); the
         world still follows ``preset`` (or ``world``).
     world : str, optional
-        ``clean`` or ``residential``, overriding the world of ``preset`` (:func:`preset_world`).
+        ``clean``, ``residential`` or ``kitti`` (:data:`WORLDS`), overriding the world of
+        ``preset`` (:func:`preset_world`).
     town_config : TownConfig, optional
         The town's layout and world effects, overriding the world's (``TownConfig()``: every
         effect off; ``TownConfig.residential()``: every world effect on).
