@@ -70,8 +70,9 @@ class DataConfig(_Section):
     trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
                                    "pose file or KITTI root instead of the generated route")
     synthetic_preset: Literal["clean", "kitti", "raw"] | None = Field(
-        None, description="synthetic sequence: sensor effects (clean: ideal sensor; kitti: KITTI-like "
-        "errors; raw: kitti with the full motion distortion); None: the sequence's default")
+        None, description="synthetic sequence: the world and its sensor (clean: plain town, ideal sensor, "
+        "for unit tests; kitti: residential world with moving actors and KITTI-like sensor errors; raw: kitti with "
+        "the full motion distortion); None: the sequence's default (kitti)")
 
     @field_validator("frames", mode="before")
     @classmethod

@@ -88,7 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trajectory", default=None, metavar="PATH",
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
     p.add_argument("--synthetic-preset", choices=("clean", "kitti", "raw"), default=None,
-                   help="synthetic data: sensor effects preset (default: the sequence's default)")
+                   help="synthetic data: the world and its sensor: clean (plain town, ideal sensor), kitti "
+                        "(residential world, moving actors, KITTI-like sensor errors) or raw (kitti with the full "
+                        "motion distortion) (default: kitti)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
     add_out(p, f"output directory (default: {d.output.out_dir})")

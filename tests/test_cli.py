@@ -181,7 +181,7 @@ def test_slam_refuses_12_byte_scans_and_runs_them_as_xyz(kitti_root: Path, tmp_p
 def test_slam_on_exported_12_byte_scans(tmp_path: Path, capsys) -> None:
     """The same on the synthetic exporter's output (no real data needed): the x,y,z export is
     refused by default and gives the x,y,z,intensity export's poses with --point-format xyz."""
-    frames = ["--frames", "100:104", "--no-progress"]
+    frames = ["--frames", "100:104", "--no-progress", "--preset", "clean"]
     assert synthetic_export.main(["--out", str(tmp_path / "xyzi")] + frames) == 0
     assert synthetic_export.main(["--out", str(tmp_path / "xyz"), "--point-format", "xyz"] + frames) == 0
     common = ["--channels", "16", "--no-loops", "--no-memory", "--no-progress"]

@@ -220,7 +220,7 @@ def test_deskewing_recovers_most_of_the_distortion_on_a_fast_synthetic_stretch()
     from gr_graph.frame_loop import run_slam
     from gr_graph.metrics import ate, rpe_translation
 
-    seq, _ = open_sequence("00", frames=(4200, 4250))
+    seq, _ = open_sequence("00", frames=(4200, 4250), synthetic_preset="clean")
     clean = _Cached(seq)
     raw = _Cached(MotionDistortedSequence(clean, scan_period=0.1))
     assert raw.motion_compensated is False and all(f.time is not None for f in raw.frames)

@@ -296,8 +296,9 @@ def open_sequence(
         KITTI only: elevation correction of every point (see
         :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
     synthetic_preset : str, optional
-        Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
-        default preset). Ignored for KITTI data.
+        Preset of the synthetic sequence, its world and sensor effects (``clean``, ``kitti``,
+        ``raw``; default: ``kitti``, see
+        :data:`gr_graph.datasets.synthetic.sequence.DEFAULT_PRESET`). Ignored for KITTI data.
     sensor : SensorConfig or str, optional
         The sensor (a ``SensorConfig`` or a catalogue name; default: the HDL-64E). The synthetic
         sequence renders with its beam model (catalogue models only); a KITTI-layout folder is
@@ -383,9 +384,10 @@ def open_sequence(
                                   preset=synthetic_preset, sensor=sensor.model)
         base = synth
         source = (
-            "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed}, {synth.beams.describe()}, sensor preset "
-            f"{synth.preset!r}: "
+            f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
+            f"along {synth.path.source}, town seed {synthetic_seed}, the {synth.world} world"
+            f"{' with moving actors' if synth.actors_config is not None else ''}, {synth.beams.describe()}, "
+            f"sensor effects: "
             f"{synth.effects.describe()})"
         )
     return _view(base, source, frames, sensor, n_rings)

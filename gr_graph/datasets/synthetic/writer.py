@@ -112,6 +112,7 @@ def write_kitti_layout(seq, out: Path, frames: range | None = None, seq_name: st
         "route_seed": getattr(seq, "route_seed", None),
         "trajectory": getattr(seq, "trajectory", None),
         "preset": getattr(seq, "preset", None),
+        "world": getattr(seq, "world", None),
         "effects": (seq.effects.describe() if getattr(seq, "effects", None) is not None else None),
         "motion_compensated": getattr(seq, "motion_compensated", True),
         "source": path.source if path is not None else getattr(seq, "name", "sequence"),
