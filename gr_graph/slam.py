@@ -30,7 +30,7 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.config import SlamConfig, load_config
+from gr_graph.config import SlamConfig, config_to_yaml, load_config
 from gr_graph.datasets.registry import parse_frames
 
 
@@ -82,6 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {d.data.kitti_vertical_correction_deg})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
+    p.add_argument("--dump-config", action="store_true",
+                   help="print the resolved configuration (defaults, --config, options) as YAML and exit")
     add_no_progress(p, deprecated=("--quiet",))
     add_log_level(p)
     return p
@@ -141,6 +143,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.dump_config:
+        print(config_to_yaml(cfg), end="")
+        return 0
     from gr_graph.datasets.base import DatasetError
     from gr_graph.pipeline import SlamPipeline
 
