@@ -84,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
                    help="print the resolved configuration (defaults, --config, options) as YAML and exit")
+    p.add_argument("--viz", action="store_true",
+                   help="at the end, open an open3d window on the last round's map (needs a display)")
     add_no_progress(p, deprecated=("--quiet",))
     add_log_level(p)
     return p
@@ -163,6 +165,12 @@ def main(argv: list[str] | None = None) -> int:
         s = last["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})
     print(json.dumps(brief))
+    if args.viz:
+        from gr_graph.map_export import map_path
+        from gr_graph.round_output import round_dir
+        from gr_graph.viewer import show_map
+
+        show_map(map_path(round_dir(cfg.output.out_dir, last["round"])), title=f"gr_graph map: {cfg.output.out_dir}")
     return 0
 
 
