@@ -38,6 +38,10 @@ Predicted covariances: the points the network saw and its covariances are kept f
 the SLAM prefetch depth) and returned by :meth:`DensifiedSequence.predicted`, so that the learning rounds can
 build each odometry edge's information H(C) without running the network again.
 
+One cloud outside a sequence: :func:`densify_cloud` (and the ``gr-densify`` command,
+:mod:`gr_graph.densify_cli`) runs the same steps 1-4 through :func:`densify_points`, the
+function the view uses for every frame.
+
 ``checkpoint`` may be a ``model.pt`` / ``checkpoint.pt`` path, a
 ``training.network.CovarianceNet``, or any callable ``points (N, 3) -> C (N, 3, 3)`` (tests,
 hand-made covariance models).
