@@ -38,6 +38,18 @@ class DataConfig(_Section):
 
     seq: str = "00"
     data_root: str | None = Field(None, description="KITTI odometry root; None: env GR_GRAPH_KITTI_ROOT or synthetic")
+    dataset: Literal["auto", "kitti", "kitti_raw", "folder", "rosbag", "synthetic"] = Field(
+        "auto", description="kind of data: auto guesses it from data.path (without a path: KITTI when a root "
+        "is found, else synthetic); kitti_raw: a raw drive; folder: .bin/.pcd/.ply/.npy scans; rosbag: ROS1/ROS2 "
+        "bag or MCAP")
+    path: str | None = Field(None, description="the data to run on (bag, folder of scans, KITTI raw drive or "
+                             "odometry root); None: data_root / synthetic")
+    topic: str | None = Field(None, description="bags: the sensor_msgs/PointCloud2 topic (needed when there "
+                              "are several)")
+    timestamps: str | None = Field(None, description="folders of scans: file of one timestamp (s) a scan; None: "
+                                   "times.txt/timestamps.txt next to the scans, else 0.1 s apart")
+    poses: str | None = Field(None, description="folders of scans and bags: ground-truth LiDAR poses, KITTI "
+                              "(12 columns) or TUM (8), one a scan; None: poses.txt next to the scans")
     channels: Literal[64, 32, 16] = 64
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")

@@ -1,4 +1,7 @@
-"""The main command: ``python -m gr_graph.slam --seq 00 [options]``.
+"""The main command: ``python -m gr_graph.slam [PATH] [--seq 00] [options]``.
+
+PATH is any supported dataset (a ROS bag or MCAP, a folder of scans, a KITTI raw drive or
+odometry root; see :mod:`gr_graph.datasets.registry`).
 
 Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algorithm 3;
 they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
@@ -31,10 +34,11 @@ from gr_graph.cli_common import (
     setup_logging,
 )
 from gr_graph.config import SlamConfig, config_to_yaml, load_config
-from gr_graph.datasets.registry import parse_frames
+from gr_graph.datasets.registry import DATASETS, parse_frames
 
 
 EXAMPLES = (
+    "python -m gr_graph.slam recording.bag --topic /velodyne_points --out runs/my_bag",
     "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
     "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
     "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
@@ -55,10 +59,24 @@ def build_parser() -> argparse.ArgumentParser:
                     "options override --config, which overrides the defaults of gr_graph/config.py.",
                     EXAMPLES)
     add_config(p, "YAML file with config sections (see gr_graph/config.py)")
-    p.add_argument("--seq", default=None, help=f"KITTI sequence (default: {d.data.seq})")
+    p.add_argument("path", nargs="?", default=None, metavar="PATH",
+                   help="data to run on: a ROS1 .bag, ROS2 bag folder or .mcap; a folder of .bin/.pcd/.ply/.npy "
+                        "scans; a KITTI raw drive; a KITTI odometry root (default: data.path, else --data-root, "
+                        "else the synthetic sequence)")
+    p.add_argument("--dataset", choices=DATASETS, default=None,
+                   help=f"kind of data at PATH (default: {d.data.dataset}: guessed from the path)")
+    p.add_argument("--topic", default=None, help="bags: the sensor_msgs/PointCloud2 topic (needed when the bag "
+                                                 "has several; the error lists them)")
+    p.add_argument("--timestamps", default=None, metavar="FILE",
+                   help="folders of scans: one timestamp (s) a scan (default: times.txt/timestamps.txt next to "
+                        "the scans, else 0.1 s apart)")
+    p.add_argument("--poses", default=None, metavar="FILE",
+                   help="folders of scans and bags: ground-truth LiDAR poses, KITTI or TUM format, one a scan")
+    p.add_argument("--seq", default=None, help=f"KITTI odometry sequence (default: {d.data.seq})")
     add_data_root(p)
-    add_point_format(p, default=None, help="layout of the KITTI .bin files: float32 x,y,z,intensity (16 bytes a "
-                                           f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
+    add_point_format(p, default=None, help="layout of .bin scans (KITTI folders, raw drives, folders of .bin): float32 "
+                                           "x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes, no intensity) "
+                                           f"(default: {d.data.point_format})")
     add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
     p.add_argument("--route-seed", type=int, default=None, metavar="N",
@@ -96,6 +114,9 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}, "odometry": {}}
     if args.seq is not None:
         o["data"]["seq"] = args.seq
+    for key in ("path", "dataset", "topic", "timestamps", "poses"):
+        if getattr(args, key) is not None:
+            o["data"][key] = getattr(args, key)
     if args.data_root is not None:
         o["data"]["data_root"] = args.data_root
     if args.channels is not None:

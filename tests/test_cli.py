@@ -100,7 +100,7 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
                "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes", "--synthetic-preset": "noisy",
-               "--preset": "noisy", "--world": "urban"}
+               "--preset": "noisy", "--world": "urban", "--dataset": "pcap"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 
