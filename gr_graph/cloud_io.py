@@ -2,13 +2,8 @@
 
 The format is chosen by the file's extension (:data:`CLOUD_SUFFIXES`).
 
-Reading (:func:`read_cloud`) gives ``(points (N, 3) float64, intensity (N,) float32 or None)``:
-
-* ``.bin``: headerless float32, ``x,y,z,intensity`` (``point_format="xyzi"``, KITTI) or
-  ``x,y,z`` (``"xyz"``; no intensity); the layout is checked
-  (:func:`gr_graph.datasets.kitti.read_velodyne_bin`);
-* ``.npy``: an ``(N, 3)`` (x,y,z) or ``(N, >=4)`` (x,y,z,intensity, ...) numeric array;
-* ``.pcd`` / ``.ply``: through open3d's tensor I/O; an ``intensity`` field is read when present.
+Reading (:func:`read_cloud`) gives ``(points (N, 3) float64, intensity (N,) float32 or None)``
+through the dataset loaders' reader (:func:`gr_graph.datasets.point_files.read_point_file`).
 
 Writing (:func:`write_cloud`, atomic) stores ``x,y,z`` as float32 and, when given, the
 intensity; ``.ply`` files can also carry one covariance per point as six float64 properties
@@ -50,7 +45,8 @@ def _suffix(path: Path) -> str:
 
 
 def read_cloud(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, np.ndarray | None]:
-    """Points ``(N, 3)`` float64 and intensity ``(N,)`` float32 (or None) of one cloud file.
+    """Points ``(N, 3)`` float64 and intensity ``(N,)`` float32 (or None) of one cloud file,
+    read by :func:`gr_graph.datasets.point_files.read_point_file` (non-finite points dropped).
 
     Parameters
     ----------
@@ -62,47 +58,17 @@ def read_cloud(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, 
     Raises
     ------
     DatasetError
-        Naming the file: missing, unknown extension, unreadable, wrong array shape, no points.
+        Naming the file: missing, unknown extension, unreadable, wrong layout, no points.
     """
+    from gr_graph.datasets.point_files import read_point_file
+
     p = Path(path)
-    suffix = _suffix(p)
-    if not p.is_file():
-        raise DatasetError(f"{p}: point cloud file not found")
-    intensity: np.ndarray | None
-    if suffix == ".bin":
-        from gr_graph.datasets.kitti import read_velodyne_bin
-
-        values = read_velodyne_bin(p, point_format)
-        points, intensity = values[:, :3], (values[:, 3] if point_format == "xyzi" else None)
-    elif suffix == ".npy":
-        try:
-            arr = np.load(p, allow_pickle=False)
-        except ValueError as exc:
-            raise DatasetError(f"{p}: not a numeric .npy array ({exc})") from None
-        if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
-            raise DatasetError(f"{p}: a .npy cloud must be a numeric (N, 3) x,y,z or (N, >=4) x,y,z,intensity "
-                               f"array, got shape {arr.shape} dtype {arr.dtype}")
-        points, intensity = arr[:, :3], (arr[:, 3] if arr.shape[1] >= 4 else None)
-    else:
-        points, intensity = _read_open3d(p)
-    if len(points) == 0:
-        raise DatasetError(f"{p}: the file holds no points")
-    return (np.asarray(points, np.float64),
-            None if intensity is None else np.asarray(intensity, np.float32).reshape(-1))
-
-
-def _read_open3d(p: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    import open3d as o3d
-
-    try:
-        cloud = o3d.t.io.read_point_cloud(str(p))
-    except RuntimeError as exc:
-        raise DatasetError(f"{p}: open3d cannot read it ({exc})") from None
-    if "positions" not in cloud.point:
-        raise DatasetError(f"{p}: no x,y,z points in the file (not a point cloud, or an unreadable header)")
-    points = cloud.point.positions.numpy().reshape(-1, 3)
-    intensity = cloud.point.intensity.numpy().reshape(-1) if "intensity" in cloud.point else None
-    return points, intensity
+    _suffix(p)
+    cloud = read_point_file(p, point_format)
+    if len(cloud.points) == 0:
+        raise DatasetError(f"{p}: the file holds no (finite) points")
+    intensity = None if cloud.intensity is None else np.asarray(cloud.intensity, np.float32).reshape(-1)
+    return np.asarray(cloud.points, np.float64), intensity
 
 
 def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None = None,
