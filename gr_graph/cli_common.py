@@ -1,9 +1,11 @@
 """The pieces every command line of the project shares: one spelling per flag, help with
 examples and defaults, and logging setup.
 
-Commands: ``gr_graph.slam``, ``gr_graph.global_registration``, ``gr_graph.datasets.synthetic``
-(and ``.plots``), ``gr_graph.datasets.realism``, ``training.train``, ``training.ddp``. A flag that means the same thing is
-spelled the same everywhere:
+Commands: ``gr_graph.slam``, ``gr_graph.global_registration``, ``gr_graph.densify_cli``,
+``gr_graph.datasets.synthetic`` (and ``.plots``), ``gr_graph.datasets.realism``, ``training.train``,
+``training.ddp``; the first four are also console commands (``gr-slam``, ``gr-registration``,
+``gr-densify``, ``gr-train``: ``[project.scripts]`` in pyproject.toml). A flag that means the
+same thing is spelled the same everywhere:
 
 ==================  ===================================================================
 ``--out DIR``       output directory (realism: the JSON file)

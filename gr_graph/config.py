@@ -170,11 +170,19 @@ class GraphConfig(_Section):
     marginals: bool = True
 
 
+class MapOutputConfig(_Section):
+    """The optimised map of each round (``round_<r>/map.ply``, :mod:`gr_graph.map_export`)."""
+
+    enabled: bool = Field(True, description="write the scans placed with the final trajectory as a PLY map")
+    voxel_size: float = Field(0.2, gt=0.0, description="voxel of the map: one point (the centroid) per voxel [m]")
+
+
 class OutputConfig(_Section):
     """What is written."""
 
     out_dir: str = "runs/slam"
     plot: bool = True
+    map: MapOutputConfig = MapOutputConfig()
     write_memory: bool = True
     resume: bool = Field(True, description="skip rounds whose round.json exists and whose config matches")
     progress: bool = True

@@ -43,6 +43,7 @@ from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
 from gr_graph.round_output import (
+    plot_metrics_rounds,
     plot_round,
     read_round_poses,
     read_round_summary,
@@ -50,6 +51,7 @@ from gr_graph.round_output import (
     round_summary,
     trajectory_summary,
     write_metrics,
+    write_round_map,
     write_round_results,
     write_round_summary,
 )
@@ -133,6 +135,9 @@ class SlamPipeline:
             previous_poses = poses
         if self.cfg.output.plot:
             self.plot(max(int(k) for k in metrics["rounds"]))
+            if len(metrics["rounds"]) > 1:
+                plot_metrics_rounds(self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, "
+                                                             f"{len(self.sequence)} frames")
         return metrics
 
     # -------------------------------------------------------------- steps of run()
@@ -186,7 +191,7 @@ class SlamPipeline:
         return False
 
     def plot(self, r: int) -> None:
-        """``trajectory.png``: round ``r`` against the ground truth."""
+        """``trajectory.png``: round ``r`` against the ground truth, with its position ellipses."""
         name = self.sequence.name
         plot_round(self.round_dir(r), self.out / "trajectory.png", self.gt,
                    title=f"gr_graph round {r}: {name}, {len(self.sequence)} frames, "
@@ -243,10 +248,16 @@ class SlamPipeline:
         timer = StageTimer()
         with timer("output"):
             write_round_results(rd, res, T_cv, self.gt)
+        map_counts = None
+        if cfg.output.map.enabled:
+            with timer("map"):
+                map_counts = write_round_map(rd, res, cfg.output.map.voxel_size)
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
         summary = round_summary(r, res, round_fingerprint(cfg, r), mean_points)
+        if map_counts is not None:
+            summary["map"] = map_counts
         if densified is not None:
             summary["densify"] = densified.stats()
             summary["edge_noise"] = registration_edge_noise_summary() if edge_noise is None else edge_noise.summary()

@@ -34,7 +34,7 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.config import SlamConfig, load_config
+from gr_graph.config import SlamConfig, config_to_yaml, load_config
 from gr_graph.datasets.registry import DATASETS, parse_frames
 
 
@@ -106,6 +106,10 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {d.data.kitti_vertical_correction_deg})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
+    p.add_argument("--dump-config", action="store_true",
+                   help="print the resolved configuration (defaults, --config, options) as YAML and exit")
+    p.add_argument("--viz", action="store_true",
+                   help="at the end, open an open3d window on the last round's map (needs a display)")
     add_no_progress(p, deprecated=("--quiet",))
     add_log_level(p)
     return p
@@ -170,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.dump_config:
+        print(config_to_yaml(cfg), end="")
+        return 0
     from gr_graph.datasets.base import DatasetError
     from gr_graph.pipeline import SlamPipeline
 
@@ -187,6 +194,12 @@ def main(argv: list[str] | None = None) -> int:
         s = last["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})
     print(json.dumps(brief))
+    if args.viz:
+        from gr_graph.map_export import map_path
+        from gr_graph.round_output import round_dir
+        from gr_graph.viewer import show_map
+
+        show_map(map_path(round_dir(cfg.output.out_dir, last["round"])), title=f"gr_graph map: {cfg.output.out_dir}")
     return 0
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gr_graph import global_registration, slam
+from gr_graph import densify_cli, global_registration, slam
 from gr_graph.cli_common import LOG_LEVELS, setup_logging
 from gr_graph.datasets import realism
 from gr_graph.datasets.synthetic import __main__ as synthetic_export
@@ -43,6 +43,8 @@ CLIS: dict[str, tuple[Callable[[], argparse.ArgumentParser], Callable[[list[str]
                                      "--no-progress", "--log-level"}),
     "gr_graph.datasets.synthetic.plots": (synthetic_plots.build_parser, synthetic_plots.main, [],
                                           {"--out", "--seed", "--log-level"}),
+    "gr_graph.densify_cli": (densify_cli.build_parser, densify_cli.main, ["IN.pcd", "OUT.ply", "--weights", "W"],
+                             {"--seed", "--device", "--point-format", "--log-level"}),
     "gr_graph.datasets.realism": (realism.build_parser, realism.main, ["DIR"],
                                   {"--out", "--point-format", "--no-progress", "--log-level"}),
 }
