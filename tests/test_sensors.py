@@ -182,7 +182,7 @@ def test_beam_models_by_name():
 
 
 def test_vlp16_render_rings_elevations_and_range():
-    seq = SyntheticSequence(seed=0, sensor="vlp16", nthreads=1)
+    seq = SyntheticSequence(seed=0, sensor="vlp16", nthreads=1, preset="clean")
     assert seq.n_rings == 16 and seq.noise.max_range == 100.0 and seq.name == "synthetic-00-vlp16"
     assert (seq.sensor.model, seq.sensor.has_ring, seq.sensor.has_time) == ("vlp16", True, False)
     f = seq[200]
@@ -200,8 +200,8 @@ def test_vlp16_render_rings_elevations_and_range():
 
 
 def test_os1_render_and_its_subsampled_rings():
-    full = SyntheticSequence(seed=0, sensor="os1-64", nthreads=1)[300]  # seed 0: the town other tests build
-    sub = SyntheticSequence(seed=0, sensor="os1-64", n_rings=16, nthreads=1)[300]
+    full = SyntheticSequence(seed=0, sensor="os1-64", nthreads=1, preset="clean")[300]  # seed 0: the town other tests build
+    sub = SyntheticSequence(seed=0, sensor="os1-64", n_rings=16, nthreads=1, preset="clean")[300]
     el = np.linspace(22.5, -22.5, 64)
     np.testing.assert_allclose(_elevation_deg(full.points), el[full.ring], atol=1e-6)
     assert full.n_rings == 64 and sub.n_rings == 16
@@ -215,7 +215,7 @@ def test_kitti_layout_export_of_a_vlp16_reads_back_with_its_rings(tmp_path, synt
     recovery of gr_graph.datasets.channels finds the rendered rings from the storage order."""
     from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
-    seq = SyntheticSequence(seed=0, sensor="vlp16", nthreads=1)
+    seq = SyntheticSequence(seed=0, sensor="vlp16", nthreads=1, preset="clean")
     write_kitti_layout(seq, tmp_path / "k", range(40, 43), progress=False)
     view, desc = open_sequence("00", data_root=tmp_path / "k", sensor="vlp16")
     assert "sensor vlp16 (16 beams)" in desc and "16 channels" in desc and view.sensor.model == "vlp16"
@@ -230,16 +230,16 @@ def test_kitti_layout_export_of_a_vlp16_reads_back_with_its_rings(tmp_path, synt
 
 # ---------------------------------------------------------------- registry / pipeline ---
 def test_open_sequence_renders_the_configured_sensor(synthetic_only):
-    view, desc = open_sequence("00", frames="0:2", sensor="vlp16")
+    view, desc = open_sequence("00", frames="0:2", synthetic_preset="clean", sensor="vlp16")
     assert "sensor vlp16 (16 of 16 beams, 1800 azimuth steps)" in desc and desc.endswith("16 channels")
     assert view.sensor.model == "vlp16" and view[0].n_rings == 16
     with pytest.raises(DatasetError, match="applies to 64-beam sensors"):
-        open_sequence("00", frames="0:2", sensor="vlp16", channels=16 * 2)
+        open_sequence("00", frames="0:2", synthetic_preset="clean", sensor="vlp16", channels=16 * 2)
     with pytest.raises(DatasetError, match="catalogue sensors only"):
-        open_sequence("00", frames="0:2",
+        open_sequence("00", frames="0:2", synthetic_preset="clean",
                       sensor=SensorConfig(model="custom", n_beams=16, vertical_fov_deg=(15.0, -15.0)))
     # has_time: true on data without per-point times is refused, naming the frame
-    needs_time, _ = open_sequence("00", frames="0:2", sensor=SensorConfig(model="vlp16", has_time=True))
+    needs_time, _ = open_sequence("00", frames="0:2", synthetic_preset="clean", sensor=SensorConfig(model="vlp16", has_time=True))
     with pytest.raises(DatasetError, match="frame 0: no per-point times"):
         needs_time[0]
 
@@ -247,7 +247,7 @@ def test_open_sequence_renders_the_configured_sensor(synthetic_only):
 def test_slam_refuses_a_sequence_of_another_sensor(synthetic_only):
     from gr_graph.frame_loop import run_slam
 
-    view, _ = open_sequence("00", frames="0:3", sensor="vlp16")
+    view, _ = open_sequence("00", frames="0:3", synthetic_preset="clean", sensor="vlp16")
     check_sequence_sensor(view, SensorConfig(model="vlp16"))  # same sensor: fine
     with pytest.raises(SensorError, match="taken with sensor 'vlp16'.*configuration's sensor is 'hdl64e'.*--sensor vlp16"):
         run_slam(view, SlamConfig())
@@ -259,7 +259,7 @@ def test_slam_on_a_vlp16_window_recovers_the_trajectory(tmp_path, synthetic_only
     from gr_graph.slam import main
 
     out = tmp_path / "run"
-    assert main(["--sensor", "vlp16", "--frames", "0:80", "--no-loops", "--no-memory", "--no-progress",
+    assert main(["--sensor", "vlp16", "--synthetic-preset", "clean", "--frames", "0:80", "--no-loops", "--no-memory", "--no-progress",
                  "--out", str(out)]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["sensor"] == "vlp16" and m["channels"] == 16
