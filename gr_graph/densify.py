@@ -187,6 +187,9 @@ class DensifiedSequence:
                 return raw
             raise
         n_kept = int(kept.sum())
+        if not cfg.densify:  # ablation (training.densify: false): raw scans, predictions kept for the edge noise
+            self._record(idx, len(s), n_kept, len(raw.points), None)
+            return raw
         src_intensity = self._source_intensity(raw, s)
         if n_kept < cfg.min_kept_points:
             self._record(idx, len(s), n_kept, len(s), "few_kept")
