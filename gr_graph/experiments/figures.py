@@ -30,9 +30,10 @@ def _plt() -> Any:
 
 
 def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
-                         metrics: tuple[str, ...] = ("rpe300_consecutive_mean", "rpe300_all_pairs_mean")) -> Path | None:
-    """Error-bar plot of Table I's ``summary`` (:func:`gr_graph.experiments.aggregate.table1_summary`);
-    None when no group has an RPE value."""
+                         metrics: tuple[str, ...] = ("rpe300_consecutive_mean", "rpe300_all_pairs_mean", "ate_rmse"),
+                         ) -> Path | None:
+    """Error-bar plot of Table I's ``summary`` (:func:`gr_graph.experiments.aggregate.table1_summary`),
+    one panel per metric (RPE-300 consecutive, all pairs, ATE); None when no group has a value."""
     from gr_graph.experiments.aggregate import METRIC_LABELS
 
     plt = _plt()
@@ -61,7 +62,7 @@ def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
         ax.set_ylabel(METRIC_LABELS[m])
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("RPE-300 over learning rounds, mean ± std over seeds (unguarded rounds)", fontsize=10)
+    fig.suptitle("Trajectory error over learning rounds, mean ± std over seeds (unguarded rounds)", fontsize=10)
     try:
         return atomic_savefig(fig, path, dpi=110, bbox_inches="tight")
     finally:

@@ -159,7 +159,7 @@ def _figures(table: str, root: Path, cells: list[Cell], results: dict[str, dict[
     if table == "table1":
         p = fig.plot_rpe_over_rounds(summary, fdir / "table1_rpe_over_rounds.png")
         if p is not None:
-            out["RPE-300 over rounds"] = p
+            out["error over rounds (RPE-300, ATE)"] = p
         for c in cells:
             if c.key in results and c.seed == cells[0].seed:
                 p = fig.plot_round_trajectories(cell_dir(root, c), fdir / f"table1_trajectories_{c.key}.png",
