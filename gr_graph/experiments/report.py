@@ -58,8 +58,12 @@ def _header(table: str, title: str, budget: Budget, root: Path, cells: list[Cell
             f"- machine: {machine_line()}",
             f"- written {datetime.now(timezone.utc).isoformat(timespec='minutes')}; data: synthetic sequence "
             "(generated route, `kitti` sensor preset), world and training seeds paired",
-            "- mean ± std over seeds (sample std, ddof=1; `(n=1)`: one seed, no spread); relative reductions "
-            "are computed per seed against the same seed's raw round, then averaged", ""]
+            "- mean ± std over seeds (sample std, ddof=1; `(n=1)`: one seed, no spread)"
+            + ("; relative reductions are computed per seed against the same seed's raw round, then averaged"
+               if table == "table1" else ""),
+            *([f"- **smoke budget**: {budget.window[1] - budget.window[0]} frames, {budget.epochs} epoch(s), a tiny "
+               "network: tests the machinery, the figures are no evidence for or against the method"]
+              if budget.name == "smoke" else []), ""]
 
 
 def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
@@ -224,22 +228,20 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     figs = _figures(table, root, cells, results, summary, device)
     md_dir = root / table
     pub_dir = RESULTS_DIR
-    fig_lines = []
-    for name, p in figs.items():
-        fig_lines.append((name, p))
+    fig_lines = list(figs.items())
     doc = {"table": table, "command": command, "budget": budget.name, "seeds": list(budget.seeds),
            "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
                                                         "est_cpu_minutes": c.est_cpu_minutes}
                                                 for i, c in enumerate(cells)},
            "summary": summary, "figures": {k: str(v) for k, v in figs.items()}}
-    local = lines + ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""]
+    fig_md = ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""] if fig_lines else []
+    local = lines + fig_md
     atomic_write_json(md_dir / "report.json", doc)
     md = atomic_write_text(md_dir / "report.md", "\n".join(local) + "\n")
     if publish:
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
             shutil.copyfile(p, pub_dir / "figures" / p.name)
-        pub = lines + ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""]
-        atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub) + "\n")
+        atomic_write_text(pub_dir / f"{table}.md", "\n".join(lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{table}.json", doc)
     return md
