@@ -74,7 +74,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
                                                  "device": True})
     else:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
-                                                 "training": {"rounds", "convergence_delta"}})
+                                                 "training": {"rounds", "convergence_delta",
+                                                                              "stop_on_reject"}})
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -213,6 +214,12 @@ class SlamPipeline:
         from training.train import train_from_memory  # imports torch: only when a learning round runs
 
         tc = self.cfg.training
+        if tc.covariances == "pca":  # ablation: no network, no training
+            from gr_graph.pca_covariances import PcaCovariances
+
+            pca = PcaCovariances(self.cfg.preprocess.num_neighbors, tc.trainer.net.eps)
+            return densified_sequence(self.sequence, pca, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
+                                      keep_predictions=max(16, self.cfg.data.prefetch + 8))
         init = None
         if r >= 2 and tc.warm_start:
             init = self.round_dir(r - 1) / "training" / "model.pt"
