@@ -25,8 +25,9 @@ is None.
 Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.fallbacks`,
 ``{frame index: reason}``; :meth:`DensifiedSequence.stats` counts them):
 
-* ``"nonfinite_covariance"``: the network produced non-finite covariances for the frame (or
-  the covariances were not positive definite): the **raw frame** is returned unchanged;
+* ``"nonfinite_covariance"`` / ``"non_pd_covariance"``: the network produced non-finite
+  covariances for the frame, or covariances that are not positive definite
+  (:func:`covariance_problem`): the **raw frame** is returned unchanged;
 * ``"few_kept"``: fewer than ``min_kept_points`` points passed the anisotropy filter (too
   few for registration): the **unfiltered preprocessed points** (the scan as the network saw
   it, no sampling) are returned;
@@ -60,15 +61,32 @@ from gr_graph.preprocess import preprocess_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS"]
+__all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS", "covariance_problem", "covariances_valid"]
 
 FALLBACK_REASONS = {
-    "nonfinite_covariance": "network output non-finite / not positive definite: raw frame used",
+    "nonfinite_covariance": "network output non-finite: raw frame used",
+    "non_pd_covariance": "network output not positive definite: raw frame used",
     "few_kept": "too few points passed the anisotropy filter: unfiltered preprocessed points used",
     "unusable_scan": "too few points after preprocessing: raw frame used",
 }
 
 Predictor = Callable[[np.ndarray], np.ndarray]
+
+
+def covariance_problem(C: np.ndarray) -> str | None:
+    """Why ``(N, 3, 3)`` covariances cannot be used: ``"nonfinite_covariance"``,
+    ``"non_pd_covariance"`` (smallest eigenvalue of the symmetric part <= 0), or None."""
+    C = np.asarray(C, np.float64)
+    if not np.isfinite(C).all():
+        return "nonfinite_covariance"
+    if len(C) and np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1)))[:, 0].min() <= 0.0:
+        return "non_pd_covariance"
+    return None
+
+
+def covariances_valid(C: np.ndarray) -> bool:
+    """Whether every covariance of ``C`` is finite and positive definite."""
+    return covariance_problem(C) is None
 
 
 def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
@@ -110,6 +128,10 @@ class DensifiedSequence:
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()
+        self._parent_lock = threading.Lock()
+        self._position: dict[int, int] = {}  # frame.index -> position in the parent, of every frame read
+        self.n_recomputed = 0  # predictions recomputed for frames no longer kept (loop edges)
+        self.recomputed_failures = 0
         self.keep_predictions = keep_predictions
         self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
@@ -149,6 +171,47 @@ class DensifiedSequence:
         with self._lock:
             return self._predicted.get(int(index))
 
+    def prediction(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Like :meth:`predicted`, but a frame that is no longer kept is predicted again.
+
+        The loop edges of the learning rounds need the covariances of a frame read hundreds of
+        frames earlier. The prediction is deterministic (the predictor is seeded and the
+        preprocessing is the one of :meth:`__getitem__`), so the recomputed covariances are the
+        ones densification used. ``index`` is ``frame.index`` of a frame of this view that was
+        read before (the key of :meth:`predicted`). Returns None when the scan is unusable or the covariances are
+        not finite and positive definite (counted in :attr:`recomputed_failures`).
+        """
+        kept = self.predicted(index)
+        if kept is not None:
+            return kept
+        with self._lock:
+            position = self._position.get(int(index))
+        if position is None:
+            raise KeyError(f"prediction: frame {index} was never read from this view")
+        with self._parent_lock:
+            raw = self.parent[position]
+        scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
+        self.n_recomputed += 1
+        if not scan.usable:
+            self.recomputed_failures += 1
+            return None
+        C, problem = self._predict(scan.points)
+        if C.shape != (len(scan.points), 3, 3) or problem is not None:
+            self.recomputed_failures += 1
+            log.warning("frame %d: recomputed covariances are not finite and positive definite", index)
+            return None
+        return scan.points, C
+
+    def _predict(self, points: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """The predictor's covariances of ``points`` and :func:`covariance_problem` of them (a
+        predictor raising ``FloatingPointError`` counts as non-finite output)."""
+        try:
+            C = np.asarray(self.predictor(points), np.float64)
+        except FloatingPointError as exc:
+            log.debug("predictor: %s", exc)
+            return np.full((len(points), 3, 3), np.nan), "nonfinite_covariance"
+        return C, covariance_problem(C) if C.shape == (len(points), 3, 3) else None
+
     def _keep(self, index: int, points: np.ndarray, C: np.ndarray) -> None:
         with self._lock:
             self._predicted[index] = (points, C)
@@ -159,33 +222,26 @@ class DensifiedSequence:
     def __getitem__(self, i: int) -> LidarFrame:
         from training.densify import densify
 
-        raw = self.parent[i]
+        with self._parent_lock:  # :meth:`prediction` may read the parent from another thread
+            raw = self.parent[i]
         idx = int(raw.index)
+        with self._lock:
+            self._position[idx] = int(i)
         cfg = self.cfg
         scan = preprocess_scan(raw.points, self.preprocess, index=idx)
         if not scan.usable:
             self._record(idx, len(scan.points), 0, len(raw.points), "unusable_scan")
             return raw
         s = scan.points
-        try:
-            C = np.asarray(self.predictor(s), np.float64)
-            if C.shape != (len(s), 3, 3):
-                raise ValueError(f"densify frame {idx}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
-            if not np.isfinite(C).all():
-                raise FloatingPointError("non-finite covariances")
-            dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=[cfg.seed, idx],  # type: ignore[arg-type]
-                                  include_original=cfg.keep_original)
-            self._keep(idx, s, C)  # only covariances densify accepted (finite, positive definite)
-        except (FloatingPointError, np.linalg.LinAlgError) as exc:
-            log.debug("densify frame %d: %s", idx, exc)
-            self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
+        C, problem = self._predict(s)
+        if C.shape != (len(s), 3, 3):
+            raise ValueError(f"densify frame {idx}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
+        if problem is not None:
+            self._record(idx, len(s), 0, len(raw.points), problem)
             return raw
-        except ValueError as exc:
-            if "non-finite" in str(exc) or "positive definite" in str(exc):
-                log.debug("densify frame %d: %s", idx, exc)
-                self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
-                return raw
-            raise
+        dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=[cfg.seed, idx],  # type: ignore[arg-type]
+                              include_original=cfg.keep_original)
+        self._keep(idx, s, C)  # only covariances densify accepted (finite, positive definite)
         n_kept = int(kept.sum())
         src_intensity = self._source_intensity(raw, s)
         if n_kept < cfg.min_kept_points:

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.config import SlamConfig, dump_config
+from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
@@ -249,6 +250,7 @@ class SlamPipeline:
             summary["densify"] = densified.stats()
             summary["edge_noise"] = registration_edge_noise_summary() if edge_noise is None else edge_noise.summary()
             en = summary["edge_noise"]
+            summary["covariance_failures"] = covariance_failures(summary["densify"], rd / "training" / "summary.json", en)
             log.info("round %d: %d odometry edges with learned information H(C) (%d floored), %d fallbacks %s",
                      r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:
@@ -273,7 +275,7 @@ class SlamPipeline:
         """The learned edge noise of a learning round (``training.edge_noise: learned``), else None."""
         if densified is None or self.cfg.training.edge_noise != "learned":
             return None
-        return LearnedEdgeNoise(densified.predicted, self.cfg)
+        return LearnedEdgeNoise(densified.prediction, self.cfg)
 
     def write_memory(self, r: int, res: SlamResult) -> None:
         """``round_<r>/memory``; rounds r ≥ 1 store round 0's scans (module docstring)."""
