@@ -59,6 +59,7 @@ MARGINALS_KEYS = {
     "edge_kind": "(E,) uint8 0 = odometry, 1 = loop",
     "edge_ok": "(E,) bool False for flagged (fallback) odometry edges",
     "edge_information": "(E, 6, 6) information of each graph factor (before the loop kernel), [omega, v]",
+    "edge_T": "(E, 4, 4) measurement T̂_kl of each edge (maps scan k into the frame of scan l)",
 }
 
 
@@ -84,6 +85,7 @@ def write_round_results(rd: Path, res: SlamResult, T_cam_velo: np.ndarray, gt: n
         "edge_kind": np.asarray([e.kind == "loop" for e in res.edges], np.uint8),
         "edge_ok": np.asarray([e.ok for e in res.edges], bool),
         "edge_information": np.asarray([e.information for e in res.edges], np.float64).reshape(-1, 6, 6),
+        "edge_T": np.asarray([e.T for e in res.edges], np.float64).reshape(-1, 4, 4),
     }
     if res.covariances is not None:
         arrays["covariance"] = res.covariances
