@@ -43,6 +43,7 @@ from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summar
 from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
+from gr_graph.noise_consistency import round_noise_consistency
 from gr_graph.round_output import (
     plot_round,
     read_round_poses,
@@ -255,6 +256,8 @@ class SlamPipeline:
                      r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:
             summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap))
+            if res.covariances is not None:  # NEES of edges and marginals against ground truth
+                summary["noise_consistency"] = round_noise_consistency(rd)
         runtime = {**res.runtime, **timer.seconds}
         runtime["total"] = time.perf_counter() - t0
         if train_seconds is not None:

@@ -25,7 +25,9 @@ against the ground truth, both in the camera frame: RPE over 300 frames mean/RMS
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
 ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
-``config_fingerprint``; learning rounds add ``edge_noise``, ``densify`` and
+``config_fingerprint``; with ground truth and marginals, ``noise_consistency`` (NEES per
+edge kind and of the marginals, :mod:`gr_graph.noise_consistency`); learning rounds add
+``edge_noise``, ``densify``, ``covariance_failures`` (:mod:`gr_graph.covariance_health`) and
 ``runtime_s.training``, and every round after the first ``trajectory_change``.
 """
 
