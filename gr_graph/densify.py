@@ -177,17 +177,19 @@ class DensifiedSequence:
         The loop edges of the learning rounds need the covariances of a frame read hundreds of
         frames earlier. The prediction is deterministic (the predictor is seeded and the
         preprocessing is the one of :meth:`__getitem__`), so the recomputed covariances are the
-        ones densification used. ``index`` is ``frame.index`` of a frame of this view that was
-        read before (the key of :meth:`predicted`). Returns None when the scan is unusable or the covariances are
-        not finite and positive definite (counted in :attr:`recomputed_failures`).
+        ones densification used. ``index`` is ``frame.index`` of a frame of this view (the key
+        of :meth:`predicted`). Returns None for a frame never read through this view (logged),
+        or when the scan is unusable or the covariances are not finite and positive definite
+        (counted in :attr:`recomputed_failures`).
         """
         kept = self.predicted(index)
         if kept is not None:
             return kept
         with self._lock:
             position = self._position.get(int(index))
-        if position is None:
-            raise KeyError(f"prediction: frame {index} was never read from this view")
+        if position is None:  # never read through this view: nothing to predict again
+            log.warning("prediction: frame %d was never read from this view; no covariances", index)
+            return None
         with self._parent_lock:
             raw = self.parent[position]
         scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
