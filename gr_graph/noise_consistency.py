@@ -26,7 +26,6 @@ Command line (prints a table, ``--json`` writes the figures)::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -73,7 +72,7 @@ def _stats(x: np.ndarray, dof: int) -> dict[str, Any]:
 
     if len(x) == 0:
         return {"n": 0, "mean": None, "median": None, "frac_below_95": None, "ideal_mean": dof}
-    return {"n": int(len(x)), "mean": float(np.mean(x)), "median": float(np.median(x)),
+    return {"n": len(x), "mean": float(np.mean(x)), "median": float(np.median(x)),
             "frac_below_95": float(np.mean(x < chi2.ppf(0.95, dof))), "ideal_mean": dof,
             "ideal_median": float(chi2.median(dof))}
 

@@ -12,7 +12,12 @@ from gtsam.symbol_shorthand import X
 
 from gr_graph.config import GraphConfig, load_config
 from gr_graph.noise_calibration import between_residuals, variance_factor
-from gr_graph.noise_consistency import edge_nees, main, position_nees, round_noise_consistency
+from gr_graph.noise_consistency import (
+    edge_nees,
+    main,
+    position_nees,
+    round_noise_consistency,
+)
 from gr_graph.odometry import RegistrationEdge
 from gr_graph.pose_graph import PoseGraph
 
@@ -55,7 +60,7 @@ def _solve(gt: np.ndarray, edges: list[RegistrationEdge], marginals: bool = Fals
 def test_between_residuals_are_gtsam_factor_errors():
     rng = np.random.default_rng(0)
     gt, edges, _ = _simulated_graph(rng, K=20, n_loops=4)
-    g, res = _solve(gt, edges)
+    _, res = _solve(gt, edges)
     r = between_residuals(res.poses, edges)
     values = gtsam.Values()
     for i, T in enumerate(res.poses):
@@ -71,7 +76,7 @@ def test_variance_factor_recovers_the_true_scale_and_makes_nees_consistent():
     redundancy 180: +-11 % at one sigma) without ground truth; after scaling, the mean edge
     NEES against ground truth is ~6 for both kinds and the marginals' position NEES ~3."""
     rng = np.random.default_rng(1)
-    gt, edges, cov_true = _simulated_graph(rng)
+    gt, edges, _ = _simulated_graph(rng)
     _, res = _solve(gt, edges)
     vf = variance_factor(res.poses, edges)
     assert vf.redundancy == 6 * 30 and vf.n_edges == {"odometry": 119, "loop": 30}
@@ -87,7 +92,7 @@ def test_variance_factor_recovers_the_true_scale_and_makes_nees_consistent():
                      np.array([e.information for e in edges]), gt)
     kinds = np.array([e.kind for e in edges])
     assert 4.0 < nees[kinds == "odometry"].mean() < 9.0 and 3.0 < nees[kinds == "loop"].mean() < 12.0
-    g, res = _solve(gt, edges, marginals=True)
+    _, res = _solve(gt, edges, marginals=True)
     from gr_graph.pose_graph import position_covariance_world
 
     # anchor both at the first pose as the pipeline does
@@ -109,7 +114,7 @@ def test_no_loops_no_calibration():
 def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
     rng = np.random.default_rng(3)
     gt, edges, _ = _simulated_graph(rng, K=30, n_loops=6, true_factor=1.0)
-    g, res = _solve(gt, edges, marginals=True)
+    _, res = _solve(gt, edges, marginals=True)
     from gr_graph.pose_graph import position_covariance_world
 
     rd = tmp_path / "run" / "round_1"
@@ -167,9 +172,10 @@ def test_loop_edges_get_learned_information_unless_odometry_only():
 
 
 def test_densified_view_predicts_an_evicted_frame_again():
+    from test_learning_rounds import PlaneScenes, plane_predictor
+
     from gr_graph.config import PreprocessConfig, TrainingConfig
     from gr_graph.densify import densified_sequence
-    from test_learning_rounds import PlaneScenes, plane_predictor
 
     seq = PlaneScenes(n=4)
     calls = []

@@ -149,7 +149,7 @@ def test_geometric_head_on_a_far_isolated_point_is_positive_definite():
     raw = torch.tensor([_FAR_RAW], dtype=torch.float32)
     logits = torch.tensor([_FAR_LOGITS], dtype=torch.float32)[..., None]
     offsets = torch.tensor([_FAR_OFFSETS], dtype=torch.float32)
-    L, C = geometric_covariance(raw, logits, offsets, 0.1, 1e-6)
+    _, C = geometric_covariance(raw, logits, offsets, 0.1, 1e-6)
     ref = _closed_form(np.array([_FAR_RAW]), np.array([_FAR_LOGITS]), np.array(_FAR_OFFSETS)[None], 0.1, 1e-6)
     np.testing.assert_allclose(C.numpy(), ref, rtol=1e-6, atol=1e-10)
     assert np.linalg.eigvalsh(C.numpy()).min() > 1e-3  # the reference's smallest eigenvalue is 1.1e-3 m^2
@@ -199,6 +199,6 @@ def test_cholesky_head_keeps_small_eigenvalues_of_anisotropic_factors():
     """L with diagonal 4 m and 1e-5 m and large off-diagonals: in float32, L L^T + eps I lost
     its small eigenvalues (indefinite); the head forms C in float64."""
     raw = torch.tensor([[np.log(40.0), np.log(1e-4), np.log(1e-4), 35.0, -20.0, 15.0]] * 4, dtype=torch.float32)
-    L, C = cholesky_to_cov(raw, 0.1, 1e-6)
+    _, C = cholesky_to_cov(raw, 0.1, 1e-6)
     assert C.dtype == torch.float64
     assert torch.linalg.eigvalsh(C).min() >= 0.99e-6
