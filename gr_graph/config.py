@@ -230,6 +230,14 @@ class TrainingConfig(_Section):
         True, description="the learning rounds stop after a rejected round; false: every round runs (the harness's "
         "unguarded 2-step), the acceptance is still recorded"
     )
+    learned_noise_edges: Literal["all", "odometry"] = Field(
+        "all", description="with edge_noise 'learned': which edges get H(C); 'all' = odometry and loop edges, "
+        "'odometry' = loops keep the registration information (the former behaviour)"
+    )
+    learned_noise_calibration: Literal["graph_residuals", "none"] = Field(
+        "graph_residuals", description="with edge_noise 'learned': one scale for every edge's information, "
+        "'graph_residuals' = 1 / the a-posteriori variance factor of the optimised graph (gr_graph.noise_calibration)"
+    )
     learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies H(C) before the eigenvalue floor")
     learned_noise_min_correspondences: int = Field(
         50, ge=3, description="fewer nearest-neighbour pairs (within odometry.corr_max_distance): registration fallback"

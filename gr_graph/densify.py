@@ -25,8 +25,9 @@ is None.
 Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.fallbacks`,
 ``{frame index: reason}``; :meth:`DensifiedSequence.stats` counts them):
 
-* ``"nonfinite_covariance"``: the network produced non-finite covariances for the frame (or
-  the covariances were not positive definite): the **raw frame** is returned unchanged;
+* ``"nonfinite_covariance"`` / ``"non_pd_covariance"``: the network produced non-finite
+  covariances for the frame, or covariances that are not positive definite
+  (:func:`covariance_problem`): the **raw frame** is returned unchanged;
 * ``"few_kept"``: fewer than ``min_kept_points`` points passed the anisotropy filter (too
   few for registration): the **unfiltered preprocessed points** (the scan as the network saw
   it, no sampling) are returned;
@@ -66,15 +67,33 @@ from gr_graph.preprocess import preprocess_scan
 log = logging.getLogger(__name__)
 
 __all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS", "DensifiedPoints", "densify_points",
-           "densify_cloud"]
+           "densify_cloud", "covariance_problem", "covariances_valid", "COVARIANCE_FALLBACKS"]
 
 FALLBACK_REASONS = {
-    "nonfinite_covariance": "network output non-finite / not positive definite: raw frame used",
+    "nonfinite_covariance": "network output non-finite: raw frame used",
+    "non_pd_covariance": "network output not positive definite: raw frame used",
     "few_kept": "too few points passed the anisotropy filter: unfiltered preprocessed points used",
     "unusable_scan": "too few points after preprocessing: raw frame used",
 }
 
 Predictor = Callable[[np.ndarray], np.ndarray]
+COVARIANCE_FALLBACKS = ("nonfinite_covariance", "non_pd_covariance")  # the raw frame is used
+
+
+def covariance_problem(C: np.ndarray) -> str | None:
+    """Why ``(N, 3, 3)`` covariances cannot be used: ``"nonfinite_covariance"``,
+    ``"non_pd_covariance"`` (smallest eigenvalue of the symmetric part <= 0), or None."""
+    C = np.asarray(C, np.float64)
+    if not np.isfinite(C).all():
+        return "nonfinite_covariance"
+    if len(C) and np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1)))[:, 0].min() <= 0.0:
+        return "non_pd_covariance"
+    return None
+
+
+def covariances_valid(C: np.ndarray) -> bool:
+    """Whether every covariance of ``C`` is finite and positive definite."""
+    return covariance_problem(C) is None
 
 
 def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
@@ -108,18 +127,19 @@ class DensifiedPoints:
     points : (M, 3) float64
         The output: the samples (grouped by source point, ``samples_per_point`` consecutive
         rows each, after the kept points themselves with ``keep_original``); with the
-        ``"few_kept"`` fallback the network's input unchanged; with ``"nonfinite_covariance"``
+        ``"few_kept"`` fallback the network's input unchanged; with a covariance fallback
         empty.
     source : (M,) int64
         Row of ``network_input`` each output point comes from.
     network_input : (N, 3) float64
         The (preprocessed) points the network saw.
     input_covariances : (N, 3, 3) float64 or None
-        The network's covariance of each input point (None with ``"nonfinite_covariance"``).
+        The network's covariance of each input point (None with a covariance fallback).
     kept : (N,) bool
         Which input points passed the anisotropy filter.
     fallback : str or None
-        A key of :data:`FALLBACK_REASONS` (``"nonfinite_covariance"`` or ``"few_kept"``), or None.
+        A key of :data:`FALLBACK_REASONS` (``"nonfinite_covariance"``, ``"non_pd_covariance"`` or
+        ``"few_kept"``), or None.
     intensity : (M,) float32 or None
         Intensity of each output point (its source point's), when the input had intensity
         (:func:`densify_cloud`).
@@ -166,7 +186,7 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     -------
     DensifiedPoints
         With ``fallback`` set as in the module docstring: non-finite or not positive
-        definite covariances give ``"nonfinite_covariance"`` (no output points), fewer than
+        definite covariances give ``"nonfinite_covariance"`` / ``"non_pd_covariance"`` (no output points), fewer than
         ``min_kept_points`` kept points give ``"few_kept"`` (the input points, unfiltered).
     """
     from training.densify import densify
@@ -175,17 +195,21 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     no_kept = np.zeros(len(s), bool)
     try:
         C = np.asarray(predictor(s), np.float64)
-        if C.shape != (len(s), 3, 3):
-            raise ValueError(f"densify frame {index}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
-        if not np.isfinite(C).all():
-            raise FloatingPointError("non-finite covariances")
-        dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=seed,  # type: ignore[arg-type]
-                              include_original=cfg.keep_original)
-    except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
-        if isinstance(exc, ValueError) and not ("non-finite" in str(exc) or "positive definite" in str(exc)):
-            raise
+    except FloatingPointError as exc:
         log.debug("densify frame %d: %s", index, exc)
         return DensifiedPoints(np.zeros((0, 3)), np.zeros(0, np.int64), s, None, no_kept, "nonfinite_covariance")
+    if C.shape != (len(s), 3, 3):
+        raise ValueError(f"densify frame {index}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
+    problem = covariance_problem(C)
+    if problem is not None:
+        log.debug("densify frame %d: %s", index, FALLBACK_REASONS[problem])
+        return DensifiedPoints(np.zeros((0, 3)), np.zeros(0, np.int64), s, None, no_kept, problem)
+    try:
+        dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=seed,  # type: ignore[arg-type]
+                              include_original=cfg.keep_original)
+    except np.linalg.LinAlgError as exc:  # positive definite to eigvalsh, not to the Cholesky factorisation
+        log.debug("densify frame %d: %s", index, exc)
+        return DensifiedPoints(np.zeros((0, 3)), np.zeros(0, np.int64), s, None, no_kept, "non_pd_covariance")
     if int(kept.sum()) < cfg.min_kept_points:
         return DensifiedPoints(s, np.arange(len(s), dtype=np.int64), s, C, kept, "few_kept")
     kept_rows = np.flatnonzero(kept)
@@ -224,6 +248,10 @@ class DensifiedSequence:
         self.fallbacks: dict[int, str] = {}
         self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
         self._lock = threading.Lock()
+        self._parent_lock = threading.Lock()
+        self._position: dict[int, int] = {}  # frame.index -> position in the parent, of every frame read
+        self.n_recomputed = 0  # predictions recomputed for frames no longer kept (loop edges)
+        self.recomputed_failures = 0
         self.keep_predictions = keep_predictions
         self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
@@ -263,6 +291,49 @@ class DensifiedSequence:
         with self._lock:
             return self._predicted.get(int(index))
 
+    def prediction(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Like :meth:`predicted`, but a frame that is no longer kept is predicted again.
+
+        The loop edges of the learning rounds need the covariances of a frame read hundreds of
+        frames earlier. The prediction is deterministic (the predictor is seeded and the
+        preprocessing is the one of :meth:`__getitem__`), so the recomputed covariances are the
+        ones densification used. ``index`` is ``frame.index`` of a frame of this view (the key
+        of :meth:`predicted`). Returns None for a frame never read through this view (logged),
+        or when the scan is unusable or the covariances are not finite and positive definite
+        (counted in :attr:`recomputed_failures`).
+        """
+        kept = self.predicted(index)
+        if kept is not None:
+            return kept
+        with self._lock:
+            position = self._position.get(int(index))
+        if position is None:  # never read through this view: nothing to predict again
+            log.warning("prediction: frame %d was never read from this view; no covariances", index)
+            return None
+        with self._parent_lock:
+            raw = self.parent[position]
+        scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
+        self.n_recomputed += 1
+        if not scan.usable:
+            self.recomputed_failures += 1
+            return None
+        C, problem = self._predict(scan.points)
+        if C.shape != (len(scan.points), 3, 3) or problem is not None:
+            self.recomputed_failures += 1
+            log.warning("frame %d: recomputed covariances are not finite and positive definite", index)
+            return None
+        return scan.points, C
+
+    def _predict(self, points: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """The predictor's covariances of ``points`` and :func:`covariance_problem` of them (a
+        predictor raising ``FloatingPointError`` counts as non-finite output)."""
+        try:
+            C = np.asarray(self.predictor(points), np.float64)
+        except FloatingPointError as exc:
+            log.debug("predictor: %s", exc)
+            return np.full((len(points), 3, 3), np.nan), "nonfinite_covariance"
+        return C, covariance_problem(C) if C.shape == (len(points), 3, 3) else None
+
     def _keep(self, index: int, points: np.ndarray, C: np.ndarray) -> None:
         with self._lock:
             self._predicted[index] = (points, C)
@@ -271,8 +342,11 @@ class DensifiedSequence:
                 self._predicted.popitem(last=False)
 
     def __getitem__(self, i: int) -> LidarFrame:
-        raw = self.parent[i]
+        with self._parent_lock:  # :meth:`prediction` may read the parent from another thread
+            raw = self.parent[i]
         idx = int(raw.index)
+        with self._lock:
+            self._position[idx] = int(i)
         cfg = self.cfg
         scan = preprocess_scan(raw.points, self.preprocess, index=idx)
         if not scan.usable:
@@ -280,8 +354,8 @@ class DensifiedSequence:
             return raw
         s = scan.points
         res = densify_points(s, self.predictor, cfg, seed=[cfg.seed, idx], index=idx)
-        if res.fallback == "nonfinite_covariance":
-            self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
+        if res.fallback in COVARIANCE_FALLBACKS:
+            self._record(idx, len(s), 0, len(raw.points), res.fallback)
             return raw
         self._keep(idx, s, res.input_covariances)  # only covariances densify accepted (finite, positive definite)
         if not cfg.densify:  # ablation (training.densify: false): raw scans, predictions kept for the edge noise
@@ -395,7 +469,7 @@ def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | N
                          f"(range {pre.min_range}-{pre.max_range} m, voxel {pre.voxel_size} m; at least "
                          f"{pre.min_points} needed)")
     res = densify_points(scan.points, _make_predictor(weights, device, seed), cfg, seed=[seed, 0], index=0)
-    if res.fallback == "nonfinite_covariance":
+    if res.fallback in COVARIANCE_FALLBACKS:
         raise FloatingPointError("densify_cloud: the network's covariances are non-finite or not positive definite")
     if res.fallback is not None:
         log.warning("densify_cloud: %s (%d of %d points passed tau_ani=%g)", FALLBACK_REASONS[res.fallback],

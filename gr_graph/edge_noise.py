@@ -1,20 +1,26 @@
-"""Learned edge noise: an odometry edge's information from the network's covariances.
+"""Learned edge noise: an edge's information from the network's covariances.
 
-Learning rounds (``training.edge_noise: learned``, the default) give each ok odometry edge
-the pose-likelihood Hessian H(C) of the network's covariances of its two preprocessed scans
-instead of the registration information (:mod:`gr_graph.odometry`):
+Learning rounds (``training.edge_noise: learned``, the default) give each ok odometry edge,
+and each accepted loop edge (``training.learned_noise_edges: all``, the default), the
+pose-likelihood Hessian H(C) of the network's covariances of its two preprocessed scans
+instead of the registration information (:mod:`gr_graph.odometry`, :mod:`gr_graph.loop_closure`):
 
 - :func:`learned_information` computes, for one edge, the WLS Gauss-Newton Hessian
   ``H(C) = sum_i J_i^T Lambda_i J_i`` at T̂ with ``Lambda_i = (2 C_qi)^-1`` on the
   nearest-neighbour pairs under T̂ (:func:`gr_graph.correspondences.nearest_correspondences`),
   scaled and floored by ``graph.min_information_eigenvalue``;
 - :class:`LearnedEdgeNoise` applies it edge by edge during a SLAM run, reusing the
-  covariances densification predicted (:meth:`gr_graph.densify.DensifiedSequence.predicted`).
+  covariances densification predicted (:meth:`gr_graph.densify.DensifiedSequence.prediction`;
+  a loop's older scan, read long ago, is predicted again);
+- after the graph is optimised, one scale for the information of every edge, odometry and
+  loop alike, is estimated from the graph's residuals without ground truth
+  (:mod:`gr_graph.noise_calibration`, ``training.learned_noise_calibration``) and the graph
+  is solved again with it (:mod:`gr_graph.frame_loop`).
 
 Fallbacks to the registration information (failed registration, missing covariances, too
 few correspondences, non-finite or degenerate H(C); :data:`LEARNED_FALLBACK_REASONS`) are
-logged and counted (:meth:`LearnedEdgeNoise.summary`, stored in the round's summary as
-``edge_noise``). Loop edges and round 0 keep the registration information.
+logged and counted per edge kind (:meth:`LearnedEdgeNoise.summary`, stored in the round's
+summary as ``edge_noise``). Round 0 keeps the registration information.
 """
 
 from __future__ import annotations
@@ -155,26 +161,54 @@ Predictions = Callable[[int], "tuple[np.ndarray, np.ndarray] | None"]
 
 
 class LearnedEdgeNoise:
-    """Odometry-edge information from the network's covariances (``training.edge_noise: learned``).
+    """Edge information from the network's covariances (``training.edge_noise: learned``).
 
     ``predictions(frame_index)`` returns ``(points, C)`` the network predicted for a frame
-    (:meth:`gr_graph.densify.DensifiedSequence.predicted`) or None. :meth:`apply` replaces an
-    ok odometry edge's ``information`` by ``scale * H(C)`` (floored, :func:`learned_information`)
-    and keeps the registration information otherwise, logging the reason. :meth:`summary`
-    counts edges with H(C), floored ones and fallbacks per reason.
+    (:meth:`gr_graph.densify.DensifiedSequence.prediction`) or None. :meth:`apply` replaces an
+    ok edge's ``information`` by ``scale * H(C)`` (floored, :func:`learned_information`) and
+    keeps the registration information otherwise, logging the reason; loop edges only with
+    ``training.learned_noise_edges: all``. :meth:`summary` counts, per edge kind, edges with
+    H(C), floored ones and fallbacks per reason, and holds the round's calibration
+    (:attr:`calibration`, set by the frame loop).
     """
 
     def __init__(self, predictions: Predictions, cfg: SlamConfig) -> None:
         self.predictions = predictions
         self.cfg = cfg
-        self.n_learned = 0
-        self.n_floored = 0
-        self.fallbacks: dict[str, int] = defaultdict(int)
+        self.counts: dict[str, dict[str, Any]] = {
+            kind: {"n_learned": 0, "n_floored": 0, "fallbacks": defaultdict(int)} for kind in ("odometry", "loop")}
         self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
+        self.calibration: dict[str, Any] | None = None
+
+    @property
+    def loops(self) -> bool:
+        """Whether loop edges get H(C) too (``training.learned_noise_edges: all``)."""
+        return self.cfg.training.learned_noise_edges == "all"
+
+    @property
+    def calibrate(self) -> bool:
+        """Whether the frame loop scales every edge's information by the graph's variance factor."""
+        return self.cfg.training.learned_noise_calibration == "graph_residuals"
+
+    @property
+    def n_learned(self) -> int:
+        """Odometry edges with H(C)."""
+        return int(self.counts["odometry"]["n_learned"])
+
+    @property
+    def fallbacks(self) -> dict[str, int]:
+        """Odometry edges without H(C), per reason."""
+        return dict(self.counts["odometry"]["fallbacks"])
 
     def apply(self, edge: RegistrationEdge, source_frame: int, target_frame: int) -> RegistrationEdge:
-        """Set ``edge.information`` to the learned information when possible; return the edge."""
+        """Set ``edge.information`` to the learned information when possible; return the edge.
+
+        Loop edges are returned unchanged unless :attr:`loops`.
+        """
+        if edge.kind == "loop" and not self.loops:
+            return edge
         tc = self.cfg.training
+        counts = self.counts[edge.kind]
         reason, detail, res = "", "", None
         if not edge.ok:
             reason = "registration_failed"
@@ -194,25 +228,36 @@ class LearnedEdgeNoise:
                 if res.hessian is not None:
                     self.hessians[(edge.source, edge.target)] = res.hessian
         if reason:
-            self.fallbacks[reason] += 1
-            log.warning("edge (%d, %d): no learned information H(C), %s%s; registration information kept",
-                        edge.source, edge.target, LEARNED_FALLBACK_REASONS[reason], f" ({detail})" if detail else "")
+            counts["fallbacks"][reason] += 1
+            log.warning("%s edge (%d, %d): no learned information H(C), %s%s; registration information kept",
+                        edge.kind, edge.source, edge.target, LEARNED_FALLBACK_REASONS[reason],
+                        f" ({detail})" if detail else "")
             edge.info["edge_noise"] = f"registration ({reason})"
             return edge
         assert res is not None and res.information is not None
-        self.n_learned += 1
-        self.n_floored += int(res.floored)
+        counts["n_learned"] += 1
+        counts["n_floored"] += int(res.floored)
         edge.information = res.information
         edge.info["edge_noise"] = "learned"
         edge.info["learned_noise_correspondences"] = res.n_correspondences
         return edge
 
     def summary(self) -> dict[str, Any]:
-        """``{"mode": "learned", "n_learned", "n_floored", "n_fallback", "fallbacks": {reason: count}}``."""
-        return {"mode": "learned", "n_learned": self.n_learned, "n_floored": self.n_floored,
-                "n_fallback": int(sum(self.fallbacks.values())), "fallbacks": dict(self.fallbacks)}
+        """``{"mode": "learned", "n_learned", "n_floored", "n_fallback", "fallbacks"}`` of the
+        odometry edges, ``"loop"``: the same four of the loop edges, ``"edges"``
+        (``training.learned_noise_edges``) and ``"calibration"``
+        (:meth:`gr_graph.noise_calibration.VarianceFactor.summary`, or ``{"method": "none"}``)."""
+        def kind(k: str) -> dict[str, Any]:
+            c = self.counts[k]
+            return {"n_learned": int(c["n_learned"]), "n_floored": int(c["n_floored"]),
+                    "n_fallback": int(sum(c["fallbacks"].values())), "fallbacks": dict(c["fallbacks"])}
+
+        return {"mode": "learned", **kind("odometry"), "loop": kind("loop"),
+                "edges": self.cfg.training.learned_noise_edges,
+                "calibration": self.calibration if self.calibration is not None else {"method": "none"}}
 
 
 def registration_edge_noise_summary() -> dict[str, Any]:
     """The ``edge_noise`` summary of a learning round with ``training.edge_noise: registration``."""
-    return {"mode": "registration", "n_learned": 0, "n_floored": 0, "n_fallback": 0, "fallbacks": {}}
+    return {"mode": "registration", "n_learned": 0, "n_floored": 0, "n_fallback": 0, "fallbacks": {},
+            "calibration": {"method": "none"}}

@@ -15,10 +15,13 @@
    first be replaced by the learned H(C) (:class:`gr_graph.edge_noise.LearnedEdgeNoise`);
 3. when the :class:`gr_graph.loop_closure.LoopClosureSchedule` says so, looks for a loop
    (candidates on the loop-corrected estimate and by Scan Context, each verified by GICP),
-   adds accepted loops to the graph and re-optimises it now and then.
+   adds accepted loops to the graph (in learning rounds with their learned H(C) as well)
+   and re-optimises it now and then.
 
-At the end the whole graph is optimised and its marginal covariances computed
-(:class:`SlamResult`). Wall time is accumulated per stage (``read`` is time spent waiting
+At the end the whole graph is optimised; in learning rounds every edge's information is then
+scaled by one factor from the graph's residuals (:meth:`_FrameLoop.calibrate_noise`,
+:mod:`gr_graph.noise_calibration`) and the graph solved again. Then its marginal covariances
+are computed (:class:`SlamResult`). Wall time is accumulated per stage (``read`` is time spent waiting
 for frames).
 """
 
@@ -36,14 +39,15 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from gr_graph.config import SlamConfig, loop_max_rmse
+from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
 from gr_graph.sensors import check_sequence_sensor
 from gr_graph.datasets.base import LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
-from gr_graph.pose_graph import PoseGraph
+from gr_graph.noise_calibration import variance_factor
+from gr_graph.pose_graph import GraphResult, PoseGraph
 from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
@@ -363,6 +367,9 @@ class _FrameLoop:
                  "T": le.T, **le.info}
             )
             if le.ok:
+                if self.edge_noise is not None:
+                    with self.timer("edge_noise"):
+                        self.edge_noise.apply(le, self.frame_index[le.source], self.frame_index[le.target])
                 self.edges.append(le)
                 self.graph.add_edge(le.source, le.target, le.T, le.information, loop=True)
                 self.schedule.loop_accepted()
@@ -374,6 +381,41 @@ class _FrameLoop:
                 self.estimate.optimised = self.graph.optimize(marginals=False).poses
             self.schedule.reoptimized(i)
 
+    def calibrate_noise(self, poses: np.ndarray) -> GraphResult:
+        """Scale every edge's information by ``1 / sigma0^2`` of the graph and solve it again.
+
+        ``sigma0^2`` (:func:`gr_graph.noise_calibration.variance_factor`) is taken at the
+        optimum of the Gaussian graph (loops without their robust kernel, started from
+        ``poses``): the variance factor is defined for the least-squares model, and a uniform
+        scale does not move that optimum, so one estimate is exact for it. The robust graph
+        with the scaled information is then solved from there. The scale is recorded in
+        :attr:`LearnedEdgeNoise.calibration`; without loops there is no redundancy and nothing
+        changes (scale 1, logged).
+        """
+        assert self.edge_noise is not None
+        gaussian = self._graph_of(poses, self.cfg.graph.model_copy(update={"loop_kernel": "none"}))
+        vf = variance_factor(gaussian.optimize(marginals=False).poses, self.edges)
+        self.edge_noise.calibration = vf.summary()
+        if vf.sigma0_sq is None:
+            log.info("edge noise calibration: no redundancy (no loops), information left as it is")
+        else:
+            log.info("edge noise calibration: sigma0^2 = %.4g over redundancy %d (chi2 odometry %.4g, loops %.4g): "
+                     "every edge's information x %.4g", vf.sigma0_sq, vf.redundancy, vf.chi2["odometry"],
+                     vf.chi2["loop"], vf.scale)
+        for e in self.edges:  # flagged edges too: their fallback information must stay weak relative to the rest
+            e.information = vf.scale * np.asarray(e.information, np.float64)
+        self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
+        return self.graph.optimize(marginals=False)
+
+    def _graph_of(self, poses: np.ndarray, graph_cfg: GraphConfig) -> PoseGraph:
+        """A new pose graph with ``poses`` as estimate and every edge of the run."""
+        graph = PoseGraph(graph_cfg)
+        for T in poses:
+            graph.add_pose(T)
+        for e in self.edges:
+            graph.add_edge(e.source, e.target, e.T, e.information, loop=e.kind == "loop")
+        return graph
+
     def finish(self) -> SlamResult:
         """Optimise the whole graph, compute the marginals; the run's result."""
         K = len(self.sequence)
@@ -384,6 +426,8 @@ class _FrameLoop:
         with self.timer("graph"):
             self.graph.set_estimate(self.estimate.poses(K))
             res = self.graph.optimize(marginals=False)
+            if self.edge_noise is not None and self.edge_noise.calibrate:
+                res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
         covs = None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):

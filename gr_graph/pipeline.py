@@ -36,12 +36,14 @@ from typing import Any
 import numpy as np
 
 from gr_graph.config import SlamConfig, dump_config
+from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
+from gr_graph.noise_consistency import round_noise_consistency
 from gr_graph.round_output import (
     plot_metrics_rounds,
     plot_round,
@@ -269,10 +271,13 @@ class SlamPipeline:
             summary["densify"] = densified.stats()
             summary["edge_noise"] = registration_edge_noise_summary() if edge_noise is None else edge_noise.summary()
             en = summary["edge_noise"]
+            summary["covariance_failures"] = covariance_failures(summary["densify"], rd / "training" / "summary.json", en)
             log.info("round %d: %d odometry edges with learned information H(C) (%d floored), %d fallbacks %s",
                      r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:
             summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap))
+            if res.covariances is not None:  # NEES of edges and marginals against ground truth
+                summary["noise_consistency"] = round_noise_consistency(rd)
         runtime = {**res.runtime, **timer.seconds}
         runtime["total"] = time.perf_counter() - t0
         if train_seconds is not None:
@@ -293,7 +298,7 @@ class SlamPipeline:
         """The learned edge noise of a learning round (``training.edge_noise: learned``), else None."""
         if densified is None or self.cfg.training.edge_noise != "learned":
             return None
-        return LearnedEdgeNoise(densified.predicted, self.cfg)
+        return LearnedEdgeNoise(densified.prediction, self.cfg)
 
     def write_memory(self, r: int, res: SlamResult) -> None:
         """``round_<r>/memory``; rounds r ≥ 1 store round 0's scans (module docstring)."""

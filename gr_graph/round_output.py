@@ -29,9 +29,12 @@ against the ground truth, both in the camera frame: RPE over 300 frames mean/RMS
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
 ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
-``config_fingerprint``; learning rounds add ``edge_noise``, ``densify`` and
+``config_fingerprint``; with ground truth and marginals, ``noise_consistency`` (NEES per
+edge kind and of the marginals, :mod:`gr_graph.noise_consistency`); learning rounds add
+``edge_noise``, ``densify``, ``covariance_failures`` (:mod:`gr_graph.covariance_health`) and
 ``runtime_s.training``, and every round after the first ``trajectory_change``; ``map``
 (points in, voxels out, voxel size) when the map is written.
+
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ MARGINALS_KEYS = {
     "edge_kind": "(E,) uint8 0 = odometry, 1 = loop",
     "edge_ok": "(E,) bool False for flagged (fallback) odometry edges",
     "edge_information": "(E, 6, 6) information of each graph factor (before the loop kernel), [omega, v]",
+    "edge_T": "(E, 4, 4) measurement T̂_kl of each edge (maps scan k into the frame of scan l)",
 }
 
 
@@ -90,6 +94,7 @@ def write_round_results(rd: Path, res: SlamResult, T_cam_velo: np.ndarray, gt: n
         "edge_kind": np.asarray([e.kind == "loop" for e in res.edges], np.uint8),
         "edge_ok": np.asarray([e.ok for e in res.edges], bool),
         "edge_information": np.asarray([e.information for e in res.edges], np.float64).reshape(-1, 6, 6),
+        "edge_T": np.asarray([e.T for e in res.edges], np.float64).reshape(-1, 4, 4),
     }
     if res.covariances is not None:
         arrays["covariance"] = res.covariances

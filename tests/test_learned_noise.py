@@ -85,7 +85,9 @@ def test_edge_noise_apply_sets_information_and_counts():
     for x in (e2, e3, e4):
         np.testing.assert_array_equal(x.information, 7 * np.eye(6))
     assert en.summary() == {"mode": "learned", "n_learned": 1, "n_floored": 0, "n_fallback": 3,
-                            "fallbacks": {"registration_failed": 1, "no_covariances": 1, "few_correspondences": 1}}
+                            "fallbacks": {"registration_failed": 1, "no_covariances": 1, "few_correspondences": 1},
+                            "loop": {"n_learned": 0, "n_floored": 0, "n_fallback": 0, "fallbacks": {}},
+                            "edges": "all", "calibration": {"method": "none"}}
 
 
 def test_planar_scene_is_degenerate_fallback_logged_and_counted(caplog):
@@ -176,6 +178,7 @@ def test_round1_uses_learned_noise_end_to_end(learning_run):
         H += J.T @ Li @ J
     w, V = np.linalg.eigh(H)
     expect = (V * np.maximum(w, cfg.graph.min_information_eigenvalue)) @ V.T
+    expect *= en["calibration"].get("scale", 1.0)  # the graph's variance factor (1 without loops)
     np.testing.assert_allclose(info[row], expect, rtol=1e-6, atol=1e-6 * w[-1])
     with np.load(out / "round_0" / "marginals.npz") as z0:  # round 0 (registration information) differs
         row0 = int(np.flatnonzero((z0["edges"][:, 0] == k) & (z0["edges"][:, 1] == l) & (z0["edge_kind"] == 0))[0])

@@ -227,6 +227,11 @@ def test_rounds_end_to_end(learning_run):
     assert np.isfinite(r1["trajectory_change"]) and r1["trajectory_change"] < ATE_BOUND_M
     assert r1["densify"]["frames"] == 30 and r1["runtime_s"]["training"] > 0
     assert r1["densify"]["mean_output_points"] > 0
+    # no frame or training pair met non-finite / indefinite network covariances (issue 10: < 0.1 %)
+    cf = r1["covariance_failures"]
+    assert cf["frames"] == 30 and cf["frames_nonfinite"] == 0 and cf["frames_non_pd"] == 0
+    assert cf["training_pairs"] == 29 * 4 and cf["training_pairs_skipped"] == 0
+    assert cf["edges_without_covariances"] == {"odometry": 0, "loop": 0}
     # the memory of round 1 stores the raw downsampled scans of round 0 with round 1's trajectory
     from gr_graph.memory import load_memory
 

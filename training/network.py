@@ -33,7 +33,8 @@ In both cases ``C = L L^T + eps I`` (m^2, LiDAR frame of the input).
 Distances are divided by ``r = 1 m``. ``moments`` are the group's second moments of the
 offsets, normalised by their trace (6 numbers: the shape of the neighbourhood, as PCA sees it),
 and the log of the trace (its size); they give the MLPs the neighbourhood's second-order
-shape directly, which max-pooling alone learns only slowly. The network runs in float32.
+shape directly, which max-pooling alone learns only slowly. The network runs in float32; the
+heads form ``L`` and ``C`` in float64 (:func:`geometric_covariance` says why) and return float64.
 """
 
 from __future__ import annotations
@@ -44,9 +45,8 @@ from torch import nn
 
 from training.config import NetConfig
 from training.neighbors import Neighborhoods
-from training.pose_layer import inv3
 
-__all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov"]
+__all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov", "geometric_covariance"]
 
 
 def _mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
@@ -73,7 +73,8 @@ def _moments(rel: torch.Tensor) -> torch.Tensor:
 
 
 def cholesky_to_cov(raw: torch.Tensor, cov_scale: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Map raw head outputs ``(N, 6)`` to ``(L, C)``, each ``(N, 3, 3)``."""
+    """Map raw head outputs ``(N, 6)`` to ``(L, C)``, each ``(N, 3, 3)`` float64."""
+    raw = raw.to(torch.float64)  # L L^T of a very anisotropic L loses its small eigenvalues in float32
     a = torch.clamp(raw[:, :3], -12.0, 6.0)
     diag = torch.exp(a)
     n = raw.shape[0]
@@ -133,7 +134,7 @@ class CovarianceNet(nn.Module):
             nn.init.zeros_(self.att_out.bias)
 
     def forward(self, points: torch.Tensor, nb: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Predict ``(L, C)``, each ``(N, 3, 3)`` float32, for ``points`` ``(N, 3)``."""
+        """Predict ``(L, C)``, each ``(N, 3, 3)`` float64, for ``points`` ``(N, 3)``."""
         x = points.to(torch.float32)
         # SA0: local shape of every point
         rel0 = x[nb["knn0"]] - x[:, None, :]
@@ -163,17 +164,45 @@ class CovarianceNet(nn.Module):
         hi = self.att_i(g0)[:, None, :]
         hl = self.att_local(ol, f0, nb["knn0"])
         hw = self.att_wide(ow, g1, nb["knnw"])
-        w = torch.sigmoid(self.att_out(torch.relu(hi + torch.cat([hl, hw], 1))))  # (N, k0 + kw, 1)
-        o = torch.cat([rel0, xw], 1)
-        S = (w[..., None] * o[..., :, None] * o[..., None, :]).sum(1) / w.sum(1)[..., None]
-        cs2 = self.config.cov_scale**2
-        a = torch.clamp(raw, -12.0, 8.0)
-        alpha = 0.5 * torch.exp(a[:, 0])
-        kappa = cs2 * torch.exp(a[:, 1])
-        gamma2 = (0.03 * self.config.cov_scale) ** 2 * torch.exp(2 * a[:, 2])
-        eye = torch.eye(3, dtype=x.dtype, device=x.device)
-        Sk = S + kappa[:, None, None] * eye
-        M = (alpha * kappa)[:, None, None] * (S @ inv3(Sk)) + gamma2[:, None, None] * eye
-        M = 0.5 * (M + M.transpose(-1, -2))
-        L, _ = torch.linalg.cholesky_ex(M)
-        return L, M + self.config.eps * eye
+        logits = self.att_out(torch.relu(hi + torch.cat([hl, hw], 1)))  # (N, k0 + kw, 1)
+        return geometric_covariance(raw, logits, torch.cat([rel0, xw], 1), self.config.cov_scale, self.config.eps)
+
+
+def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor, cov_scale: float,
+                         eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The geometric head's ``(L, C)`` (float64, ``(N, 3, 3)`` each) from its inputs.
+
+    ``raw`` ``(N, 3)``: head outputs (log alpha, log kappa, log gamma, clamped); ``logits``
+    ``(N, k, 1)``: attention logits (``w = sigmoid(logits)``); ``offsets`` ``(N, k, 3)``:
+    neighbour offsets ``o_ij``. ``S = sum_j w_j o_j o_j^T / sum_j w_j`` and
+    ``C = alpha kappa S (S + kappa I)^-1 + gamma^2 I + eps I`` (module docstring).
+
+    Numerics (both were the cause of non-finite and indefinite covariances of trained
+    networks): the weights enter ``S`` only through their ratios, so they are normalised in
+    log space, ``w_j / max_k w_k = exp(logsigmoid(l_j) - max_k logsigmoid(l_k))``: trained
+    logits reach -100, where float32 ``sigmoid`` underflows (0 / 0 when every weight of a point
+    did). And ``alpha kappa S (S + kappa I)^-1`` is formed so that it is positive semi-definite
+    by construction, in float64: with ``S = G^T G`` (``G``'s rows ``sqrt(w_j / sum w) o_j``),
+    ``S (S + kappa I)^-1 = G^T (G G^T + kappa I_k)^-1 G = Y^T Y`` with ``Y = R^-1 G`` and
+    ``R R^T = G G^T + kappa I_k`` (Cholesky; its smallest eigenvalue is at least ``kappa``). The
+    former float32 adjugate inverse of ``S + kappa I`` followed by the product with ``S`` lost
+    the small eigenvalues when wide neighbours tens of metres away made ``S``'s largest
+    eigenvalue ~10^3 m^2 against ``kappa`` ~ 10^-2 m^2: negative eigenvalues of ``C``, or a
+    singular ``S + kappa I`` (inf / NaN).
+    """
+    f64 = torch.float64
+    logw = torch.nn.functional.logsigmoid(logits.to(f64))
+    w = torch.exp(logw - logw.amax(1, keepdim=True))  # (N, k, 1), max 1: the sum is >= 1
+    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)  # (N, k, 3): S = G^T G
+    a = torch.clamp(raw.to(f64), -12.0, 8.0)
+    alpha = 0.5 * torch.exp(a[:, 0])
+    kappa = cov_scale**2 * torch.exp(a[:, 1])
+    gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
+    k = G.shape[1]
+    K = G @ G.transpose(-1, -2) + kappa[:, None, None] * torch.eye(k, dtype=f64, device=raw.device)
+    R, _ = torch.linalg.cholesky_ex(K)  # K >= kappa I: positive definite
+    Y = torch.linalg.solve_triangular(R, G, upper=False)  # (N, k, 3)
+    eye = torch.eye(3, dtype=f64, device=raw.device)
+    M = (alpha * kappa)[:, None, None] * (Y.transpose(-1, -2) @ Y) + gamma2[:, None, None] * eye
+    L, _ = torch.linalg.cholesky_ex(M)
+    return L, M + eps * eye

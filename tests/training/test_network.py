@@ -107,3 +107,98 @@ def test_geometric_head_normal_follows_the_measured_surface():
         cosang = np.abs(v[:, :, 0] @ axis)
         assert cosang.min() > 1 - 1e-4
         assert (w[:, 1] / w[:, 0]).min() > 10  # clearly flat
+
+
+# A point of a 16-channel synthetic scan (frame 67 of route seed 0, a random 489-point part of
+# the scan as predict_covariances splits it) where a trained network (3 epochs, lr 3e-3) gave an
+# indefinite covariance (eigenvalue -2.6e-4 m^2) before the geometric head was made
+# positive semi-definite by construction: its neighbours are 2-52 m away (S's largest
+# eigenvalue ~650 m^2 against kappa 0.02 m^2) and its attention logits reach -74.
+_FAR_OFFSETS = [[0.0, 0.0, 0.0], [-0.44644, -1.17458, 2.22903], [0.90154, 2.6202, 2.09179], [7.39504, 16.66943, 1.58337],
+                [9.73252, 23.29252, 1.34899], [-12.54621, 22.9996, -1.95604], [8.5204, 34.04361, -0.40351],
+                [8.73341, 34.60392, -1.77507], [0.0, 0.0, 0.0], [8.5204, 34.04361, -0.40351], [8.73341, 34.60392, -1.77507],
+                [8.73723, 34.68386, -0.41108], [-4.83046, 42.39232, -1.71357], [-6.21289, 44.23524, 0.72568],
+                [14.82048, 48.34655, -0.56943], [-8.06215, 52.11738, -1.6221]]
+_FAR_LOGITS = [-3.7478, -12.925, -13.4525, -18.4384, -19.9773, -0.2973, -19.8879, -16.2645, -10.513, -58.4325, -60.6125,
+               -59.073, -63.6365, -61.8516, -73.6577, -71.7649]
+_FAR_RAW = [0.31621, 0.69455, 2.40148]
+
+
+def _closed_form(raw: np.ndarray, logits: np.ndarray, offsets: np.ndarray, cov_scale: float, eps: float) -> np.ndarray:
+    """Independent float64 reference of the geometric head: eigen-decomposition of S, eigenvalues
+    mapped by lambda -> alpha kappa lambda / (lambda + kappa) + gamma^2 + eps."""
+    from scipy.special import expit
+
+    out = []
+    for r, lg, o in zip(raw, logits, offsets):
+        w = expit(lg.astype(np.float64))
+        if w.sum() == 0.0:  # every weight underflows: they are equal in the limit
+            w = np.exp(lg - lg.max())
+        S = (w[:, None, None] * o[:, :, None] * o[:, None, :]).sum(0) / w.sum()
+        lam, V = np.linalg.eigh(S)
+        lam = np.maximum(lam, 0.0)
+        a = np.clip(r, -12.0, 8.0)
+        alpha, kappa, gamma2 = 0.5 * np.exp(a[0]), cov_scale**2 * np.exp(a[1]), (0.03 * cov_scale) ** 2 * np.exp(2 * a[2])
+        out.append(V @ np.diag(alpha * kappa * lam / (lam + kappa) + gamma2 + eps) @ V.T)
+    return np.array(out)
+
+
+def test_geometric_head_on_a_far_isolated_point_is_positive_definite():
+    from training.network import geometric_covariance
+
+    raw = torch.tensor([_FAR_RAW], dtype=torch.float32)
+    logits = torch.tensor([_FAR_LOGITS], dtype=torch.float32)[..., None]
+    offsets = torch.tensor([_FAR_OFFSETS], dtype=torch.float32)
+    _, C = geometric_covariance(raw, logits, offsets, 0.1, 1e-6)
+    ref = _closed_form(np.array([_FAR_RAW]), np.array([_FAR_LOGITS]), np.array(_FAR_OFFSETS)[None], 0.1, 1e-6)
+    np.testing.assert_allclose(C.numpy(), ref, rtol=1e-6, atol=1e-10)
+    assert np.linalg.eigvalsh(C.numpy()).min() > 1e-3  # the reference's smallest eigenvalue is 1.1e-3 m^2
+
+
+def test_geometric_head_is_positive_definite_on_extreme_inputs():
+    """Needle-like neighbourhoods up to 60 m, kappa down to its clamp, logits down to -300:
+    every covariance finite, positive definite and equal to the closed form."""
+    from training.network import geometric_covariance
+
+    g = torch.Generator().manual_seed(0)
+    n = 3000
+    o = torch.randn(n, 16, 3, generator=g, dtype=torch.float64) * torch.tensor([60.0, 1e-2, 1e-4], dtype=torch.float64)
+    Q = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))[0]
+    o = (o @ Q.transpose(1, 2)).float()
+    raw = (torch.rand(n, 3, generator=g) * 22 - 13)
+    logits = torch.randn(n, 16, 1, generator=g) * 80 - 60
+    logits[: n // 10] -= 300.0  # every weight of these points underflows in float32
+    _, C = geometric_covariance(raw, logits, o, 0.1, 1e-6)
+    Cn = C.numpy()
+    assert np.isfinite(Cn).all() and np.linalg.eigvalsh(Cn)[:, 0].min() > 0.99e-6
+    ref = _closed_form(raw.double().numpy(), logits[..., 0].double().numpy(), o.double().numpy(), 0.1, 1e-6)
+    rel = np.linalg.norm(Cn - ref, axis=(1, 2)) / np.linalg.norm(ref, axis=(1, 2))
+    assert rel.max() < 1e-4, rel.max()  # condition numbers up to 1e11 here
+
+
+def test_network_with_underflowing_attention_weights_is_finite():
+    """Attention logits of -150 everywhere (float32 sigmoid = 0, the former 0 / 0): the weights
+    only count through their ratios, so the covariances equal those of logits 0."""
+    rng = np.random.default_rng(5)
+    cfg = NetConfig(n_points=256, k0=8, k1=8, k2=8, kw=8, c0=16, c1=16, c2=16)
+    torch.manual_seed(0)
+    net = CovarianceNet(cfg)
+    for p in net.head.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    x = rng.uniform(-20, 20, (200, 3)).astype(np.float32)
+    nb = neighborhoods_to_torch(cfg.neighborhoods(x, start=1))
+    with torch.no_grad():
+        _, C0 = net(torch.tensor(x), nb)
+        net.att_out.bias.fill_(-150.0)
+        _, C1 = net(torch.tensor(x), nb)
+    assert torch.isfinite(C1).all() and torch.linalg.eigvalsh(C1).min() > 0
+    torch.testing.assert_close(C1, C0, rtol=1e-9, atol=1e-12)
+
+
+def test_cholesky_head_keeps_small_eigenvalues_of_anisotropic_factors():
+    """L with diagonal 4 m and 1e-5 m and large off-diagonals: in float32, L L^T + eps I lost
+    its small eigenvalues (indefinite); the head forms C in float64."""
+    raw = torch.tensor([[np.log(40.0), np.log(1e-4), np.log(1e-4), 35.0, -20.0, 15.0]] * 4, dtype=torch.float32)
+    _, C = cholesky_to_cov(raw, 0.1, 1e-6)
+    assert C.dtype == torch.float64
+    assert torch.linalg.eigvalsh(C).min() >= 0.99e-6

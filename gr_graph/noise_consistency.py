@@ -1,0 +1,161 @@
+"""Are a run's edge informations and marginals consistent with ground truth? (NEES per edge kind)
+
+Two checks of the noise models of a finished round (``round_<r>/marginals.npz``, which holds
+every edge's measurement ``edge_T``, kind and information, the optimised poses, the marginal
+position covariances and the re-anchored ground truth):
+
+- **edge NEES**: for each edge ``(k, l)`` with measurement ``T̂_kl`` and information
+  ``Lambda`` (the one the graph used), the ground-truth relative pose
+  ``T_kl = G_l^-1 G_k`` gives the error ``xi = Log(T̂_kl^-1 T_kl)`` ([omega, v], right
+  perturbation, as gtsam's ``BetweenFactorPose3``) and ``NEES = xi^T Lambda xi``. If
+  ``Lambda^-1`` is the covariance of the measurement error, NEES ~ chi2(6): mean 6. Reported
+  per kind (odometry, loop) over edges whose registration was not flagged;
+- **position NEES of the marginals**: ``e = p_k - p_k^GT`` (world = first scan, both
+  anchored there) and ``NEES = e^T Sigma_k^-1 e`` with the world-frame position marginal
+  ``Sigma_k`` (``position_cov_world``): mean 3 if consistent (the first pose, fixed by the
+  prior, is left out). The same definition as the notebook ``marginal_covariances.ipynb``.
+
+A mean NEES far above the ideal means over-confident information, far below conservative.
+Ground truth is only read here; nothing in SLAM uses it.
+
+Command line (prints a table, ``--json`` writes the figures)::
+
+    python -m gr_graph.noise_consistency RUN_DIR [--round R] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+
+__all__ = ["edge_nees", "position_nees", "round_noise_consistency", "run_noise_consistency", "main"]
+
+EDGE_KINDS = {0: "odometry", 1: "loop"}
+
+
+def edge_nees(edges: np.ndarray, edge_T: np.ndarray, information: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(E,)`` NEES ``xi^T Lambda xi`` of each edge's measurement against ground truth.
+
+    Parameters
+    ----------
+    edges : (E, 2) int array
+        ``(k, l)`` run positions of each edge.
+    edge_T : (E, 4, 4) array
+        Measurements ``T̂_kl`` (scan k into the frame of scan l).
+    information : (E, 6, 6) array
+        Information of each edge, gtsam order ``[omega, v]``.
+    gt : (K, 4, 4) array
+        Ground-truth poses (any common world frame).
+    """
+    out = np.empty(len(edges))
+    for i, ((k, l), T, info) in enumerate(zip(np.asarray(edges), edge_T, information)):
+        T_gt = gtsam.Pose3(np.linalg.inv(gt[l]) @ gt[k])
+        xi = gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, np.float64)).between(T_gt))
+        out[i] = float(xi @ (0.5 * (info + info.T)) @ xi)
+    return out
+
+
+def position_nees(poses: np.ndarray, position_cov_world: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(K - 1,)`` position NEES ``e^T Sigma^-1 e`` of poses 1..K-1 (``e = p - p_GT``, world frame)."""
+    e = poses[1:, :3, 3] - gt[1:, :3, 3]
+    S = position_cov_world[1:] + 1e-12 * np.eye(3)
+    return np.einsum("ki,kij,kj->k", e, np.linalg.inv(S), e)
+
+
+def _stats(x: np.ndarray, dof: int) -> dict[str, Any]:
+    from scipy.stats import chi2
+
+    if len(x) == 0:
+        return {"n": 0, "mean": None, "median": None, "frac_below_95": None, "ideal_mean": dof}
+    return {"n": len(x), "mean": float(np.mean(x)), "median": float(np.median(x)),
+            "frac_below_95": float(np.mean(x < chi2.ppf(0.95, dof))), "ideal_mean": dof,
+            "ideal_median": float(chi2.median(dof))}
+
+
+def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
+    """Edge NEES per kind and position NEES of the marginals of one finished round.
+
+    Raises
+    ------
+    FileNotFoundError
+        Without ``marginals.npz``.
+    ValueError
+        When the file lacks ground truth, marginals or the edge measurements (``edge_T``,
+        written since this module exists), naming the file.
+    """
+    path = Path(round_dir) / "marginals.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (not a finished round)")
+    with np.load(path) as z:
+        missing = [k for k in ("gt_poses", "edge_T", "covariance", "position_cov_world") if k not in z.files]
+        if missing:
+            raise ValueError(f"{path}: lacks {missing} (a run without ground truth or marginals, or written "
+                             "before edge_T was stored)")
+        d = {k: np.array(z[k]) for k in z.files}
+    gt = d["gt_poses"]
+    nees = edge_nees(d["edges"], d["edge_T"], d["edge_information"], gt)
+    ok = d["edge_ok"].astype(bool)
+    out: dict[str, Any] = {"edges": {}}
+    for code, kind in EDGE_KINDS.items():
+        sel = (d["edge_kind"] == code) & ok
+        out["edges"][kind] = _stats(nees[sel], 6)
+    out["edges"]["n_flagged_left_out"] = int((~ok).sum())
+    out["position"] = _stats(position_nees(d["poses"], d["position_cov_world"], gt), 3)
+    return out
+
+
+def run_noise_consistency(run_dir: str | Path, rounds: list[int] | None = None) -> dict[str, Any]:
+    """:func:`round_noise_consistency` of every finished round of a run (or of ``rounds``)."""
+    run = Path(run_dir)
+    found = sorted(int(p.name.split("_")[1]) for p in run.glob("round_*") if (p / "marginals.npz").is_file())
+    if rounds is not None:
+        absent = sorted(set(rounds) - set(found))
+        if absent:
+            raise FileNotFoundError(f"{run}: rounds {absent} have no marginals.npz")
+        found = sorted(rounds)
+    if not found:
+        raise FileNotFoundError(f"{run}: no finished round (round_<r>/marginals.npz)")
+    return {str(r): round_noise_consistency(run / f"round_{r}") for r in found}
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Markdown table of :func:`run_noise_consistency`'s result."""
+    def f(x: float | None) -> str:
+        return "-" if x is None else f"{x:.3g}"
+
+    lines = ["| round | odometry NEES mean (n) | loop NEES mean (n) | position NEES mean / median |",
+             "|---|---|---|---|"]
+    for r, res in result.items():
+        o, lp, p = res["edges"]["odometry"], res["edges"]["loop"], res["position"]
+        lines.append(f"| {r} | {f(o['mean'])} ({o['n']}) | {f(lp['mean'])} ({lp['n']}) | "
+                     f"{f(p['mean'])} / {f(p['median'])} |")
+    lines.append("ideal: edges 6 (chi2(6)), positions 3 (chi2(3)); median of chi2(6) 5.35, of chi2(3) 2.37")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m gr_graph.noise_consistency", description=__doc__.split("\n")[0])
+    ap.add_argument("run_dir", help="the --out folder of python -m gr_graph.slam")
+    ap.add_argument("--round", type=int, action="append", dest="rounds", help="only this round (repeatable)")
+    ap.add_argument("--json", type=Path, help="write the figures to this file")
+    args = ap.parse_args(argv)
+    try:
+        result = run_noise_consistency(args.run_dir, args.rounds)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(result))
+    if args.json is not None:
+        from gr_graph.atomic import atomic_write_json
+
+        atomic_write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,271 @@
+"""One scale for every edge (gr_graph.noise_calibration), NEES against ground truth
+(gr_graph.noise_consistency), learned information on loop edges (gr_graph.edge_noise)."""
+
+from __future__ import annotations
+
+import json
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from gr_graph.config import GraphConfig, load_config
+from gr_graph.noise_calibration import between_residuals, variance_factor
+from gr_graph.noise_consistency import (
+    edge_nees,
+    main,
+    position_nees,
+    round_noise_consistency,
+)
+from gr_graph.odometry import RegistrationEdge
+from gr_graph.pose_graph import PoseGraph
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    return gtsam.Pose3.Expmap(xi).matrix()
+
+
+def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, true_factor: float = 25.0):
+    """A closed drive (circle, 2 laps) with odometry and loop measurements whose real error
+    covariance is ``true_factor`` x the inverse of the information they carry."""
+    t = np.linspace(0, 4 * np.pi, K)
+    gt = np.stack([_exp(np.array([0, 0, ti, 0, 0, 0])) for ti in t])
+    gt[:, :3, 3] = np.column_stack([20 * np.cos(t), 20 * np.sin(t), 0.1 * t])
+    A = rng.normal(size=(6, 6))
+    info = A @ A.T + np.diag([4e4, 4e4, 4e4, 400, 400, 400])  # the claimed information
+    cov_true = true_factor * np.linalg.inv(info)
+    Lc = np.linalg.cholesky(cov_true)
+    pairs = [(k + 1, k) for k in range(K - 1)]
+    half = K // 2
+    loops = rng.choice(np.arange(half, K), n_loops, replace=False)
+    pairs += [(int(i), int(i) - half) for i in loops]  # one lap apart: the same place
+    edges = []
+    for k, l in pairs:
+        T = np.linalg.inv(gt[l]) @ gt[k] @ _exp(Lc @ rng.normal(size=6))
+        kind = "odometry" if k == l + 1 else "loop"
+        edges.append(RegistrationEdge(k, l, T, info, info.copy(), 1.0, 0.0, 1, True, "", kind))
+    return gt, edges, cov_true
+
+
+def _solve(gt: np.ndarray, edges: list[RegistrationEdge], marginals: bool = False):
+    g = PoseGraph(GraphConfig(loop_kernel="none", marginals=marginals))
+    for T in gt:
+        g.add_pose(T @ _exp(np.full(6, 1e-3)))
+    for e in edges:
+        g.add_edge(e.source, e.target, e.T, e.information, loop=e.kind == "loop")
+    return g, g.optimize()
+
+
+def test_between_residuals_are_gtsam_factor_errors():
+    rng = np.random.default_rng(0)
+    gt, edges, _ = _simulated_graph(rng, K=20, n_loops=4)
+    _, res = _solve(gt, edges)
+    r = between_residuals(res.poses, edges)
+    values = gtsam.Values()
+    for i, T in enumerate(res.poses):
+        values.insert(X(i), gtsam.Pose3(T))
+    for e, re in zip(edges, r):
+        f = gtsam.BetweenFactorPose3(X(e.target), X(e.source), gtsam.Pose3(e.T),
+                                     gtsam.noiseModel.Gaussian.Information(e.information))
+        assert 2.0 * f.error(values) == pytest.approx(re @ e.information @ re, rel=1e-9)
+
+
+def test_variance_factor_recovers_the_true_scale_and_makes_nees_consistent():
+    """Information overconfident by 25x: sigma0^2 finds the factor (within its sampling spread,
+    redundancy 180: +-11 % at one sigma) without ground truth; after scaling, the mean edge
+    NEES against ground truth is ~6 for both kinds and the marginals' position NEES ~3."""
+    rng = np.random.default_rng(1)
+    gt, edges, _ = _simulated_graph(rng)
+    _, res = _solve(gt, edges)
+    vf = variance_factor(res.poses, edges)
+    assert vf.redundancy == 6 * 30 and vf.n_edges == {"odometry": 119, "loop": 30}
+    assert 25.0 / 1.35 < vf.sigma0_sq < 25.0 * 1.35
+    assert vf.scale == pytest.approx(1.0 / vf.sigma0_sq)
+    # uncalibrated: NEES ~ 6 x 25
+    nees0 = edge_nees(np.array([(e.source, e.target) for e in edges]), np.array([e.T for e in edges]),
+                      np.array([e.information for e in edges]), gt)
+    assert nees0.mean() > 80
+    for e in edges:
+        e.information = vf.scale * e.information
+    nees = edge_nees(np.array([(e.source, e.target) for e in edges]), np.array([e.T for e in edges]),
+                     np.array([e.information for e in edges]), gt)
+    kinds = np.array([e.kind for e in edges])
+    assert 4.0 < nees[kinds == "odometry"].mean() < 9.0 and 3.0 < nees[kinds == "loop"].mean() < 12.0
+    _, res = _solve(gt, edges, marginals=True)
+    from gr_graph.pose_graph import position_covariance_world
+
+    # anchor both at the first pose as the pipeline does
+    est = np.linalg.inv(res.poses[0]) @ res.poses
+    ref = np.linalg.inv(gt[0]) @ gt
+    pn = position_nees(est, position_covariance_world(est, res.covariances), ref)
+    assert 1.5 < pn.mean() < 6.0
+
+
+def test_no_loops_no_calibration():
+    rng = np.random.default_rng(2)
+    gt, edges, _ = _simulated_graph(rng, K=15, n_loops=0)
+    _, res = _solve(gt, edges)
+    vf = variance_factor(res.poses, edges)
+    assert vf.sigma0_sq is None and vf.scale == 1.0 and vf.redundancy == 0
+    assert vf.summary()["method"] == "graph_residuals"
+
+
+def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    gt, edges, _ = _simulated_graph(rng, K=30, n_loops=6, true_factor=1.0)
+    _, res = _solve(gt, edges, marginals=True)
+    from gr_graph.pose_graph import position_covariance_world
+
+    rd = tmp_path / "run" / "round_1"
+    rd.mkdir(parents=True)
+    arrays = {
+        "poses": res.poses, "gt_poses": gt, "covariance": res.covariances,
+        "position_cov_world": position_covariance_world(res.poses, res.covariances),
+        "edges": np.array([(e.source, e.target) for e in edges]), "edge_T": np.array([e.T for e in edges]),
+        "edge_information": np.array([e.information for e in edges]),
+        "edge_kind": np.array([e.kind == "loop" for e in edges], np.uint8),
+        "edge_ok": np.ones(len(edges), bool),
+    }
+    arrays["edge_ok"][3] = False
+    np.savez(rd / "marginals.npz", **arrays)
+    out = round_noise_consistency(rd)
+    ref = edge_nees(arrays["edges"], arrays["edge_T"], arrays["edge_information"], gt)
+    odo = (arrays["edge_kind"] == 0) & arrays["edge_ok"]
+    assert out["edges"]["odometry"]["n"] == 28 and out["edges"]["loop"]["n"] == 6
+    assert out["edges"]["odometry"]["mean"] == pytest.approx(ref[odo].mean())
+    assert out["edges"]["n_flagged_left_out"] == 1
+    assert out["position"]["n"] == 29
+    assert main([str(tmp_path / "run"), "--json", str(tmp_path / "nees.json")]) == 0
+    assert "| 1 |" in capsys.readouterr().out
+    assert json.loads((tmp_path / "nees.json").read_text())["1"]["edges"]["loop"]["n"] == 6
+    del arrays["edge_T"]
+    np.savez(rd / "marginals.npz", **arrays)
+    with pytest.raises(ValueError, match="marginals.npz.*edge_T"):
+        round_noise_consistency(rd)
+    assert main([str(tmp_path / "run")]) == 2
+
+
+def test_loop_edges_get_learned_information_unless_odometry_only():
+    from factors.wls import solve_wls
+    from gr_graph.edge_noise import LearnedEdgeNoise
+
+    rng = np.random.default_rng(4)
+    q = np.column_stack([rng.uniform(-20, 20, (2000, 2)), rng.uniform(-2, 2, 2000)])
+    q[::3, 2] = 0.0
+    C = np.tile(np.diag([0.04, 0.04, 0.01]), (len(q), 1, 1))
+    T = _exp(np.array([0.0, 0.0, 0.02, 0.3, -0.1, 0.0]))
+    p = (q - T[:3, 3]) @ T[:3, :3]  # maps exactly onto q under T
+    preds = {900: (p, C), 100: (q, C)}
+    loop = RegistrationEdge(5, 1, T, np.eye(6), 3 * np.eye(6), 1.0, 0.0, 1, True, "", "loop")
+    cfg = load_config(overrides={"odometry": {"corr_max_distance": 0.5}})
+    en = LearnedEdgeNoise(preds.get, cfg)
+    en.apply(loop, 900, 100)
+    H = solve_wls(p, q, C, T0=T).hessian
+    np.testing.assert_allclose(loop.information, H, rtol=1e-8, atol=1e-12 * np.abs(H).max())
+    assert en.summary()["loop"]["n_learned"] == 1 and en.summary()["n_learned"] == 0
+    old = RegistrationEdge(5, 1, T, np.eye(6), 3 * np.eye(6), 1.0, 0.0, 1, True, "", "loop")
+    en2 = LearnedEdgeNoise(preds.get, load_config(overrides={"training": {"learned_noise_edges": "odometry"}}))
+    en2.apply(old, 900, 100)
+    np.testing.assert_array_equal(old.information, 3 * np.eye(6))
+    assert en2.summary()["loop"]["n_learned"] == 0
+
+
+def test_densified_view_predicts_an_evicted_frame_again():
+    from test_learning_rounds import PlaneScenes, plane_predictor
+
+    from gr_graph.config import PreprocessConfig, TrainingConfig
+    from gr_graph.densify import densified_sequence
+
+    seq = PlaneScenes(n=4)
+    calls = []
+
+    def predictor(points):
+        calls.append(len(points))
+        return plane_predictor(points)
+
+    view = densified_sequence(seq, predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
+                              preprocess=PreprocessConfig(), keep_predictions=1)
+    kept = {}
+    for i in range(4):
+        view[i]
+        kept[i] = view.predicted(seq[i].index)
+    assert view.predicted(seq[0].index) is None  # evicted
+    pts, C = view.prediction(seq[0].index)  # predicted again, identical
+    np.testing.assert_array_equal(pts, kept[0][0])
+    np.testing.assert_array_equal(C, kept[0][1])
+    assert view.n_recomputed == 1 and len(calls) == 5
+    assert view.prediction(12345) is None  # never read through the view
+
+
+def test_flagged_edges_are_left_out_of_the_variance_factor():
+    """A failed registration (constant-velocity guess 60 m off, weak fallback information) does
+    not enter sigma0^2; the loops still tie the two sides, so the redundancy counts them."""
+    rng = np.random.default_rng(5)
+    gt, edges, _ = _simulated_graph(rng, true_factor=4.0)
+    _, res = _solve(gt, edges)
+    ref = variance_factor(res.poses, edges)
+    bad = edges[70]
+    bad.T = bad.T @ _exp(np.array([0, 0, 0, 60.0, 0, 0]))
+    bad.ok = False
+    bad.information = np.diag(1.0 / np.array([0.05, 0.05, 0.05, 1.0, 1.0, 1.0]) ** 2)
+    _, res = _solve(gt, edges)
+    vf = variance_factor(res.poses, edges)
+    assert vf.n_flagged == 1 and vf.redundancy == ref.redundancy - 6
+    assert vf.sigma0_sq == pytest.approx(ref.sigma0_sq, rel=0.1)
+    # the same edge counted as a measurement would dominate the sum
+    bad.ok = True
+    assert variance_factor(res.poses, edges).sigma0_sq > 3 * ref.sigma0_sq
+
+
+@pytest.mark.slow
+def test_frame_loop_gives_loops_learned_information_and_one_scale(tmp_path):
+    """SLAM over the 160-frame revisit excerpt (16 rings) with learned edge noise from a fixed
+    covariance model (small_gicp's plane covariances x 0.01 m^2, no network): loops get H(C) too,
+    the older scan's covariances coming from far back; one scale multiplies every edge;
+    at the calibrated solution sigma0^2 is 1; NEES against ground truth is finite."""
+    from slam_support import FrameSubset, revisit_config, revisit_ranges
+
+    from gr_graph.datasets.synthetic import SyntheticSequence
+    from gr_graph.edge_noise import LearnedEdgeNoise, learned_information
+    from gr_graph.frame_loop import run_slam
+    from gr_graph.preprocess import preprocess_scan
+
+    idx = np.concatenate([np.arange(a, b) for a, b in revisit_ranges()])
+    seq = FrameSubset(SyntheticSequence(seed=0, n_rings=16), idx, "revisit16")
+    cfg = revisit_config(tmp_path)
+    asked: list[int] = []
+
+    def predictions(frame_index: int):
+        asked.append(frame_index)
+        scan = preprocess_scan(seq.parent[frame_index].points, cfg.preprocess, index=frame_index)
+        return scan.points, 0.01 * np.asarray(scan.cloud.covs())[:, :3, :3] + 1e-6 * np.eye(3)
+
+    en = LearnedEdgeNoise(predictions, cfg)
+    res = run_slam(seq, cfg, edge_noise=en)
+    s = en.summary()
+    loops = res.loops
+    assert len(loops) >= 3 and s["loop"]["n_learned"] == len(loops) and s["loop"]["n_fallback"] == 0
+    assert s["n_learned"] + s["n_fallback"] == len(res.edges) - len(loops)
+    assert min(res.frame_index[e.target] for e in loops) < idx[60]  # the older scan is from the first stretch
+    cal = s["calibration"]
+    n_ok = sum(e.ok for e in res.edges)
+    assert cal["method"] == "graph_residuals" and cal["redundancy"] == 6 * (n_ok - len(res.poses) + 1)
+    assert cal["scale"] > 0 and np.isfinite(cal["scale"])
+    # a loop's information is scale x its H(C), recomputed here from the same covariances
+    e = loops[0]
+    ps, pt = predictions(int(res.frame_index[e.source])), predictions(int(res.frame_index[e.target]))
+    li = learned_information(e.T, ps[0], pt[0], pt[1], cfg.odometry.corr_max_distance,
+                             min_eigenvalue=cfg.graph.min_information_eigenvalue)
+    np.testing.assert_allclose(e.information, cal["scale"] * li.information, rtol=1e-6)
+    # at the optimum of the calibrated Gaussian graph the variance factor is 1
+    g = PoseGraph(cfg.graph.model_copy(update={"loop_kernel": "none"}))
+    for T in res.poses:
+        g.add_pose(T)
+    for x in res.edges:
+        g.add_edge(x.source, x.target, x.T, x.information, loop=x.kind == "loop")
+    assert variance_factor(g.optimize(marginals=False).poses, res.edges).sigma0_sq == pytest.approx(1.0, rel=1e-3)
+    gt = np.linalg.inv(seq.gt_poses[0]) @ seq.gt_poses
+    edges = np.array([(x.source, x.target) for x in res.edges])
+    nees = edge_nees(edges, np.array([x.T for x in res.edges]), np.array([x.information for x in res.edges]), gt)
+    assert np.isfinite(nees).all()
