@@ -71,12 +71,17 @@ def open_root(root: Path):
     return open_sequence("00", str(root))
 
 
-def odometry(route: str, root: Path) -> dict:
-    """KISS-ICP and gr_graph odometry at 64/32/16 channels, one reading pass."""
+def odometry(route: str, root: Path, systems: tuple[str, ...]) -> dict:
+    """KISS-ICP and/or gr_graph odometry at 64/32/16 channels, one reading pass.
+
+    ``systems``: ``kiss_icp``, ``gr_graph`` (its front end; the SLAM runs report the same
+    odometry), ``vertical`` (gr_graph's front end with the vertical-angle correction, 64 channels).
+    """
     seq, desc = open_root(root)
-    fes = {(name, ch): make() for ch in CHANNELS for name, make in (("gr_graph", GrFrontEnd),
-                                                                  ("kiss_icp", KissFrontEnd))}
-    fes[(f"gr_graph + vertical {VERTICAL_DEG} deg", 64)] = GrFrontEnd(vertical_correction_deg=VERTICAL_DEG)
+    makers = {"gr_graph": GrFrontEnd, "kiss_icp": KissFrontEnd}
+    fes = {(name, ch): makers[name]() for ch in CHANNELS for name in systems if name in makers}
+    if "vertical" in systems:
+        fes[(f"gr_graph + vertical {VERTICAL_DEG} deg", 64)] = GrFrontEnd(vertical_correction_deg=VERTICAL_DEG)
     t0 = time.perf_counter()
     res = run_front_ends(seq, fes, desc=f"drift {route}")
     return {"route": route, "source": desc, "n_frames": len(seq), "wall_s": time.perf_counter() - t0, **res}
@@ -148,13 +153,16 @@ def main() -> None:
     ap.add_argument("--preset", default="kitti", help="export: synthetic preset (default: kitti)")
     ap.add_argument("--frames", default=None, help="export: frame range A:B (default: all)")
     ap.add_argument("--channels", type=int, choices=CHANNELS, default=64)
+    ap.add_argument("--systems", default="kiss_icp,gr_graph,vertical",
+                    help="odometry: comma-separated front ends (kiss_icp, gr_graph, vertical)")
     ap.add_argument("--out", type=Path, default=None, help="slam: run directory (default: ROOT.slam_C)")
     a = ap.parse_args()
     root = a.root or Path(f"/tmp/drift/{a.route}")
     if a.step == "export":
         export(a.route, root, a.preset, a.frames)
     elif a.step == "odometry":
-        atomic_write_json(RESULTS / f"drift_{a.route}_odometry.json", odometry(a.route, root))
+        atomic_write_json(RESULTS / f"drift_{a.route}_odometry.json",
+                          odometry(a.route, root, tuple(a.systems.split(","))))
     elif a.step == "slam":
         out = a.out or Path(f"{root}.slam_{a.channels}")
         atomic_write_json(RESULTS / f"drift_{a.route}_slam_{a.channels}.json", slam(a.route, root, a.channels, out))
