@@ -380,10 +380,11 @@ class _FrameLoop:
         with self.timer("graph"):
             self.graph.set_estimate(self.estimate.poses(K))
             res = self.graph.optimize(marginals=False)
-        covs = None
+        covs, marginals = None, None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):
-                covs = self.graph.marginal_covariances()
+                covs, report = self.graph.marginals_with_fallback()  # never raises on an indeterminate graph
+            marginals = report.to_dict()
         log.info("pose graph: error %.4g -> %.4g in %d iterations; %d loops", res.initial_error, res.final_error,
                  res.iterations, self.n_loops)
         return SlamResult(
@@ -399,7 +400,8 @@ class _FrameLoop:
             runtime=dict(self.timer.seconds),
             graph_error=(res.initial_error, res.final_error),
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
-                  "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason)},
+                  "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
+                  "marginals": marginals},
         )
 
 

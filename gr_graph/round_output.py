@@ -25,7 +25,9 @@ against the ground truth, both in the camera frame: RPE over 300 frames mean/RMS
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
 ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
-``config_fingerprint``; learning rounds add ``edge_noise``, ``densify`` and
+``config_fingerprint``, ``marginals`` (:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
+or how a graph gtsam could not marginalise was handled, which poses failed; None when disabled);
+learning rounds add ``edge_noise``, ``densify`` and
 ``runtime_s.training``, and every round after the first ``trajectory_change``.
 """
 
@@ -107,6 +109,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "graph_error": list(res.graph_error),
         "mean_points_per_scan": mean_points_per_scan,
         "deskew": res.info.get("deskew"),
+        "marginals": res.info.get("marginals"),
     }
 
 
