@@ -4,7 +4,9 @@ Output directory (``--out``)::
 
     config.yaml              the resolved configuration
     gt_poses_kitti.txt       ground truth of the run's frames, camera frame (when known)
-    metrics.json             per round: trajectory metrics, loops, runtimes (rewritten per round)
+    metrics.json             per round: trajectory metrics, loops, runtimes, acceptance (rewritten per round)
+    poses_kitti.txt          the final trajectory (metrics.json "final_round": the best accepted round)
+    poses_tum.txt            the same in TUM form
     trajectory.png           last round against ground truth (top-down, LiDAR frame)
     round_<r>/poses_kitti.txt    optimised poses, camera frame, KITTI format (first = identity)
     round_<r>/poses_tum.txt      the same poses in the LiDAR frame, TUM format (timestamps)
@@ -28,7 +30,10 @@ ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime
 ``config_fingerprint``, ``marginals`` (:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
 or how a graph gtsam could not marginalise was handled, which poses failed; None when disabled);
 learning rounds add ``edge_noise``, ``densify`` and
-``runtime_s.training``, and every round after the first ``trajectory_change``.
+``runtime_s.training``, and every round after the first ``trajectory_change``. Every round carries
+``accepted`` (round 0: true); learning rounds ``acceptance`` (:mod:`gr_graph.round_acceptance`).
+The run adds ``final_round`` (and why), ``accepted_rounds``, ``rejected_rounds``, ``stopped`` (after a
+rejection) and ``marginals_fallback_rounds`` (rounds whose marginals needed a fallback).
 """
 
 from __future__ import annotations
