@@ -126,3 +126,43 @@ def test_relative_pose_agreement_closed_form():
     assert a["fraction_beyond_chi2_999"] == 0.0
     b = relative_pose_agreement(ref, ref)
     assert b["p95_translation_difference_m"] == 0.0 and "median_mahalanobis2" not in b
+
+
+@pytest.mark.slow
+def test_untrained_round_is_rejected_and_round_0_is_the_final_trajectory(tmp_path):
+    """``--rounds 1`` with ``training.epochs: 0`` (an untrained network) on a short 16-channel
+    window: round 1 is rejected without ground truth, the rounds stop, and the poses at the top
+    of ``--out`` are round 0's; a rerun (resume) skips both rounds and keeps that decision."""
+    import yaml
+
+    from gr_graph.slam import main
+    from slam_support import LEARNING_RUN_FRAMES
+
+    # the default network, untrained (the small test network untrained passes too few points
+    # through the anisotropy filter: every frame falls back to its raw points, a harmless round)
+    cfg = {"training": {"epochs": 0}}
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "run"
+    argv = ["--seq", "00", "--frames", LEARNING_RUN_FRAMES, "--channels", "16", "--rounds", "2",
+            "--out", str(out), "--config", str(tmp_path / "cfg.yaml"), "--no-progress"]
+    assert main(argv) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["rounds"]) == {"0", "1"}  # stopped after the rejection: no round 2
+    r1 = m["rounds"]["1"]
+    assert r1["accepted"] is False and r1["acceptance"]["reasons"], r1["acceptance"]
+    assert m["rounds"]["0"]["accepted"] is True
+    assert m["final_round"] == 0 and m["rejected_rounds"] == [1] and "rejected" in m["stopped"]
+    for name in ("poses_kitti.txt", "poses_tum.txt"):
+        assert (out / name).read_bytes() == (out / "round_0" / name).read_bytes()
+    assert json.loads((out / "round_1" / "round.json").read_text())["accepted"] is False
+    # the test's figures: per-window entropies of both rounds, the failure/rejection rates
+    a = r1["acceptance"]
+    assert len(a["window_entropy"]) == len(a["reference_window_entropy"]) == a["n_windows"] > 0
+    assert a["reference_round"] == 0 and "relative_pose_agreement" in a
+    # ground truth agrees: the rejected round is worse
+    assert r1["slam"]["ate_rmse"] > m["rounds"]["0"]["slam"]["ate_rmse"]
+    stamp = (out / "round_1" / "round.json").stat().st_mtime_ns
+    assert main(argv) == 0  # resume: nothing recomputed, same decision
+    assert (out / "round_1" / "round.json").stat().st_mtime_ns == stamp
+    m2 = json.loads((out / "metrics.json").read_text())
+    assert m2["final_round"] == 0 and m2["rounds"]["1"]["accepted"] is False
