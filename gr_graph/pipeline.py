@@ -211,7 +211,8 @@ class SlamPipeline:
         if self._raw_scans is None:
             self._raw_scans = [np.array(s, np.float64) for s in self._round0_scans()]
         verdict = json.loads(json.dumps(evaluate_round(self.out, r, reference, summaries, ac, scans=self._raw_scans)))
-        if summary.get("acceptance") != verdict or summary.get("accepted") != verdict["accepted"]:
+        stored = json.dumps([summary.get("accepted"), summary.get("acceptance")], sort_keys=True)
+        if stored != json.dumps([verdict["accepted"], verdict], sort_keys=True):  # (NaN != NaN: compare text)
             summary["accepted"] = bool(verdict["accepted"])
             summary["acceptance"] = verdict
             write_round_summary(self.round_dir(r), summary)  # the round's folder says whether it was accepted
