@@ -61,7 +61,7 @@ def moving_then_stopped(n_move: int = 30, n_stop: int = 30, step: float = 0.8) -
 def test_window_centres_stay_inside_the_run():
     c = window_centres(100, 10, 5)
     assert c[0] == 5 and c[-1] == 94 and len(c) == 10
-    assert list(window_centres(3, 10, 5)) == [1, 2] or window_centres(3, 10, 5).min() >= 0
+    assert list(window_centres(3, 10, 5)) == [1]  # shorter than a window: its middle frame
     assert len(window_centres(0, 10, 5)) == 0
     assert len(window_centres(1000, 60, 5)) == 60
 
