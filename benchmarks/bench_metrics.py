@@ -105,7 +105,7 @@ def bench_registration(n_pairs: int, channels: list[int], seed: int) -> list[str
             )
     return [f"Data: {desc.split(', frames')[0]}; {n_pairs} pairs (seed {seed}, within 10 m, frames >= 14), "
             f"voxel {greg.DEFAULT_VOXEL} m, raw scans.", ""] + rows + [
-        "", f"Pairs and per-pair results: `benchmarks/results/global_registration/<channels>ch/`."]
+        "", "Pairs and per-pair results: `benchmarks/results/global_registration/<channels>ch/`."]
 
 
 def main() -> int:

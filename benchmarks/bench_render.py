@@ -61,8 +61,9 @@ def bench_build() -> tuple[float, float, int]:
 
 def bench_fps(n_rings: int, nthreads: int, frames: np.ndarray, preset: str = "clean", town_config=None,
               actors=None) -> tuple[float, float]:
-    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads, preset=preset, town_config=town_config,
-                            actors=actors)
+    """Frames/s and points/frame; without ``town_config`` the world (town and actors) of ``preset``."""
+    world = {} if town_config is None else {"town_config": town_config, "actors": actors}
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, nthreads=nthreads, preset=preset, **world)
     seq[int(frames[0])]  # warm up
     n_pts = 0
     t0 = time.perf_counter()
@@ -76,7 +77,7 @@ def bench_odometry(n_rings: int, start: int, n: int) -> dict[str, float]:
     """Frame-to-frame VGICP (small_gicp) from a constant-velocity guess, vs GT."""
     import small_gicp
 
-    seq = SyntheticSequence(seed=0, n_rings=n_rings)
+    seq = SyntheticSequence(seed=0, n_rings=n_rings, preset="clean")
     gt = seq.gt_poses[start:start + n + 1]
     T = np.eye(4)
     est = [T.copy()]

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     folders, timings = {}, {}
     for name, (tc, ac) in variants.items():
         folder = args.work / name.replace("+", "on_").replace("-", "off_").replace(" ", "_")
-        seq = SyntheticSequence(seed=0, town_config=tc, actors=ac)
+        seq = SyntheticSequence(seed=0, town_config=tc, actors=ac, preset="clean")
         t0 = time.perf_counter()
         write_kitti_layout(FramePairs(seq, indices), folder, overwrite=True, progress=False)
         timings[name] = time.perf_counter() - t0

@@ -1,9 +1,11 @@
 """The pieces every command line of the project shares: one spelling per flag, help with
 examples and defaults, and logging setup.
 
-Commands: ``gr_graph.slam``, ``gr_graph.global_registration``, ``gr_graph.datasets.synthetic``
-(and ``.plots``), ``gr_graph.datasets.realism``, ``training.train``, ``training.ddp``. A flag that means the same thing is
-spelled the same everywhere:
+Commands: ``gr_graph.slam``, ``gr_graph.global_registration``, ``gr_graph.densify_cli``,
+``gr_graph.datasets.synthetic`` (and ``.plots``), ``gr_graph.datasets.realism``, ``training.train``,
+``training.ddp``; the first four are also console commands (``gr-slam``, ``gr-registration``,
+``gr-densify``, ``gr-train``: ``[project.scripts]`` in pyproject.toml). A flag that means the
+same thing is spelled the same everywhere:
 
 ==================  ===================================================================
 ``--out DIR``       output directory (realism: the JSON file)
@@ -11,7 +13,8 @@ spelled the same everywhere:
 ``--seed N``        random seed
 ``--device D``      ``cpu`` or ``cuda``
 ``--frames A:B``    half-open frame range
-``--channels C``    64, 32 or 16 laser rings
+``--channels C``    64, 32 or 16 laser rings (of a 64-beam sensor)
+``--sensor NAME``   sensor / beam model: hdl64e, vlp16, os1-64 (``gr_graph.sensors``)
 ``--data-root DIR`` KITTI odometry root
 ``--point-format``  ``xyzi`` (16-byte KITTI points) or ``xyz`` (12 bytes, no intensity)
 ``--threads N``     worker threads
@@ -31,6 +34,7 @@ from typing import Any
 
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS
 from gr_graph.datasets.point_layout import POINT_FORMATS
+from gr_graph.sensors import SENSOR_MODELS
 
 __all__ = [
     "LOG_LEVELS",
@@ -44,6 +48,7 @@ __all__ = [
     "add_device",
     "add_frames",
     "add_channels",
+    "add_sensor",
     "add_data_root",
     "add_point_format",
     "add_threads",
@@ -55,6 +60,7 @@ LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 DEVICES: tuple[str, ...] = ("cpu", "cuda")
 CHANNELS: tuple[int, ...] = SUPPORTED_CHANNELS
 POINT_FORMAT_CHOICES: tuple[str, ...] = tuple(POINT_FORMATS)
+SENSOR_CHOICES: tuple[str, ...] = tuple(SENSOR_MODELS)
 _WIDTH = 79
 
 
@@ -143,6 +149,10 @@ def add_frames(p: argparse.ArgumentParser, help: str = "half-open frame range A:
 def add_channels(p: argparse.ArgumentParser, help: str = "laser rings kept (every 1st, 2nd or 4th of 64)",
                  default: int | None = 64) -> None:
     p.add_argument("--channels", type=int, choices=CHANNELS, default=default, help=help)
+
+
+def add_sensor(p: argparse.ArgumentParser, help: str = "sensor (beam model)", default: str | None = None) -> None:
+    p.add_argument("--sensor", choices=SENSOR_CHOICES, default=default, help=help)
 
 
 def add_data_root(p: argparse.ArgumentParser,

@@ -7,6 +7,8 @@ resolved configuration is written as ``config.yaml`` next to every result.
 Sections
 --------
 data        which sequence, where, how many channels, which frames
+sensor      the LiDAR that took the scans (gr_graph.sensors.SensorConfig): beams, vertical field of
+            view, rings / per-point times in the data and their units, scan period
 preprocess  range crop and voxel downsampling (the stored scans are the downsampled ones)
 odometry    the VGICP front end (small_gicp) and its failure detection
 loops       loop-closure candidates (proximity, Scan Context) and geometric verification
@@ -22,10 +24,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from gr_graph.atomic import atomic_write_text
 from gr_graph.config_errors import describe_validation_error
+from gr_graph.sensors import SensorConfig, SensorError, loop_rmse_threshold
 from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
 
@@ -38,7 +41,21 @@ class DataConfig(_Section):
 
     seq: str = "00"
     data_root: str | None = Field(None, description="KITTI odometry root; None: env GR_GRAPH_KITTI_ROOT or synthetic")
-    channels: Literal[64, 32, 16] = 64
+    dataset: Literal["auto", "kitti", "kitti_raw", "folder", "rosbag", "synthetic"] = Field(
+        "auto", description="kind of data: auto guesses it from data.path (without a path: KITTI when a root "
+        "is found, else synthetic); kitti_raw: a raw drive; folder: .bin/.pcd/.ply/.npy scans; rosbag: ROS1/ROS2 "
+        "bag or MCAP")
+    path: str | None = Field(None, description="the data to run on (bag, folder of scans, KITTI raw drive or "
+                             "odometry root); None: data_root / synthetic")
+    topic: str | None = Field(None, description="bags: the sensor_msgs/PointCloud2 topic (needed when there "
+                              "are several)")
+    timestamps: str | None = Field(None, description="folders of scans: file of one timestamp (s) a scan; None: "
+                                   "times.txt/timestamps.txt next to the scans, else 0.1 s apart")
+    poses: str | None = Field(None, description="folders of scans and bags: ground-truth LiDAR poses, KITTI "
+                              "(12 columns) or TUM (8), one a scan; None: poses.txt next to the scans")
+    channels: Literal[64, 32, 16] | None = Field(
+        None, description="rings kept: every 1st, 2nd or 4th of a 64-beam sensor (sensor.n_beams == 64 only); "
+        "None: all the sensor's beams")
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
     point_format: Literal["xyzi", "xyz"] = Field(
@@ -53,8 +70,9 @@ class DataConfig(_Section):
     trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "
                                    "pose file or KITTI root instead of the generated route")
     synthetic_preset: Literal["clean", "kitti", "raw"] | None = Field(
-        None, description="synthetic sequence: sensor effects (clean: ideal sensor; kitti: KITTI-like "
-        "errors; raw: kitti with the full motion distortion); None: the sequence's default")
+        None, description="synthetic sequence: the world and its sensor (clean: plain town, ideal sensor, "
+        "for unit tests; kitti: residential world with moving actors and KITTI-like sensor errors; raw: kitti with "
+        "the full motion distortion); None: the sequence's default (kitti)")
 
     @field_validator("frames", mode="before")
     @classmethod
@@ -123,7 +141,9 @@ class LoopConfig(_Section):
     max_correspondence_distance: float = Field(1.0, gt=0.0, description="verification, final stage [m]")
     min_inlier_ratio: float = Field(0.6, ge=0.0, le=1.0, description="fraction of source points within 1 m")
     max_rmse: float | None = Field(
-        None, gt=0.0, description="RMSE of inlier distances, final stage [m]; None: 0.35 * (64 / channels) ** 0.25"
+        None, gt=0.0, description="RMSE of inlier distances, final stage [m]; None: from the sensor's ring spacing, "
+        "0.35 * (s / s_HDL64) ** 0.25 with s = vertical field of view / rings kept (gr_graph.sensors."
+        "loop_rmse_threshold; HDL-64E: 0.350 / 0.416 / 0.495 at 64 / 32 / 16 channels, VLP-16 0.51, OS1-64 0.40)"
     )
     max_correction: float = Field(
         30.0, gt=0.0, description="reject when verification moves the guess further than this [m]"
@@ -150,11 +170,19 @@ class GraphConfig(_Section):
     marginals: bool = True
 
 
+class MapOutputConfig(_Section):
+    """The optimised map of each round (``round_<r>/map.ply``, :mod:`gr_graph.map_export`)."""
+
+    enabled: bool = Field(True, description="write the scans placed with the final trajectory as a PLY map")
+    voxel_size: float = Field(0.2, gt=0.0, description="voxel of the map: one point (the centroid) per voxel [m]")
+
+
 class OutputConfig(_Section):
     """What is written."""
 
     out_dir: str = "runs/slam"
     plot: bool = True
+    map: MapOutputConfig = MapOutputConfig()
     write_memory: bool = True
     resume: bool = Field(True, description="skip rounds whose round.json exists and whose config matches")
     progress: bool = True
@@ -242,6 +270,7 @@ class SlamConfig(_Section):
     """The whole configuration of ``python -m gr_graph.slam``."""
 
     data: DataConfig = DataConfig()
+    sensor: SensorConfig = SensorConfig()
     preprocess: PreprocessConfig = PreprocessConfig()
     odometry: OdometryConfig = OdometryConfig()
     loops: LoopConfig = LoopConfig()
@@ -251,16 +280,34 @@ class SlamConfig(_Section):
     device: Literal["cpu", "cuda"] = "cpu"
     seed: int = 0
 
+    @model_validator(mode="after")
+    def _channels_fit_sensor(self) -> "SlamConfig":
+        try:
+            n = self.sensor.effective_beams(self.data.channels)
+        except SensorError as exc:
+            raise ValueError(f"data.channels: {exc}") from None
+        if n != self.sensor.beams and self.sensor.has_ring is False:
+            raise ValueError(f"data.channels: subsampling to {n} channels needs ring indices, but sensor.has_ring "
+                             "is false")
+        return self
 
-def loop_max_rmse(loops: LoopConfig, channels: int) -> float:
-    """Loop verification RMSE threshold: explicit, or scaled with ring sparsity (0.35 m at 64).
+    @property
+    def channels(self) -> int:
+        """Rings in the scans SLAM runs on: ``data.channels``, or all the sensor's beams."""
+        return self.sensor.effective_beams(self.data.channels)
+
+
+def loop_max_rmse(loops: LoopConfig, sensor: SensorConfig, channels: int | None = None) -> float:
+    """Loop verification RMSE threshold: ``loops.max_rmse``, or scaled with the sensor's ring
+    spacing after subsampling (:func:`gr_graph.sensors.loop_rmse_threshold`: 0.35 m for the full
+    HDL-64E, exactly ``0.35 * (64 / channels) ** 0.25`` for its subsampled scans).
 
     Nearest-neighbour distances between correctly aligned scans grow as rings get sparser
     (16-channel KITTI-like scans: 0.31-0.47 m RMSE for correct loops on synthetic KITTI 00).
     """
     if loops.max_rmse is not None:
         return loops.max_rmse
-    return 0.35 * (64.0 / channels) ** 0.25
+    return loop_rmse_threshold(sensor, channels)
 
 
 class ConfigError(ValueError):

@@ -38,6 +38,10 @@ Predicted covariances: the points the network saw and its covariances are kept f
 the SLAM prefetch depth) and returned by :meth:`DensifiedSequence.predicted`, so that the learning rounds can
 build each odometry edge's information H(C) without running the network again.
 
+One cloud outside a sequence: :func:`densify_cloud` (and the ``gr-densify`` command,
+:mod:`gr_graph.densify_cli`) runs the same steps 1-4 through :func:`densify_points`, the
+function the view uses for every frame.
+
 ``checkpoint`` may be a ``model.pt`` / ``checkpoint.pt`` path, a
 ``training.network.CovarianceNet``, or any callable ``points (N, 3) -> C (N, 3, 3)`` (tests,
 hand-made covariance models).
@@ -50,6 +54,7 @@ import os
 import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -60,7 +65,8 @@ from gr_graph.preprocess import preprocess_scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS"]
+__all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS", "DensifiedPoints", "densify_points",
+           "densify_cloud"]
 
 FALLBACK_REASONS = {
     "nonfinite_covariance": "network output non-finite / not positive definite: raw frame used",
@@ -91,6 +97,114 @@ def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
     if callable(checkpoint):
         return checkpoint
     raise TypeError(f"densified_sequence: checkpoint must be a path, a CovarianceNet or a callable, got {type(checkpoint)}")
+
+
+@dataclass(frozen=True)
+class DensifiedPoints:
+    """The densification of one scan (:func:`densify_points`).
+
+    Attributes
+    ----------
+    points : (M, 3) float64
+        The output: the samples (grouped by source point, ``samples_per_point`` consecutive
+        rows each, after the kept points themselves with ``keep_original``); with the
+        ``"few_kept"`` fallback the network's input unchanged; with ``"nonfinite_covariance"``
+        empty.
+    source : (M,) int64
+        Row of ``network_input`` each output point comes from.
+    network_input : (N, 3) float64
+        The (preprocessed) points the network saw.
+    input_covariances : (N, 3, 3) float64 or None
+        The network's covariance of each input point (None with ``"nonfinite_covariance"``).
+    kept : (N,) bool
+        Which input points passed the anisotropy filter.
+    fallback : str or None
+        A key of :data:`FALLBACK_REASONS` (``"nonfinite_covariance"`` or ``"few_kept"``), or None.
+    intensity : (M,) float32 or None
+        Intensity of each output point (its source point's), when the input had intensity
+        (:func:`densify_cloud`).
+    """
+
+    points: np.ndarray
+    source: np.ndarray
+    network_input: np.ndarray
+    input_covariances: np.ndarray | None
+    kept: np.ndarray
+    fallback: str | None
+    intensity: np.ndarray | None = None
+
+    @property
+    def n_kept(self) -> int:
+        return int(self.kept.sum())
+
+    @property
+    def covariances(self) -> np.ndarray:
+        """``(M, 3, 3)``: the covariance of each output point's source point."""
+        if self.input_covariances is None:
+            return np.zeros((0, 3, 3))
+        return self.input_covariances[self.source]
+
+
+def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig, seed: Any,
+                   index: int = -1) -> DensifiedPoints:
+    """Algorithm 2, lines 3-9, on one preprocessed scan: covariances, anisotropy filter, samples.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The scan as the network sees it (preprocessed like the memory it was trained on).
+    predictor : callable
+        ``points (N, 3) -> C (N, 3, 3)`` (see :func:`_make_predictor`).
+    cfg : TrainingConfig
+        ``tau_ani``, ``samples_per_point``, ``keep_original``, ``min_kept_points``.
+    seed : int or sequence of int
+        Seed of the sampling (the pipeline: ``[training.seed, frame index]``).
+    index : int
+        Frame index, for messages.
+
+    Returns
+    -------
+    DensifiedPoints
+        With ``fallback`` set as in the module docstring: non-finite or not positive
+        definite covariances give ``"nonfinite_covariance"`` (no output points), fewer than
+        ``min_kept_points`` kept points give ``"few_kept"`` (the input points, unfiltered).
+    """
+    from training.densify import densify
+
+    s = np.asarray(points, np.float64)
+    no_kept = np.zeros(len(s), bool)
+    try:
+        C = np.asarray(predictor(s), np.float64)
+        if C.shape != (len(s), 3, 3):
+            raise ValueError(f"densify frame {index}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
+        if not np.isfinite(C).all():
+            raise FloatingPointError("non-finite covariances")
+        dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=seed,  # type: ignore[arg-type]
+                              include_original=cfg.keep_original)
+    except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
+        if isinstance(exc, ValueError) and not ("non-finite" in str(exc) or "positive definite" in str(exc)):
+            raise
+        log.debug("densify frame %d: %s", index, exc)
+        return DensifiedPoints(np.zeros((0, 3)), np.zeros(0, np.int64), s, None, no_kept, "nonfinite_covariance")
+    if int(kept.sum()) < cfg.min_kept_points:
+        return DensifiedPoints(s, np.arange(len(s), dtype=np.int64), s, C, kept, "few_kept")
+    kept_rows = np.flatnonzero(kept)
+    source = np.repeat(kept_rows, cfg.samples_per_point)
+    if cfg.keep_original:
+        source = np.concatenate([kept_rows, source])
+    return DensifiedPoints(dense, source.astype(np.int64), s, C, kept, None)
+
+
+def source_intensity(raw_points: np.ndarray, raw_intensity: np.ndarray | None, points: np.ndarray) -> np.ndarray:
+    """Intensity of the raw point nearest to each of ``points`` (zeros without intensity)."""
+    if raw_intensity is None or len(raw_points) == 0 or len(points) == 0:
+        return np.zeros(len(points), np.float32)
+    from scipy.spatial import cKDTree
+
+    finite = np.isfinite(raw_points).all(axis=1)
+    tree = cKDTree(raw_points[finite])
+    _, j = tree.query(points, k=1)
+    return np.asarray(raw_intensity, np.float32)[finite][j]
 
 
 class DensifiedSequence:
@@ -157,8 +271,6 @@ class DensifiedSequence:
                 self._predicted.popitem(last=False)
 
     def __getitem__(self, i: int) -> LidarFrame:
-        from training.densify import densify
-
         raw = self.parent[i]
         idx = int(raw.index)
         cfg = self.cfg
@@ -167,53 +279,16 @@ class DensifiedSequence:
             self._record(idx, len(scan.points), 0, len(raw.points), "unusable_scan")
             return raw
         s = scan.points
-        try:
-            C = np.asarray(self.predictor(s), np.float64)
-            if C.shape != (len(s), 3, 3):
-                raise ValueError(f"densify frame {idx}: covariances must be ({len(s)}, 3, 3), got {C.shape}")
-            if not np.isfinite(C).all():
-                raise FloatingPointError("non-finite covariances")
-            dense, kept = densify(s, C, cfg.tau_ani, cfg.samples_per_point, seed=[cfg.seed, idx],  # type: ignore[arg-type]
-                                  include_original=cfg.keep_original)
-            self._keep(idx, s, C)  # only covariances densify accepted (finite, positive definite)
-        except (FloatingPointError, np.linalg.LinAlgError) as exc:
-            log.debug("densify frame %d: %s", idx, exc)
+        res = densify_points(s, self.predictor, cfg, seed=[cfg.seed, idx], index=idx)
+        if res.fallback == "nonfinite_covariance":
             self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
             return raw
-        except ValueError as exc:
-            if "non-finite" in str(exc) or "positive definite" in str(exc):
-                log.debug("densify frame %d: %s", idx, exc)
-                self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
-                return raw
-            raise
-        n_kept = int(kept.sum())
-        src_intensity = self._source_intensity(raw, s)
-        if n_kept < cfg.min_kept_points:
-            self._record(idx, len(s), n_kept, len(s), "few_kept")
-            return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(s, np.float64),
-                              intensity=src_intensity, ring=None, n_rings=raw.n_rings,
-                              dropped_nonfinite=raw.dropped_nonfinite)
-        ki = src_intensity[kept]
-        inten = np.repeat(ki, cfg.samples_per_point)
-        if cfg.keep_original:
-            inten = np.concatenate([ki, inten])
-        self._record(idx, len(s), n_kept, len(dense), None)
-        return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(dense, np.float64),
-                          intensity=inten.astype(np.float32), ring=None, n_rings=raw.n_rings,
+        self._keep(idx, s, res.input_covariances)  # only covariances densify accepted (finite, positive definite)
+        self._record(idx, len(s), res.n_kept, len(res.points), res.fallback)
+        intensity = source_intensity(raw.points, raw.intensity, s)[res.source]
+        return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),
+                          intensity=intensity.astype(np.float32), ring=None, n_rings=raw.n_rings,
                           dropped_nonfinite=raw.dropped_nonfinite)
-
-    @staticmethod
-    def _source_intensity(raw: LidarFrame, s: np.ndarray) -> np.ndarray:
-        """Intensity of the raw point nearest to each downsampled point."""
-        if len(raw.points) == 0 or len(s) == 0:
-            return np.zeros(len(s), np.float32)
-        from scipy.spatial import cKDTree
-
-        finite = np.isfinite(raw.points).all(axis=1)
-        tree = cKDTree(raw.points[finite])
-        _, j = tree.query(s, k=1)
-        return np.asarray(raw.intensity, np.float32)[finite][j]
-
 
 def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: TrainingConfig | None = None,
                        device: str = "cpu", preprocess: PreprocessConfig | None = None,
@@ -240,3 +315,87 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
     cfg = training_cfg or TrainingConfig()
     return DensifiedSequence(sequence, _make_predictor(checkpoint, device, cfg.seed), cfg, preprocess,
                              keep_predictions)
+
+
+def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | None = None,
+                  tau_ani: float | None = None, samples_per_point: int | None = None,
+                  keep_original: bool | None = None, seed: int = 0, device: str = "cpu",
+                  preprocess: PreprocessConfig | None = None) -> DensifiedPoints:
+    """Densify one point cloud with a trained network (Algorithm 2, as the learning rounds do).
+
+    The cloud is preprocessed as SLAM preprocesses a scan (range crop around the origin,
+    voxel downsampling: the network's training input), the network predicts a covariance per
+    point, points with anisotropy above ``tau_ani`` are kept and each is replaced by
+    ``samples_per_point`` samples of ``N(s_i, C_i)``. Frame 0 of
+    :func:`densified_sequence` with the same settings gives the same points.
+
+    Example::
+
+        from gr_graph.densify import densify_cloud
+        dense = densify_cloud(points, weights="runs/slam/round_1/training/model.pt")
+        dense.points, dense.covariances   # (M, 3) and (M, 3, 3)
+
+    Parameters
+    ----------
+    points : (N, 3) or (N, >=4) array
+        The cloud in its sensor frame (a 4th column is taken as intensity when ``intensity``
+        is not given). Non-finite rows are dropped.
+    weights : path, CovarianceNet or callable
+        ``model.pt`` written by ``python -m training.train`` or by a ``gr_graph.slam
+        --rounds`` run (``round_<r>/training/model.pt``); checked on load
+        (:func:`training.trainer.load_model`).
+    intensity : (N,) array, optional
+        Per-point intensity; each output point gets its source point's (nearest raw point).
+    tau_ani, samples_per_point, keep_original : optional
+        Override ``training.tau_ani``, ``training.samples_per_point`` (M),
+        ``training.keep_original`` of :class:`gr_graph.config.TrainingConfig`.
+    seed : int
+        Seeds the network's input split and the sampling (same seed, same output).
+    device : str
+        Device of the network.
+    preprocess : PreprocessConfig, optional
+        Must match the preprocessing of the memory the network was trained on (default: the
+        defaults of :class:`gr_graph.config.PreprocessConfig`).
+
+    Returns
+    -------
+    DensifiedPoints
+        ``points`` (M, 3), ``covariances`` (M, 3, 3), ``intensity`` (M,) when the input had
+        intensity, and ``fallback``: None, or ``"few_kept"`` (too few points passed the
+        filter: the output is the preprocessed cloud, logged as a warning).
+
+    Raises
+    ------
+    ValueError
+        If ``points`` is not (N, >=3), or fewer than ``preprocess.min_points`` points remain
+        after preprocessing.
+    FloatingPointError
+        If the network's covariances are non-finite or not positive definite.
+    """
+    if weights is None:
+        raise ValueError("densify_cloud: weights is required (a model.pt from `python -m training.train` or from "
+                         "a gr_graph.slam --rounds run: round_<r>/training/model.pt)")
+    x = np.asarray(points)
+    if x.ndim != 2 or x.shape[1] < 3:
+        raise ValueError(f"densify_cloud: points must be (N, 3) or (N, >=4), got {x.shape}")
+    if intensity is None and x.shape[1] >= 4:
+        intensity = x[:, 3]
+    xyz = np.asarray(x[:, :3], np.float64)
+    pre = preprocess or PreprocessConfig()
+    updates = {k: v for k, v in (("tau_ani", tau_ani), ("samples_per_point", samples_per_point),
+                                 ("keep_original", keep_original)) if v is not None}
+    cfg = TrainingConfig(seed=seed, **updates)  # pydantic checks the ranges (ValueError)
+    scan = preprocess_scan(xyz, pre, index=0)
+    if not scan.usable:
+        raise ValueError(f"densify_cloud: only {len(scan.points)} points left after preprocessing "
+                         f"(range {pre.min_range}-{pre.max_range} m, voxel {pre.voxel_size} m; at least "
+                         f"{pre.min_points} needed)")
+    res = densify_points(scan.points, _make_predictor(weights, device, seed), cfg, seed=[seed, 0], index=0)
+    if res.fallback == "nonfinite_covariance":
+        raise FloatingPointError("densify_cloud: the network's covariances are non-finite or not positive definite")
+    if res.fallback is not None:
+        log.warning("densify_cloud: %s (%d of %d points passed tau_ani=%g)", FALLBACK_REASONS[res.fallback],
+                    res.n_kept, len(res.network_input), cfg.tau_ani)
+    inten = None if intensity is None else source_intensity(xyz, np.asarray(intensity), res.network_input)[res.source]
+    return DensifiedPoints(res.points, res.source, res.network_input, res.input_covariances, res.kept, res.fallback,
+                           inten)

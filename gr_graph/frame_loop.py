@@ -37,6 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gr_graph.config import SlamConfig, loop_max_rmse
+from gr_graph.sensors import check_sequence_sensor
 from gr_graph.datasets.base import LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
@@ -231,7 +232,10 @@ class _FrameLoop:
     def __init__(self, sequence: LidarSequence, cfg: SlamConfig, edge_noise: LearnedEdgeNoise | None) -> None:
         self.sequence = sequence
         self.cfg = cfg
-        self.loop_cfg = cfg.loops.model_copy(update={"max_rmse": loop_max_rmse(cfg.loops, cfg.data.channels)})
+        check_sequence_sensor(sequence, cfg.sensor)
+        # thresholds that depend on how sparse the rings are follow the sensor (gr_graph.sensors)
+        self.loop_cfg = cfg.loops.model_copy(update={"max_rmse": loop_max_rmse(cfg.loops, cfg.sensor,
+                                                                               cfg.data.channels)})
         self.edge_noise = edge_noise
         self.timer = StageTimer()
         self.odometry = VgicpOdometry(cfg.odometry, cfg.graph)
@@ -401,6 +405,8 @@ class _FrameLoop:
             graph_error=(res.initial_error, res.final_error),
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
+                  "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
+                             "loop_max_rmse": self.loop_cfg.max_rmse},
                   "marginals": marginals},
         )
 

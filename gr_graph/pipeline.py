@@ -53,6 +53,7 @@ from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
 from gr_graph.round_output import (
+    plot_metrics_rounds,
     plot_round,
     read_round_poses,
     read_round_summary,
@@ -60,6 +61,7 @@ from gr_graph.round_output import (
     round_summary,
     trajectory_summary,
     write_metrics,
+    write_round_map,
     write_round_results,
     write_round_summary,
 )
@@ -108,7 +110,8 @@ class SlamPipeline:
         if sequence is None:
             from gr_graph.datasets.registry import open_configured_sequence
 
-            sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+            sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed,
+                                                                    sensor=cfg.sensor)
         self.sequence = sequence
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
@@ -126,7 +129,8 @@ class SlamPipeline:
         """Run round 0 and the learning rounds; write every output; return the metrics dict."""
         self.prepare()
         metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
-                                   "channels": self.cfg.data.channels, "provenance": self.provenance(),
+                                   "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
+                                   "provenance": self.provenance(),
                                    "rounds": {}}
         previous_poses, recomputed, reference = None, False, 0
         for r in range(self.cfg.training.rounds + 1):
@@ -151,6 +155,9 @@ class SlamPipeline:
         self.write_final(metrics)
         if self.cfg.output.plot:
             self.plot(metrics["final_round"])
+            if len(metrics["rounds"]) > 1:
+                plot_metrics_rounds(self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, "
+                                                             f"{len(self.sequence)} frames")
         return metrics
 
     # -------------------------------------------------------------- steps of run()
@@ -264,11 +271,11 @@ class SlamPipeline:
         return False
 
     def plot(self, r: int) -> None:
-        """``trajectory.png``: round ``r`` against the ground truth."""
+        """``trajectory.png``: round ``r`` against the ground truth, with its position ellipses."""
         name = self.sequence.name
         plot_round(self.round_dir(r), self.out / "trajectory.png", self.gt,
                    title=f"gr_graph round {r}: {name}, {len(self.sequence)} frames, "
-                         f"{self.cfg.data.channels} channels")
+                         f"{self.cfg.channels} channels, {self.cfg.sensor.model}")
 
     # -------------------------------------------------------------- one round
     def round_dir(self, r: int) -> Path:
@@ -321,10 +328,16 @@ class SlamPipeline:
         timer = StageTimer()
         with timer("output"):
             write_round_results(rd, res, T_cv, self.gt)
+        map_counts = None
+        if cfg.output.map.enabled:
+            with timer("map"):
+                map_counts = write_round_map(rd, res, cfg.output.map.voxel_size)
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
         summary = round_summary(r, res, round_fingerprint(cfg, r), mean_points)
+        if map_counts is not None:
+            summary["map"] = map_counts
         if densified is not None:
             summary["densify"] = densified.stats()
             summary["edge_noise"] = registration_edge_noise_summary() if edge_noise is None else edge_noise.summary()
@@ -364,8 +377,8 @@ class SlamPipeline:
                 raise RuntimeError(f"round {r}: round 0 memory has {raw.n_scans} scans, this round {len(res.scans)}")
             scans = [np.array(raw.scan(k)) for k in range(raw.n_scans)]
             del raw
-        info = {"round": r, "channels": self.cfg.data.channels, "source": self.source_description,
-                "edge_H": EDGE_H_DESCRIPTION}
+        info = {"round": r, "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
+                "source": self.source_description, "edge_H": EDGE_H_DESCRIPTION}
         build_memory(res, self.cfg, info=info, scans=scans).save(self.round_dir(r) / "memory")
 
     def _anchored_gt(self) -> np.ndarray | None:

@@ -7,12 +7,16 @@ Output directory (``--out``)::
     metrics.json             per round: trajectory metrics, loops, runtimes, acceptance (rewritten per round)
     poses_kitti.txt          the final trajectory (metrics.json "final_round": the best accepted round)
     poses_tum.txt            the same in TUM form
-    trajectory.png           last round against ground truth (top-down, LiDAR frame)
+    trajectory.png           the final round against ground truth (top-down, LiDAR frame), with the
+                             3-sigma position ellipses (magnified, the legend says by how much)
+    rounds.png               with learning rounds: RPE and ATE per round (ground truth needed)
     round_<r>/poses_kitti.txt    optimised poses, camera frame, KITTI format (first = identity)
     round_<r>/poses_tum.txt      the same poses in the LiDAR frame, TUM format (timestamps)
     round_<r>/odometry_kitti.txt odometry-only poses (before loop closure), camera frame
     round_<r>/marginals.npz      see :data:`MARGINALS_KEYS`
     round_<r>/loops.json         every verified loop candidate (accepted or not) with figures
+    round_<r>/map.ply            the round's scans placed with its optimised poses, voxel-downsampled
+                                 (``output.map``; :mod:`gr_graph.map_export`)
     round_<r>/memory/            the memory of the round (:mod:`gr_graph.memory_builder`)
     round_<r>/training/          rounds r >= 1: the trainer's model.pt, checkpoint.pt, log, summary
     round_<r>/round.json         written last: the round's summary; marks the round finished
@@ -30,7 +34,8 @@ ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime
 ``config_fingerprint``, ``marginals`` (:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
 or how a graph gtsam could not marginalise was handled, which poses failed; None when disabled);
 learning rounds add ``edge_noise``, ``densify`` and
-``runtime_s.training``, and every round after the first ``trajectory_change``. Every round carries
+``runtime_s.training``, and every round after the first ``trajectory_change``; ``map``
+(points in, voxels out, voxel size) when the map is written. Every round carries
 ``accepted`` (round 0: true); learning rounds ``acceptance`` (:mod:`gr_graph.round_acceptance`).
 The run adds ``final_round`` (and why), ``accepted_rounds``, ``rejected_rounds``, ``stopped`` (after a
 rejection) and ``marginals_fallback_rounds`` (rounds whose marginals needed a fallback).
@@ -50,8 +55,9 @@ from gr_graph.frame_loop import SlamResult
 from gr_graph.pose_graph import position_covariance_world
 from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
-__all__ = ["MARGINALS_KEYS", "round_dir", "write_round_results", "round_summary", "write_round_summary",
-           "read_round_summary", "read_round_poses", "write_metrics", "plot_round"]
+__all__ = ["MARGINALS_KEYS", "round_dir", "write_round_results", "write_round_map", "round_summary",
+           "write_round_summary", "read_round_summary", "read_round_poses", "write_metrics", "plot_round",
+           "plot_metrics_rounds"]
 
 MARGINALS_KEYS = {
     "frame_index": "(K,) int64 frame index of each pose in the sequence",
@@ -101,6 +107,14 @@ def write_round_results(rd: Path, res: SlamResult, T_cam_velo: np.ndarray, gt: n
     atomic_write_json(rd / "loops.json", res.loop_attempts)
 
 
+def write_round_map(rd: Path, res: SlamResult, voxel_size: float) -> dict[str, Any]:
+    """``rd/map.ply``: the round's scans placed with its optimised poses, one point per voxel;
+    returns the counts for the round's summary."""
+    from gr_graph.map_export import map_path, write_map
+
+    return write_map(map_path(rd), res.scans, res.poses, voxel_size)
+
+
 def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_scan: float) -> dict[str, Any]:
     """The counts of a round's summary (the caller adds metrics, edge noise, runtimes)."""
     return {
@@ -114,6 +128,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "graph_error": list(res.graph_error),
         "mean_points_per_scan": mean_points_per_scan,
         "deskew": res.info.get("deskew"),
+        "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
     }
 
@@ -170,4 +185,12 @@ def plot_round(rd: Path, png: Path, gt: np.ndarray | None, title: str) -> None:
         poses = np.array(z["poses"])
         odom = np.array(z["odometry_poses"]) if "odometry_poses" in z.files else None
         edges, kind = np.array(z["edges"]), np.array(z["edge_kind"])
-    plot_trajectory(png, poses, gt, loops=edges[kind == 1], odometry=odom, title=title)
+        cov = np.array(z["position_cov_world"]) if "position_cov_world" in z.files else None
+    plot_trajectory(png, poses, gt, loops=edges[kind == 1], odometry=odom, title=title, position_cov=cov)
+
+
+def plot_metrics_rounds(out: Path, metrics: dict[str, Any], title: str) -> Path:
+    """``out/rounds.png``: RPE and ATE per round (:func:`gr_graph.plots.plot_rounds`)."""
+    from gr_graph.plots import plot_rounds
+
+    return plot_rounds(Path(out) / "rounds.png", metrics, title=title)

@@ -1,4 +1,7 @@
-"""The main command: ``python -m gr_graph.slam --seq 00 [options]``.
+"""The main command: ``python -m gr_graph.slam [PATH] [--seq 00] [options]``.
+
+PATH is any supported dataset (a ROS bag or MCAP, a folder of scans, a KITTI raw drive or
+odometry root; see :mod:`gr_graph.datasets.registry`).
 
 Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algorithm 3;
 they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
@@ -31,18 +34,20 @@ from gr_graph.cli_common import (
     add_out,
     add_point_format,
     add_seed,
+    add_sensor,
     make_parser,
     setup_logging,
 )
-from gr_graph.config import SlamConfig, load_config
-from gr_graph.datasets.registry import parse_frames
+from gr_graph.config import SlamConfig, config_to_yaml, load_config
+from gr_graph.datasets.registry import DATASETS, parse_frames
 
 
 EXAMPLES = (
+    "python -m gr_graph.slam recording.bag --topic /velodyne_points --out runs/my_bag",
     "python -m gr_graph.slam --seq 00 --frames 0:300 --out runs/synth_0_300",
     "python -m gr_graph.slam --seq 00 --data-root ../shared/data/kitti --out runs/kitti_0_6",
     "python -m gr_graph.slam --seq 00 --frames 0:400 --channels 16 --rounds 1 --out runs/c16_r1 --no-progress",
-    "python -m gr_graph.slam --seq 00 --route-seed 3 --channels 16 --out runs/route3_c16",
+    "python -m gr_graph.slam --seq 00 --sensor vlp16 --frames 0:300 --out runs/vlp16_0_300",
     "python -m gr_graph.slam --seq 00 --trajectory /path/to/kitti/poses/00.txt --frames 0:300 --out runs/along_kitti00",
 )
 
@@ -59,18 +64,37 @@ def build_parser() -> argparse.ArgumentParser:
                     "options override --config, which overrides the defaults of gr_graph/config.py.",
                     EXAMPLES)
     add_config(p, "YAML file with config sections (see gr_graph/config.py)")
-    p.add_argument("--seq", default=None, help=f"KITTI sequence (default: {d.data.seq})")
+    p.add_argument("path", nargs="?", default=None, metavar="PATH",
+                   help="data to run on: a ROS1 .bag, ROS2 bag folder or .mcap; a folder of .bin/.pcd/.ply/.npy "
+                        "scans; a KITTI raw drive; a KITTI odometry root (default: data.path, else --data-root, "
+                        "else the synthetic sequence)")
+    p.add_argument("--dataset", choices=DATASETS, default=None,
+                   help=f"kind of data at PATH (default: {d.data.dataset}: guessed from the path)")
+    p.add_argument("--topic", default=None, help="bags: the sensor_msgs/PointCloud2 topic (needed when the bag "
+                                                 "has several; the error lists them)")
+    p.add_argument("--timestamps", default=None, metavar="FILE",
+                   help="folders of scans: one timestamp (s) a scan (default: times.txt/timestamps.txt next to "
+                        "the scans, else 0.1 s apart)")
+    p.add_argument("--poses", default=None, metavar="FILE",
+                   help="folders of scans and bags: ground-truth LiDAR poses, KITTI or TUM format, one a scan")
+    p.add_argument("--seq", default=None, help=f"KITTI odometry sequence (default: {d.data.seq})")
     add_data_root(p)
-    add_point_format(p, default=None, help="layout of the KITTI .bin files: float32 x,y,z,intensity (16 bytes a "
-                                           f"point) or x,y,z (12 bytes, no intensity) (default: {d.data.point_format})")
-    add_channels(p, default=None, help=f"laser rings kept: every 1st, 2nd or 4th of 64 (default: {d.data.channels})")
+    add_point_format(p, default=None, help="layout of .bin scans (KITTI folders, raw drives, folders of .bin): float32 "
+                                           "x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes, no intensity) "
+                                           f"(default: {d.data.point_format})")
+    add_channels(p, default=None, help="laser rings kept of a 64-beam sensor: every 1st, 2nd or 4th "
+                                       "(default: all the sensor's beams)")
+    add_sensor(p, help="the sensor that took the scans (synthetic data: the beam model rendered); sets "
+                       f"sensor.model and its beams, keeping the other sensor keys (default: {d.sensor.model})")
     add_frames(p, help="half-open frame range A:B (default: all frames)")
     p.add_argument("--route-seed", type=int, default=None, metavar="N",
                    help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
     p.add_argument("--trajectory", default=None, metavar="PATH",
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
     p.add_argument("--synthetic-preset", choices=("clean", "kitti", "raw"), default=None,
-                   help="synthetic data: sensor effects preset (default: the sequence's default)")
+                   help="synthetic data: the world and its sensor: clean (plain town, ideal sensor), kitti "
+                        "(residential world, moving actors, KITTI-like sensor errors) or raw (kitti with the full "
+                        "motion distortion) (default: kitti)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
     add_out(p, f"output directory (default: {d.output.out_dir})")
@@ -86,6 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {d.data.kitti_vertical_correction_deg})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
+    p.add_argument("--dump-config", action="store_true",
+                   help="print the resolved configuration (defaults, --config, options) as YAML and exit")
+    p.add_argument("--viz", action="store_true",
+                   help="at the end, open an open3d window on the last round's map (needs a display)")
     add_no_progress(p, deprecated=("--quiet",))
     add_log_level(p)
     return p
@@ -96,10 +124,15 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}, "odometry": {}}
     if args.seq is not None:
         o["data"]["seq"] = args.seq
+    for key in ("path", "dataset", "topic", "timestamps", "poses"):
+        if getattr(args, key) is not None:
+            o["data"][key] = getattr(args, key)
     if args.data_root is not None:
         o["data"]["data_root"] = args.data_root
     if args.channels is not None:
         o["data"]["channels"] = args.channels
+    if args.sensor is not None:  # a catalogue model: its beams replace those of --config
+        o["sensor"] = {"model": args.sensor, "n_beams": None, "vertical_fov_deg": None, "elevations_deg": None}
     if args.point_format is not None:
         o["data"]["point_format"] = args.point_format
     if args.frames is not None:
@@ -145,6 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.dump_config:
+        print(config_to_yaml(cfg), end="")
+        return 0
     from gr_graph.datasets.base import DatasetError
     from gr_graph.pipeline import SlamPipeline
 
@@ -166,6 +202,12 @@ def main(argv: list[str] | None = None) -> int:
         s = final["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})
     print(json.dumps(brief))
+    if args.viz:
+        from gr_graph.map_export import map_path
+        from gr_graph.round_output import round_dir
+        from gr_graph.viewer import show_map
+
+        show_map(map_path(round_dir(cfg.output.out_dir, last["round"])), title=f"gr_graph map: {cfg.output.out_dir}")
     return 0
 
 

@@ -67,7 +67,7 @@ def revisit_sequence():
     from gr_graph.datasets.synthetic import SyntheticSequence
 
     idx = np.concatenate([np.arange(a, b) for a, b in revisit_ranges()])
-    return FrameSubset(SyntheticSequence(seed=0), idx, "revisit")
+    return FrameSubset(SyntheticSequence(seed=0, preset="clean"), idx, "revisit")
 
 
 def revisit_config(out_dir: Path):
@@ -120,7 +120,7 @@ def run_learning(root: Path) -> tuple[Path, tuple[str, ...]]:
     cfg_path = root / "config_in.yaml"
     cfg_path.write_text(yaml.safe_dump(LEARNING_RUN_CONFIG))
     argv = ["--seq", "00", "--frames", LEARNING_RUN_FRAMES, "--channels", "16", "--rounds", "1",
-            "--out", str(root / "run"), "--config", str(cfg_path), "--quiet"]
+            "--synthetic-preset", "clean", "--out", str(root / "run"), "--config", str(cfg_path), "--quiet"]
     if main(argv) != 0:
         raise RuntimeError("the short learning run failed")
     return root / "run", tuple(argv)

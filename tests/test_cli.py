@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gr_graph import global_registration, slam
+from gr_graph import densify_cli, global_registration, slam
 from gr_graph.cli_common import LOG_LEVELS, setup_logging
 from gr_graph.datasets import realism
 from gr_graph.datasets.synthetic import __main__ as synthetic_export
@@ -43,6 +43,8 @@ CLIS: dict[str, tuple[Callable[[], argparse.ArgumentParser], Callable[[list[str]
                                      "--no-progress", "--log-level"}),
     "gr_graph.datasets.synthetic.plots": (synthetic_plots.build_parser, synthetic_plots.main, [],
                                           {"--out", "--seed", "--log-level"}),
+    "gr_graph.densify_cli": (densify_cli.build_parser, densify_cli.main, ["IN.pcd", "OUT.ply", "--weights", "W"],
+                             {"--seed", "--device", "--point-format", "--log-level"}),
     "gr_graph.datasets.realism": (realism.build_parser, realism.main, ["DIR"],
                                   {"--out", "--point-format", "--no-progress", "--log-level"}),
 }
@@ -98,7 +100,7 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
                "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes", "--synthetic-preset": "noisy",
-               "--preset": "noisy", "--world": "urban"}
+               "--preset": "noisy", "--world": "urban", "--dataset": "pcap", "--sensor": "hdl32e"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 
@@ -181,7 +183,7 @@ def test_slam_refuses_12_byte_scans_and_runs_them_as_xyz(kitti_root: Path, tmp_p
 def test_slam_on_exported_12_byte_scans(tmp_path: Path, capsys) -> None:
     """The same on the synthetic exporter's output (no real data needed): the x,y,z export is
     refused by default and gives the x,y,z,intensity export's poses with --point-format xyz."""
-    frames = ["--frames", "100:104", "--no-progress"]
+    frames = ["--frames", "100:104", "--no-progress", "--preset", "clean"]
     assert synthetic_export.main(["--out", str(tmp_path / "xyzi")] + frames) == 0
     assert synthetic_export.main(["--out", str(tmp_path / "xyz"), "--point-format", "xyz"] + frames) == 0
     common = ["--channels", "16", "--no-loops", "--no-memory", "--no-progress"]

@@ -19,7 +19,7 @@ from gr_graph.datasets.channels import subsample_channels
 from gr_graph.datasets.distortion import MotionDistortedSequence
 from gr_graph.datasets.registry import SequenceView
 from gr_graph.deskew import times_from_azimuth
-from gr_graph.frame_loop import FrameDeskewer, _FrameLoop, deskew_enabled
+from gr_graph.frame_loop import _FrameLoop, deskew_enabled
 
 XI_FRAME = np.array([0.004, -0.002, 0.06, 1.3, 0.04, 0.01])  # per frame: 13 m/s, 34 deg/s yaw at 10 Hz
 DT = 0.1
@@ -220,7 +220,7 @@ def test_deskewing_recovers_most_of_the_distortion_on_a_fast_synthetic_stretch()
     from gr_graph.frame_loop import run_slam
     from gr_graph.metrics import ate, rpe_translation
 
-    seq, _ = open_sequence("00", frames=(4200, 4250))
+    seq, _ = open_sequence("00", frames=(4200, 4250), synthetic_preset="clean")
     clean = _Cached(seq)
     raw = _Cached(MotionDistortedSequence(clean, scan_period=0.1))
     assert raw.motion_compensated is False and all(f.time is not None for f in raw.frames)

@@ -130,12 +130,12 @@ def test_precision_recall_bookkeeping():
 
 
 def test_loop_rmse_threshold_scales_with_sparsity():
-    from gr_graph.config import loop_max_rmse
+    from gr_graph.config import SensorConfig, loop_max_rmse
 
-    auto = LoopConfig()
-    vals = [loop_max_rmse(auto, ch) for ch in (64, 32, 16)]
+    auto, hdl = LoopConfig(), SensorConfig()
+    vals = [loop_max_rmse(auto, hdl, ch) for ch in (64, 32, 16)]
     assert vals[0] == pytest.approx(0.35) and vals[0] < vals[1] < vals[2] < 0.5
-    assert loop_max_rmse(LoopConfig(max_rmse=0.2), 16) == 0.2
+    assert loop_max_rmse(LoopConfig(max_rmse=0.2), hdl, 16) == 0.2
 
 
 def test_schedule_checks_every_nth_usable_frame_with_cooldown_and_reoptimises():

@@ -120,6 +120,7 @@ def test_synthetic_fallback_without_kitti_root(tmp_path, monkeypatch, caplog):
         assert main(["--seq", "00", "--frames", "100:115", "--out", str(out), "--quiet", "--no-memory"]) == 0
     said = [r for r in caplog.records if "no KITTI root given or found" in r.getMessage()]
     assert len(said) == 1 and said[0].levelname == "WARNING"  # says so, in one line
+    assert "'kitti' preset of the synthetic world" in said[0].getMessage()  # the default world, by name
     m = json.loads((out / "metrics.json").read_text())
     assert "synthetic" in m["source"]
     assert load_config(out / "config.yaml").data.frames == (100, 115)

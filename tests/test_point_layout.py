@@ -35,7 +35,7 @@ SUGGEST_XYZ = r"point_format='xyz' \(command line --point-format xyz, config dat
 @pytest.fixture(scope="module")
 def synthetic_xyzi() -> np.ndarray:
     """A rendered 16-channel frame as a KITTI (N, 4) float32 array."""
-    frame = SyntheticSequence(seed=0, n_rings=16)[40]
+    frame = SyntheticSequence(seed=0, n_rings=16, preset="clean")[40]
     arr = np.empty((len(frame), 4), np.float32)
     arr[:, :3] = frame.points
     arr[:, 3] = frame.intensity
@@ -157,8 +157,8 @@ def test_too_few_points_to_judge_are_trusted(synthetic_xyzi: np.ndarray) -> None
 def test_exporter_writes_12_byte_files_that_the_loader_reads_only_as_xyz(tmp_path: Path) -> None:
     out = tmp_path / "synth"
     assert export_main(["--out", str(out), "--frames", "40:42", "--channels", "16", "--point-format", "xyz",
-                        "--no-progress"]) == 0
-    rendered = SyntheticSequence(seed=0, n_rings=16)
+                        "--no-progress", "--preset", "clean"]) == 0
+    rendered = SyntheticSequence(seed=0, n_rings=16, preset="clean")
     seq = KittiSequence(out, "00", point_format="xyz")
     for k in range(2):
         np.testing.assert_array_equal(seq[k].points, rendered[40 + k].points.astype(np.float32).astype(np.float64))

@@ -39,6 +39,7 @@ def test_two_rounds_runs_give_identical_round_1(tmp_path):
     for name in ("a", "b"):
         out = tmp_path / name
         r = subprocess.run([sys.executable, "-m", "gr_graph.slam", "--frames", "0:10", "--channels", "16", "--rounds", "1",
+                            "--synthetic-preset", "clean",
                             "--out", str(out), "--config", str(cfg), "--quiet", "--log-level", "WARNING"],
                            cwd=REPO, capture_output=True, text=True, env=env, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]

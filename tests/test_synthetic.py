@@ -26,7 +26,7 @@ from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
 @pytest.fixture(scope="module")
 def seq() -> SyntheticSequence:
-    return SyntheticSequence(seed=0)
+    return SyntheticSequence(seed=0, preset="clean")
 
 
 @pytest.fixture(scope="module")
@@ -90,10 +90,10 @@ def test_frame_shape_types_and_ranges(seq, frame1000):
 
 
 def test_max_range_and_ring_subsample(frame1000):
-    short = SyntheticSequence(seed=0, max_range=30.0)[1000]
+    short = SyntheticSequence(seed=0, max_range=30.0, preset="clean")[1000]
     assert np.linalg.norm(short.points, axis=1).max() <= 30.0
     assert len(short) < len(frame1000)
-    f16 = SyntheticSequence(seed=0, n_rings=16)[1000]
+    f16 = SyntheticSequence(seed=0, n_rings=16, preset="clean")[1000]
     assert f16.n_rings == 16 and set(np.unique(f16.ring)) == set(range(16))
     sub = frame1000.select(frame1000.ring % 4 == 0)
     # the 16-ring render is exactly every 4th ring of the 64-ring render
@@ -101,11 +101,11 @@ def test_max_range_and_ring_subsample(frame1000):
     np.testing.assert_array_equal(f16.intensity, sub.intensity)
     np.testing.assert_array_equal(f16.ring, sub.ring // 4)
     with pytest.raises(ValueError, match="max_range"):
-        SyntheticSequence(max_range=500.0)
+        SyntheticSequence(max_range=500.0, preset="clean")
 
 
 def test_deterministic_for_a_seed_and_independent_of_order(seq, frame1000):
-    other = SyntheticSequence(seed=0)
+    other = SyntheticSequence(seed=0, preset="clean")
     other[50]  # render something else first
     again = other[1000]
     np.testing.assert_array_equal(again.points, frame1000.points)
@@ -114,7 +114,7 @@ def test_deterministic_for_a_seed_and_independent_of_order(seq, frame1000):
     import pickle  # e.g. DataLoader workers: the copy renders the same frame
 
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(seq))[1000].points, frame1000.points)
-    noise1 = SyntheticSequence(seed=1, town_seed=0)[1000]  # same town, other noise
+    noise1 = SyntheticSequence(seed=1, town_seed=0, preset="clean")[1000]  # same town, other noise
     assert len(noise1) != len(frame1000) or not np.array_equal(noise1.points, frame1000.points)
     assert seq[-1].index == 4540
     with pytest.raises(IndexError):
@@ -124,7 +124,7 @@ def test_deterministic_for_a_seed_and_independent_of_order(seq, frame1000):
 @pytest.mark.slow
 def test_town_rebuild_is_bit_identical(frame1000):
     clear_scene_cache()  # rebuild the town and its ray-casting scene from scratch
-    again = SyntheticSequence(seed=0)[1000]
+    again = SyntheticSequence(seed=0, preset="clean")[1000]
     np.testing.assert_array_equal(again.points, frame1000.points)
     np.testing.assert_array_equal(again.intensity, frame1000.intensity)
 
@@ -147,11 +147,11 @@ def test_gt_poses_are_the_generated_route_and_the_rig_is_its_own(seq):
     np.testing.assert_array_equal(seq.T_cam_velo, rig.T_cam_velo())
     assert seq.path.route is route and seq.gt_poses.shape == (4541, 4, 4)
     # another route seed drives elsewhere through its own town; the noise seed is unchanged
-    other = SyntheticSequence(seed=0, route_seed=1)
+    other = SyntheticSequence(seed=0, route_seed=1, preset="clean")
     assert other.seed == seq.seed and other.route_seed == 1
     assert np.linalg.norm(other.gt_poses[-1, :3, 3] - seq.gt_poses[-1, :3, 3]) > 10.0
     with pytest.raises(ValueError, match="route_seed"):
-        SyntheticSequence(route_seed=-1)
+        SyntheticSequence(route_seed=-1, preset="clean")
 
 
 def _kitti_calib(path: Path, Tr: np.ndarray) -> None:
@@ -166,7 +166,7 @@ def test_renders_along_a_given_trajectory(tmp_path):
     base = np.linalg.inv(T[0]) @ T  # every source is re-based on its first pose
     # KITTI camera-frame file alone: the rig's Tr, 0.1 s steps
     f = write_kitti_poses(tmp_path / "a" / "poses.txt", _camera_poses(T))
-    s = SyntheticSequence(trajectory=f)
+    s = SyntheticSequence(trajectory=f, preset="clean")
     np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
     np.testing.assert_allclose(s.timestamps, np.arange(40) * 0.1, atol=1e-12)
     assert s.path.route is None and "KITTI format" in s.path.source
@@ -178,12 +178,12 @@ def test_renders_along_a_given_trajectory(tmp_path):
     write_kitti_poses(d / "poses.txt", Tr @ T @ np.linalg.inv(Tr))
     _kitti_calib(d / "calib.txt", Tr)
     (d / "times.txt").write_text("".join(f"{t:.6f}\n" for t in ts))
-    s = SyntheticSequence(trajectory=d / "poses.txt")
+    s = SyntheticSequence(trajectory=d / "poses.txt", preset="clean")
     np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
     np.testing.assert_allclose(s.T_cam_velo, Tr, atol=1e-15)
     np.testing.assert_allclose(s.timestamps, ts - ts[0], atol=1e-9)
     # TUM: LiDAR poses with their timestamps
-    s = SyntheticSequence(trajectory=write_tum_poses(tmp_path / "c.tum", ts, T))
+    s = SyntheticSequence(trajectory=write_tum_poses(tmp_path / "c.tum", ts, T), preset="clean")
     np.testing.assert_allclose(s.gt_poses, base, atol=1e-6)
     np.testing.assert_allclose(s.timestamps, ts - ts[0], atol=1e-9)
     # a KITTI root: poses/<seq>.txt, sequences/<seq>/calib.txt and times.txt
@@ -192,7 +192,7 @@ def test_renders_along_a_given_trajectory(tmp_path):
     write_kitti_poses(root / "poses" / "07.txt", Tr @ T @ np.linalg.inv(Tr))
     _kitti_calib(root / "sequences" / "07" / "calib.txt", Tr)
     (root / "sequences" / "07" / "times.txt").write_text("".join(f"{t:.6f}\n" for t in ts))
-    s = SyntheticSequence(trajectory=root, trajectory_seq="07")
+    s = SyntheticSequence(trajectory=root, trajectory_seq="07", preset="clean")
     np.testing.assert_allclose(s.gt_poses, base, atol=1e-9)
     # bad input names the file
     bad = tmp_path / "bad.txt"
@@ -200,21 +200,21 @@ def test_renders_along_a_given_trajectory(tmp_path):
     for path, msg in ((bad, "bad.txt: 3 columns"), (tmp_path / "none.txt", "none.txt: trajectory file not found"),
                       (tmp_path / "a", "no poses/00.txt")):
         with pytest.raises(DatasetError, match=msg):
-            SyntheticSequence(trajectory=path)
+            SyntheticSequence(trajectory=path, preset="clean")
 
 
 def test_renders_a_scan_along_a_given_trajectory(tmp_path):
     """The town is built around the given path: frames along it see streets on both sides."""
     T = np.asarray(generate_route(3).T_w_velo[1000:1400:4])
     s = SyntheticSequence(trajectory=write_tum_poses(tmp_path / "t.tum", np.arange(len(T)) * 0.4, T),
-                          n_rings=16, n_azimuth=500, seed=2)
+                          n_rings=16, n_azimuth=500, seed=2, preset="clean")
     f = s[50]
     assert len(f) > 3000 and s.town.path_xyz[:, :2].max(0)[0] - s.town.path_xyz[:, :2].min(0)[0] > 10
     assert repr(s).startswith("SyntheticSequence(seed=2, town_seed=2, trajectory=")
     # the exporter renders along it too, and says so
     out = tmp_path / "export"
     assert cli_main(["--out", str(out), "--trajectory", str(tmp_path / "t.tum"), "--frames", "50:51",
-                     "--seed", "2", "--channels", "16", "--n-azimuth", "500"]) == 0
+                     "--seed", "2", "--channels", "16", "--n-azimuth", "500", "--preset", "clean"]) == 0
     meta = json.loads((out / "sequences" / "00" / "synthetic.json").read_text())
     assert meta["trajectory"] == str(tmp_path / "t.tum") and "TUM format" in meta["source"]
     raw = np.fromfile(out / "sequences" / "00" / "velodyne" / "000000.bin", dtype=np.float32).reshape(-1, 4)
@@ -225,7 +225,7 @@ def test_renders_a_scan_along_a_given_trajectory(tmp_path):
 @pytest.mark.slow
 def test_renders_along_the_real_kitti00_ground_truth(kitti00_gt_dir):
     """The real KITTI 00 trajectory (../shared/data, never shipped) as the sensor path."""
-    s = SyntheticSequence(trajectory=kitti00_gt_dir / "00.txt", n_rings=16)
+    s = SyntheticSequence(trajectory=kitti00_gt_dir / "00.txt", n_rings=16, preset="clean")
     assert len(s) == 4541
     official = np.loadtxt(kitti00_gt_dir / "00.txt")
     T_cam = np.tile(np.eye(4), (4541, 1, 1))
@@ -335,7 +335,7 @@ def test_frames_register_onto_their_ground_truth(seq, i, j, from_identity):
 # ---------------------------------------------------------------- writer / CLI ----------
 def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
     out = tmp_path / "synth"
-    assert cli_main(["--out", str(out), "--frames", "20:23", "--seed", "0"]) == 0
+    assert cli_main(["--out", str(out), "--frames", "20:23", "--seed", "0", "--preset", "clean"]) == 0
     sdir = out / "sequences" / "00"
     bins = sorted((sdir / "velodyne").glob("*.bin"))
     assert [b.name for b in bins] == ["000000.bin", "000001.bin", "000002.bin"]
@@ -358,7 +358,7 @@ def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
     assert meta["route_seed"] == 0 and meta["trajectory"] is None and "generated route" in meta["source"]
     # a second run into the same folder refuses to mix runs unless --overwrite
     assert cli_main(["--out", str(out), "--frames", "0:1"]) == 2
-    assert cli_main(["--out", str(out), "--frames", "0:1", "--overwrite"]) == 0
+    assert cli_main(["--out", str(out), "--frames", "0:1", "--overwrite", "--preset", "clean"]) == 0
     assert len(list((sdir / "velodyne").glob("*.bin"))) == 1
     assert cli_main(["--out", str(out), "--frames", "9:4"]) == 2
 
@@ -366,7 +366,7 @@ def test_cli_writes_exactly_the_frames_in_kitti_layout(tmp_path, seq):
 def test_written_sequence_reads_back_through_the_kitti_loader(tmp_path, seq):
     kitti = pytest.importorskip("gr_graph.datasets.kitti")
     out = tmp_path / "synth"
-    assert cli_main(["--out", str(out), "--frames", "30:32"]) == 0
+    assert cli_main(["--out", str(out), "--frames", "30:32", "--preset", "clean"]) == 0
     ks = kitti.KittiSequence(out, seq="00")
     assert len(ks) == 2
     for k in range(2):
@@ -384,7 +384,7 @@ def test_written_sequence_reads_back_through_the_kitti_loader(tmp_path, seq):
 def test_kitti_loader_recovers_the_rendered_rings(tmp_path, seq):
     kitti = pytest.importorskip("gr_graph.datasets.kitti")
     out = tmp_path / "synth"
-    assert cli_main(["--out", str(out), "--frames", "30:31"]) == 0
+    assert cli_main(["--out", str(out), "--frames", "30:31", "--preset", "clean"]) == 0
     f = kitti.KittiSequence(out, seq="00")[0]
     assert f.ring is not None
     np.testing.assert_array_equal(f.ring, seq[30].ring)

@@ -280,3 +280,52 @@ def test_actors_avoid_obstacles():
         py = st["position"][:, 1:2] + s * u.ravel() + c * v.ravel()
         d = np.hypot(px[..., None] - obstacles[:, 0], py[..., None] - obstacles[:, 1])
         assert (d >= obstacles[:, 2]).all(), (i, a.kind)
+
+
+def test_window_recesses_put_the_glass_behind_the_wall_surface():
+    """Rays at a facade hit the wall panels ``recess`` in front of the block's face, or the glass
+    in the face itself; glass covers a window-to-wall share of the facade in 15-35 %."""
+    from gr_graph.datasets.synthetic.town import _window_facades
+
+    mb = MeshBuilder()
+    recess, depth = 0.15, 10.0
+    # a 20 m x 10 m block of three storeys centred at the origin, its long faces at y = +-5
+    _window_facades(mb, np.random.default_rng(0), np.zeros(2), 0.0, 20.0, depth, 0.0, -0.5, 9.5, 0.5, recess)
+    v, t, alb, mat = mb.build()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(t))
+    # a grid of rays towards -y onto the face at y = +5, from y = 20
+    xs, zs = np.meshgrid(np.linspace(-9.0, 9.0, 181), np.linspace(0.1, 9.0, 90))
+    rays = np.zeros((xs.size, 6), np.float32)
+    rays[:, 0], rays[:, 1], rays[:, 2], rays[:, 4] = xs.ravel(), 20.0, zs.ravel(), -1.0
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = hit["t_hit"].numpy()
+    assert np.isfinite(t_hit).all()
+    y = 20.0 - t_hit
+    glass = mat[hit["primitive_ids"].numpy()] == MATERIAL["glass"]
+    np.testing.assert_allclose(y[~glass], 0.5 * depth + recess, atol=1e-4)  # the wall surface
+    np.testing.assert_allclose(y[glass], 0.5 * depth + 0.02, atol=1e-4)  # the pane, in the block's face
+    assert 0.15 <= glass.mean() <= 0.35
+    assert not TownConfig(window_recesses=True) == TownConfig() and TownConfig(window_recesses=True).any_effect
+
+
+def test_kitti_world_keeps_the_residential_effects_and_adds_its_composition():
+    from gr_graph.datasets.synthetic.sequence import KITTI_TOWN, SyntheticSequence, preset_world
+
+    assert KITTI_TOWN == TownConfig.kitti()
+    res = TownConfig.residential()
+    for flag in ("porous_vegetation", "facade_details", "fences_hedges", "street_signs", "curved_cars",
+                 "sidewalk_parking", "detached_houses", "garden_vegetation"):
+        assert getattr(KITTI_TOWN, flag) and getattr(res, flag)
+    assert KITTI_TOWN.window_recesses and not KITTI_TOWN.low_walls
+    assert preset_world("clean") == "clean" and preset_world("kitti") == preset_world("raw") == "kitti"
+    clean, kitti = SyntheticSequence(preset="clean"), SyntheticSequence(preset="kitti")
+    assert clean.town_config == TownConfig() and clean.actors_config is None
+    assert kitti.town_config == KITTI_TOWN and kitti.actors_config == ActorsConfig()
+    # explicit parts override the preset's world; the sensor effects stay the preset's
+    assert SyntheticSequence(world="residential").town_config == res
+    mixed = SyntheticSequence(preset="kitti", world="clean")
+    assert mixed.town_config == TownConfig() and mixed.actors_config is None and not mixed.effects.is_clean
+    assert SyntheticSequence(preset="kitti", actors=None).actors_config is None
+    with pytest.raises(ValueError, match="world"):
+        SyntheticSequence(world="urban")

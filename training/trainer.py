@@ -59,12 +59,16 @@ from training.pose_layer import PoseLayerError, solve_pose
 log = logging.getLogger(__name__)
 
 __all__ = ["TrainConfig", "TrainOptions", "TrainConfigError", "TrainingError", "Trainer", "save_atomic", "load_model",
+           "CHECKPOINT_FORMAT",
            "deterministic_algorithms"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 MODEL_NAME = "model.pt"
 LOG_NAME = "train_log.jsonl"
 SUMMARY_NAME = "summary.json"
+#: Version of the layout of ``model.pt`` / ``checkpoint.pt`` (key ``format_version``); files
+#: without the key are version 0 (same layout) and load as well.
+CHECKPOINT_FORMAT = 1
 
 
 class TrainingError(RuntimeError):
@@ -106,17 +110,48 @@ def deterministic_algorithms() -> Iterator[None]:
 
 
 def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str = "cpu") -> CovarianceNet:
-    """A :class:`CovarianceNet` from a ``model.pt`` / ``checkpoint.pt`` path (or pass-through)."""
+    """A :class:`CovarianceNet` from a ``model.pt`` / ``checkpoint.pt`` path (or pass-through).
+
+    The checkpoint's ``format_version`` (:data:`CHECKPOINT_FORMAT`; checkpoints written before
+    it existed count as version 0 and load the same way) and its network configuration
+    (``net_config``, validated as :class:`training.config.NetConfig`) are checked, and the
+    weights must fit that configuration.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is no file at the path.
+    TrainingError
+        Naming the file: not a torch checkpoint, not one of the trainer's, a newer format
+        version, an invalid network configuration, or weights that do not fit it.
+    """
     if isinstance(checkpoint, CovarianceNet):
         return checkpoint
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"no model checkpoint at {path}")
-    state = torch.load(path, map_location=device, weights_only=False)
-    if "model_state" not in state or "net_config" not in state:
-        raise TrainingError(f"{path}: not a training checkpoint (missing model_state / net_config)")
-    model = CovarianceNet(NetConfig(**state["net_config"]))
-    model.load_state_dict(state["model_state"])
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+    except Exception as exc:  # torch raises pickle, zip and runtime errors for foreign files
+        raise TrainingError(f"{path}: not a torch checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(state, dict) or "model_state" not in state or "net_config" not in state:
+        raise TrainingError(f"{path}: not a training checkpoint (missing model_state / net_config); "
+                            "use a model.pt written by `python -m training.train` or a gr_graph.slam --rounds run")
+    version = int(state.get("format_version", 0))
+    if version > CHECKPOINT_FORMAT:
+        raise TrainingError(f"{path}: checkpoint format version {version} is newer than this gr_graph reads "
+                            f"({CHECKPOINT_FORMAT}); update gr_graph")
+    try:
+        net_config = NetConfig(**state["net_config"])
+    except (TypeError, ValueError) as exc:
+        raise TrainingError(f"{path}: the checkpoint's network configuration does not fit this gr_graph's "
+                            f"CovarianceNet: {exc}") from None
+    model = CovarianceNet(net_config)
+    try:
+        model.load_state_dict(state["model_state"])
+    except RuntimeError as exc:
+        raise TrainingError(f"{path}: the weights do not fit the checkpoint's network configuration "
+                            f"{net_config.to_dict()}: {str(exc).splitlines()[0]}") from None
     return model.to(device)
 
 
@@ -222,6 +257,7 @@ class Trainer:
     def state(self) -> dict[str, Any]:
         """Everything needed to resume exactly."""
         return {
+            "format_version": CHECKPOINT_FORMAT,
             "model_state": self.model.state_dict(),
             "optimizer_state": self.optimizer.state_dict(),
             "net_config": self.config.net.to_dict(),
@@ -395,7 +431,8 @@ class Trainer:
         path = self.out_dir / MODEL_NAME
         if self.rank == 0:
             save_atomic(
-                {"model_state": self.model.state_dict(), "net_config": self.config.net.to_dict(),
+                {"format_version": CHECKPOINT_FORMAT, "model_state": self.model.state_dict(),
+                 "net_config": self.config.net.to_dict(),
                  "train_config": self.config.to_dict(), "epochs_done": self.epoch},
                 path,
             )

@@ -1,4 +1,4 @@
-"""LiDAR sequences: KITTI odometry on disk and the synthetic rendering (a generated route)."""
+"""LiDAR sequences: KITTI odometry and raw drives, ROS bags and MCAP, folders of scans, and the synthetic rendering."""
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence
 

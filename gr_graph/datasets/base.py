@@ -22,6 +22,8 @@ Sequence attributes
   vehicle's GPS/IMU). ``odometry.deskew: auto`` deskews exactly the sequences that say False.
 - ``scan_period`` (optional): the sweep duration in seconds; without it the odometry takes
   the spacing of the frame timestamps.
+- ``sensor`` (optional): a :class:`gr_graph.sensors.SensorConfig` naming the sensor that took
+  the scans; SLAM refuses to run a configuration whose ``sensor`` section names another one.
 
 Pose conventions
 ----------------
@@ -130,10 +132,12 @@ def is_motion_compensated(sequence: Any) -> bool:
 
 def inherit_sweep_attributes(view: Any, parent: Any) -> None:
     """Give a view of ``parent`` (a frame subset, densified scans) the parent's sweep attributes:
-    ``motion_compensated`` and, when the parent has one, ``scan_period``."""
+    ``motion_compensated`` and, when the parent has them, ``scan_period`` and ``sensor``."""
     view.motion_compensated = is_motion_compensated(parent)
     if getattr(parent, "scan_period", None) is not None:
         view.scan_period = float(parent.scan_period)
+    if getattr(parent, "sensor", None) is not None:
+        view.sensor = parent.sensor
 
 
 def check_index(index: int, length: int, name: str) -> int:

@@ -1,8 +1,17 @@
-"""Open a LiDAR sequence by name: KITTI on disk when present, the synthetic sequence otherwise.
+"""Open a LiDAR sequence: a path of any supported format, KITTI on disk, or the synthetic sequence.
 
-The KITTI root is looked for, in order: the ``data_root`` argument, the environment variable
-``GR_GRAPH_KITTI_ROOT``, then ``./data/kitti`` and ``~/data/kitti``. A root that is given
-explicitly but lacks the sequence is an error, never a silent switch to synthetic data.
+Datasets (``dataset``; ``auto`` guesses from ``path`` with :func:`guess_dataset`):
+
+- ``kitti``: a KITTI odometry root (``sequences/XX/velodyne``, :mod:`.kitti`);
+- ``kitti_raw``: a KITTI raw drive (``velodyne_points/data``, :mod:`.kitti_raw`);
+- ``folder``: a folder of ``.bin``/``.pcd``/``.ply``/``.npy`` scans (:mod:`.folder`);
+- ``rosbag``: a ROS1 ``.bag``, a ROS2 bag folder or a ``.mcap``/``.db3`` file (:mod:`.rosbag`);
+- ``synthetic``: the rendered sequence (:mod:`.synthetic`).
+
+Without a path, the KITTI root is looked for, in order: the ``data_root`` argument, the
+environment variable ``GR_GRAPH_KITTI_ROOT``, then ``./data/kitti`` and ``~/data/kitti``; the
+synthetic sequence is used when none is found. A root that is given explicitly but lacks the
+sequence is an error, never a silent switch to synthetic data.
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index, inherit_sweep_attributes
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
+from gr_graph.sensors import CUSTOM, SensorConfig, SensorError, frame_sensor_problem
 
 if TYPE_CHECKING:
     from gr_graph.config import DataConfig
@@ -24,6 +34,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 KITTI_ROOT_ENV = "GR_GRAPH_KITTI_ROOT"
+DATASETS = ("auto", "kitti", "kitti_raw", "folder", "rosbag", "synthetic")
+"""Values of ``data.dataset`` / ``--dataset``."""
 _DEFAULT_ROOTS = (Path("data/kitti"), Path("~/data/kitti"))
 
 
@@ -154,10 +166,83 @@ def find_kitti_root(seq: str, data_root: str | os.PathLike[str] | None = None) -
     return None
 
 
+def guess_dataset(path: str | os.PathLike[str]) -> str:
+    """The dataset kind of a path (one of :data:`DATASETS` but ``auto`` and ``synthetic``).
+
+    A ``.bag``/``.mcap``/``.db3`` file or a folder with ``metadata.yaml``: ``rosbag``; a folder
+    with ``sequences/`` (or a ``sequences/XX`` folder with ``velodyne/``): ``kitti``; a folder
+    with ``velodyne_points/data`` (or ``velodyne_points`` itself): ``kitti_raw``; a folder of
+    point files: ``folder``.
+
+    Raises
+    ------
+    DatasetError
+        Naming the path and what was looked for, when it matches none.
+    """
+    from gr_graph.datasets.kitti_raw import is_kitti_raw_drive
+    from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES
+    from gr_graph.datasets.rosbag import BAG_SUFFIXES, is_bag
+
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise DatasetError(f"{p}: no such file or folder")
+    if is_bag(p):
+        return "rosbag"
+    if p.is_dir():
+        if (p / "sequences").is_dir() or ((p / "velodyne").is_dir() and p.parent.name == "sequences"):
+            return "kitti"
+        if is_kitti_raw_drive(p) or (p.name == "velodyne_points" and (p / "data").is_dir()):
+            return "kitti_raw"
+        if any(c.is_file() and c.suffix.lower() in POINT_FILE_SUFFIXES for c in p.iterdir()):
+            return "folder"
+    elif p.suffix.lower() in POINT_FILE_SUFFIXES:
+        raise DatasetError(f"{p}: a single scan; give the folder holding the scans")
+    raise DatasetError(
+        f"{p}: not a recognised dataset (looked for a ROS bag: {'/'.join(BAG_SUFFIXES)} or a folder with "
+        "metadata.yaml; a KITTI odometry root with sequences/; a KITTI raw drive with velodyne_points/data; "
+        f"a folder of {'/'.join(POINT_FILE_SUFFIXES)} scans); pass --dataset to say which"
+    )
+
+
+def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timestamps: str | None,
+               poses: str | None) -> tuple[LidarSequence, str]:
+    """Open a ``kitti_raw``, ``folder`` or ``rosbag`` path."""
+    if kind == "kitti_raw":
+        from gr_graph.datasets.kitti_raw import KittiRawSequence
+
+        drive = p.parent if p.name == "velodyne_points" else p
+        seq: LidarSequence = KittiRawSequence(drive, point_format=point_format)
+        source = f"KITTI raw drive {drive}"
+    elif kind == "folder":
+        from gr_graph.datasets.folder import FolderSequence
+
+        folder_seq = FolderSequence(p, point_format=point_format, timestamps=timestamps, poses=poses)
+        seq = folder_seq
+        source = f"folder {p} ({len(folder_seq)} {folder_seq.files[0].suffix} files)"
+    elif kind == "rosbag":
+        from gr_graph.datasets.rosbag import RosbagSequence
+
+        bag = RosbagSequence(p, topic=topic, poses=poses)
+        seq = bag
+        source = f"bag {p}, topic {bag.topic}"
+    else:
+        raise DatasetError(f"dataset {kind!r} takes no path here")
+    extras = []
+    if getattr(seq, "gt_poses", None) is not None:
+        extras.append("ground truth")
+    if not getattr(seq, "motion_compensated", True):
+        extras.append("per-point times" if kind != "kitti_raw" else "not motion-compensated")
+    if kind in ("kitti_raw", "rosbag") and timestamps is not None:
+        log.warning("a timestamps file (%s) concerns folders of scans; ignored for %s", timestamps, kind)
+    if kind == "kitti_raw" and poses is not None:
+        log.warning("a poses file (%s) is ignored for a KITTI raw drive (ground truth comes from oxts/)", poses)
+    return seq, source + (f" ({', '.join(extras)})" if extras else "")
+
+
 def open_sequence(
     seq: str = "00",
     data_root: str | os.PathLike[str] | None = None,
-    channels: int = 64,
+    channels: int | None = None,
     frames: str | slice | tuple[int, int] | None = None,
     synthetic_seed: int = 0,
     point_format: str = "xyzi",
@@ -165,17 +250,36 @@ def open_sequence(
     route_seed: int = 0,
     trajectory: str | os.PathLike[str] | None = None,
     synthetic_preset: str | None = None,
+    path: str | os.PathLike[str] | None = None,
+    dataset: str = "auto",
+    topic: str | None = None,
+    timestamps: str | os.PathLike[str] | None = None,
+    poses: str | os.PathLike[str] | None = None,
+    sensor: SensorConfig | str | None = None,
 ) -> tuple[LidarSequence, str]:
-    """Open a sequence for SLAM: KITTI if a root is given or found, else the synthetic sequence.
+    """Open a sequence for SLAM: ``path`` of any supported format, else KITTI if a root is given or
+    found, else the synthetic sequence.
 
     Parameters
     ----------
+    path : path, optional
+        A dataset of any kind of :data:`DATASETS` (guessed unless ``dataset`` says); a KITTI
+        odometry root here is the same as ``data_root``.
+    dataset : str
+        One of :data:`DATASETS`; ``auto`` guesses from ``path`` (without a path: KITTI when a
+        root is found, else synthetic).
+    topic : str, optional
+        Bags: the ``sensor_msgs/PointCloud2`` topic (needed when there are several).
+    timestamps, poses : path, optional
+        Folders of scans: timestamps and ground-truth poses files (bags: poses only); see
+        :mod:`gr_graph.datasets.folder`.
     seq : str
         KITTI sequence name. The synthetic fallback exists for ``"00"`` only.
     data_root : path, optional
         KITTI odometry root; see the module docstring for where else it is looked for.
-    channels : {64, 32, 16}
-        Keep every 1st / 2nd / 4th laser ring.
+    channels : {64, 32, 16}, optional
+        Keep every 1st / 2nd / 4th laser ring of a 64-beam sensor; None (default): every ring
+        of the sensor.
     frames : "A:B", slice or (A, B), optional
         Frame range.
     synthetic_seed : int
@@ -192,30 +296,73 @@ def open_sequence(
         KITTI only: elevation correction of every point (see
         :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
     synthetic_preset : str, optional
-        Sensor effects of the synthetic sequence (``clean``, ``kitti``, ``raw``; default: its
-        default preset). Ignored for KITTI data.
+        Preset of the synthetic sequence, its world and sensor effects (``clean``, ``kitti``,
+        ``raw``; default: ``kitti``, see
+        :data:`gr_graph.datasets.synthetic.sequence.DEFAULT_PRESET`). Ignored for KITTI data.
+    sensor : SensorConfig or str, optional
+        The sensor (a ``SensorConfig`` or a catalogue name; default: the HDL-64E). The synthetic
+        sequence renders with its beam model (catalogue models only); a KITTI-layout folder is
+        read with its beam count (ring recovery expects ``n_beams`` scan lines). Frames are
+        checked against its ``has_ring`` / ``has_time``. The view's ``sensor`` attribute.
 
     Returns
     -------
     (sequence, description)
         The sequence and a one-line description of where it comes from.
     """
-    if channels not in SUPPORTED_CHANNELS:
-        raise DatasetError(f"channels must be one of {SUPPORTED_CHANNELS}, got {channels}")
+    if channels is not None and channels not in SUPPORTED_CHANNELS:
+        raise DatasetError(f"channels must be one of {SUPPORTED_CHANNELS} (or None: all), got {channels}")
+    try:
+        sensor = (SensorConfig() if sensor is None else SensorConfig(model=sensor) if isinstance(sensor, str)
+                  else sensor)
+        n_rings = sensor.effective_beams(channels)
+    except (SensorError, ValueError) as exc:
+        raise DatasetError(f"sensor: {exc}") from None
+    if dataset not in DATASETS:
+        raise DatasetError(f"dataset must be one of {DATASETS}, got {dataset!r}")
     seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
-    root = find_kitti_root(seq, data_root)
     base: LidarSequence
+    kind = dataset
+    if path is not None:
+        p = Path(path).expanduser()
+        kind = guess_dataset(p) if dataset == "auto" else dataset
+        if not p.exists():
+            raise DatasetError(f"{p}: no such file or folder")
+        if kind == "synthetic":
+            raise DatasetError(f"the synthetic sequence takes no path (got {p}); drop it or pick another --dataset")
+        if kind == "kitti":
+            if (p / "velodyne").is_dir() and p.parent.name == "sequences":
+                p, seq = p.parent.parent, p.name
+            data_root = p
+        else:
+            if trajectory is not None:
+                raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
+                                   f"it cannot be combined with {p}")
+            base, source = _open_path(kind, p, point_format, topic, None if timestamps is None else str(timestamps),
+                                      None if poses is None else str(poses))
+            return _view(base, source, frames, sensor, n_rings)
+    elif kind in ("kitti_raw", "folder", "rosbag"):
+        raise DatasetError(f"dataset {kind!r} needs a path (python -m gr_graph.slam PATH, or data.path)")
+    root = None if kind == "synthetic" else find_kitti_root(seq, data_root)
+    if kind == "kitti" and root is None:
+        raise DatasetError(f"dataset 'kitti': no KITTI root with sequence {seq} found "
+                           f"(pass a path or --data-root, or set {KITTI_ROOT_ENV})")
+    if kind == "synthetic" and data_root is not None:
+        raise DatasetError(f"dataset 'synthetic' with a KITTI root ({data_root}): pick one")
     if root is not None and trajectory is not None:
         raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
                            f"it cannot be combined with the KITTI root {root}")
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
-        base = KittiSequence(root, seq, point_format=point_format,
-                             vertical_correction_deg=kitti_vertical_correction_deg)
+        base = KittiSequence(root, seq, point_format=point_format, n_rings=sensor.beams,
+                             vertical_correction_deg=kitti_vertical_correction_deg,
+                             recover_ring_index=sensor.has_ring is not False)
         source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
         if kitti_vertical_correction_deg:
             source += f", vertical-angle correction {kitti_vertical_correction_deg:g} deg"
+        if sensor.model != "hdl64e":
+            source += f", sensor {sensor.model} ({sensor.beams} beams)"
     else:
         if seq != "00":
             raise DatasetError(
@@ -230,23 +377,45 @@ def open_sequence(
         if kitti_vertical_correction_deg:
             log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
                         "no effect", kitti_vertical_correction_deg)
+        if sensor.model == CUSTOM:
+            raise DatasetError("the synthetic sequence renders catalogue sensors only (sensor.model: "
+                               "hdl64e, vlp16, os1-64), not a custom sensor")
         synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory,
-                                  preset=synthetic_preset)
+                                  preset=synthetic_preset, sensor=sensor.model)
         base = synth
         source = (
-            "no KITTI root given or found: using the synthetic sequence (ray cast along "
-            f"{synth.path.source}, town seed {synthetic_seed}, sensor preset {synth.preset!r}: "
+            f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
+            f"along {synth.path.source}, town seed {synthetic_seed}, the {synth.world} world"
+            f"{' with moving actors' if synth.actors_config is not None else ''}, {synth.beams.describe()}, "
+            f"sensor effects: "
             f"{synth.effects.describe()})"
         )
+    return _view(base, source, frames, sensor, n_rings)
+
+
+def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int] | None,
+          sensor: SensorConfig, n_rings: int) -> tuple[LidarSequence, str]:
+    """The frame range and channel subsampling (to ``n_rings`` of ``sensor``'s beams) of ``base``
+    as a :class:`SequenceView` whose ``sensor`` is ``sensor``; frames are checked against it."""
     start, stop = parse_frames(frames, len(base))
-    transform = None if channels == 64 else (lambda f: subsample_channels(f, channels))
-    label = "" if channels == 64 else f"-{channels}ch"
+    name = base.name
+
+    def transform(frame: LidarFrame) -> LidarFrame:
+        problem = frame_sensor_problem(frame, sensor)
+        if problem is not None:
+            raise DatasetError(f"{name}, frame {frame.index}: {problem}")
+        return frame if n_rings == sensor.beams else subsample_channels(frame, n_rings)
+
+    label = "" if n_rings == sensor.beams else f"-{n_rings}ch"
     view = SequenceView(base, start, stop, transform, label)
-    return view, f"{source}, frames {start}:{stop}, {channels} channels"
+    view.sensor = sensor
+    return view, f"{source}, frames {start}:{stop}, {n_rings} channels"
 
 
-def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple[LidarSequence, str]:
-    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``).
+def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0,
+                             sensor: SensorConfig | None = None) -> tuple[LidarSequence, str]:
+    """:func:`open_sequence` with the fields of a ``gr_graph.config.DataConfig`` (``cfg.data``)
+    and the ``sensor`` section (``cfg.sensor``; default: the HDL-64E).
 
     The one place that maps the ``data`` config section to a sequence, so that a key added
     there (e.g. ``point_format``) reaches the loader from every caller.
@@ -255,4 +424,5 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0) -> tuple
                          synthetic_seed=synthetic_seed, point_format=data.point_format,
                          kitti_vertical_correction_deg=data.kitti_vertical_correction_deg,
                          route_seed=data.route_seed, trajectory=data.trajectory,
-                         synthetic_preset=data.synthetic_preset)
+                         synthetic_preset=data.synthetic_preset, path=data.path, dataset=data.dataset,
+                         topic=data.topic, timestamps=data.timestamps, poses=data.poses, sensor=sensor)

@@ -18,7 +18,7 @@ from training.predict import predict_covariances
 from training.toy_scenes import make_memory, pose_xy_yaw, street_scene
 from training.train import main as train_main
 from training.train import train_from_memory
-from training.trainer import TrainConfig, TrainConfigError, Trainer, TrainingError, load_model
+from training.trainer import CHECKPOINT_FORMAT, TrainConfig, TrainConfigError, Trainer, TrainingError, load_model
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[2]
@@ -115,6 +115,7 @@ def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     cfg = {"epochs": 1, "progress": False, "max_corr": 200, "net": SMALL_NET}
     path = train_from_memory(memory_dir, tmp_path / "lib", cfg)
     assert path.name == "model.pt" and path.is_file()
+    assert torch.load(path, weights_only=False)["format_version"] == CHECKPOINT_FORMAT
     summary = json.loads((tmp_path / "lib" / "summary.json").read_text())
     assert summary["epochs_done"] == 1 and summary["dataset"]["n_edges"] == 5
     prov = summary["provenance"]  # what made these weights

@@ -73,7 +73,8 @@ rough surfaces (:class:`Roughness`)
 
 Presets (:func:`preset`): ``clean`` (no effect: today's render, bit-identical), ``kitti``
 (every effect, compensated motion) and ``raw`` (every effect, full distortion with per-point
-times).
+times). These are the sensor side of a preset; its world (the town and the moving actors) is
+chosen by :func:`gr_graph.datasets.synthetic.sequence.preset_world`.
 """
 
 from __future__ import annotations

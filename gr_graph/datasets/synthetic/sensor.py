@@ -1,21 +1,32 @@
-"""A Velodyne HDL-64E-like beam model and the ray caster that renders one scan.
+"""Beam models of spinning LiDARs and the ray caster that renders one scan.
 
-Beam model: 64 lasers from +2.0° down to -24.9° of elevation in two blocks, like the
-HDL-64E: the upper 32 beams every 1/3° (+2.0° .. -8.33°), the lower 32 beams evenly from
--8.83° to -24.9° (about 0.52°). Ring 0 is the highest beam. Each frame fires every beam at
-``n_azimuth`` evenly spaced azimuths starting at a per-frame random phase (real scans are
-not aligned in azimuth), sweeping counter-clockwise from the x axis (forward) as in
-KITTI's files, which are stored ring by ring from the top.
+Beam models (:class:`BeamModel`, elevations and datasheet numbers in the catalogue
+:data:`gr_graph.sensors.SENSOR_MODELS`):
+
+- ``hdl64e`` (default), Velodyne HDL-64E-like: 64 lasers from +2.0° down to -24.9° of elevation
+  in two blocks, the upper 32 beams every 1/3° (+2.0° .. -8.33°), the lower 32 beams evenly
+  from -8.83° to -24.9° (about 0.52°); 2,000 azimuth steps; 120 m;
+- ``vlp16``, Velodyne VLP-16: 16 lasers from +15° to -15° every 2° (VLP-16 datasheet); 1,800
+  azimuth steps (0.2° at 10 Hz); 100 m;
+- ``os1-64``, Ouster OS1-64 with uniform beam spacing: 64 lasers evenly over +22.5° .. -22.5°
+  (0.71° apart; OS1 Rev 6/7 datasheets); 1,024 columns (512 / 2,048 configurable); 120 m.
+
+Ring 0 is the highest beam. Each frame fires every beam at ``n_azimuth`` evenly spaced
+azimuths starting at a per-frame random phase (real scans are not aligned in azimuth),
+sweeping counter-clockwise from the x axis (forward) as in KITTI's files, which are stored
+ring by ring from the top. Every model uses the same return model (:class:`NoiseModel`) and
+sensor effects; only the beam pattern, the column count and the range differ. All beams fire
+from the sensor origin (the real sensors' few-cm beam offsets are left out).
 
 Returns: range noise ``N(0, range_sigma²)``, random drop-outs (``dropout``), extra
 drop-outs at grazing incidence and on glass, no return beyond ``max_range``, below
 ``min_range`` or into the sky. Intensity = reflectance · (0.25 + 0.75 |cos θ|) with 5 %
 multiplicative noise, quantised to 0.01 like KITTI's.
 
-All per-ray random draws are made for the full 64 × ``n_azimuth`` grid, in a fixed order,
-from a generator seeded by ``(seed, frame index)``, so frame *i* does not depend on which
-frames were rendered before, and a 32/16-ring render is exactly the corresponding rings
-of the 64-ring render.
+All per-ray random draws are made for the sensor's full ``n_beams`` × ``n_azimuth`` grid, in a
+fixed order, from a generator seeded by ``(seed, frame index)``, so frame *i* does not depend on
+which frames were rendered before, and a 32/16-ring render of a 64-beam sensor is exactly the
+corresponding rings of its 64-ring render.
 
 :func:`render_scan` is that original (``clean``) render; :func:`render_frame` adds the
 sensor effects of :mod:`.effects` (motion distortion, per-laser calibration errors, range
@@ -35,16 +46,13 @@ import numpy as np
 
 from gr_graph.datasets.synthetic.effects import LaserCalibration, SensorEffects, SweepMotion, hashed_uniform
 from gr_graph.datasets.synthetic.meshes import MATERIAL
+from gr_graph.sensors import DEFAULT_SENSOR, SensorModel, hdl64_elevations_deg, sensor_model
+
+__all__ = ["N_BEAMS", "hdl64_elevations_deg", "BeamModel", "NoiseModel", "render_scan", "render_frame",
+           "RenderedScan", "Actors", "ACTOR_ALBEDO"]
 
 N_BEAMS = 64
-
-
-def hdl64_elevations_deg() -> np.ndarray:
-    """The 64 beam elevations in degrees, ring 0 (highest) first, strictly decreasing."""
-    upper = 2.0 - np.arange(32) / 3.0
-    lower_top = upper[-1] - 0.5
-    lower = lower_top - np.arange(32) * (24.9 + lower_top) / 31.0
-    return np.concatenate([upper, lower])
+"""Beams of the default sensor, the HDL-64E."""
 
 
 @dataclass(frozen=True)
@@ -53,37 +61,69 @@ class BeamModel:
 
     Attributes
     ----------
-    n_rings : int
-        64, 32, 16, ... (must divide 64): every ``64 // n_rings``-th beam is used.
-    n_azimuth : int
-        Azimuth steps per revolution.
+    n_rings : int, optional
+        Rings rendered: all the sensor's beams (None, the default), or, for a 64-beam sensor,
+        32, 16, 8, ... (a divisor of 64): every ``64 // n_rings``-th beam.
+    n_azimuth : int, optional
+        Azimuth steps per revolution (None: the sensor's, e.g. 2,000 for the HDL-64E).
+    sensor : str
+        Catalogue name of the beam pattern (``hdl64e``, ``vlp16``, ``os1-64``; see
+        :data:`gr_graph.sensors.SENSOR_MODELS`).
     """
 
-    n_rings: int = 64
-    n_azimuth: int = 2000
+    n_rings: int | None = None
+    n_azimuth: int | None = None
+    sensor: str = DEFAULT_SENSOR
 
     def __post_init__(self) -> None:
-        if self.n_rings < 1 or N_BEAMS % self.n_rings:
-            raise ValueError(f"n_rings must divide {N_BEAMS} (64, 32, 16, 8, ...), got {self.n_rings}")
+        model = sensor_model(self.sensor)  # raises for an unknown name
+        object.__setattr__(self, "sensor", model.name)
+        n_beams = model.n_beams
+        if self.n_rings is None:
+            object.__setattr__(self, "n_rings", n_beams)
+        if self.n_azimuth is None:
+            object.__setattr__(self, "n_azimuth", model.n_azimuth)
+        if self.n_rings != n_beams and (n_beams != 64 or self.n_rings < 1 or n_beams % self.n_rings):
+            raise ValueError(
+                f"n_rings must be {n_beams} (all beams of the {model.name})" if n_beams != 64 else
+                f"n_rings must divide {n_beams} (64, 32, 16, 8, ...), got {self.n_rings}")
         if self.n_azimuth < 8:
             raise ValueError(f"n_azimuth must be >= 8, got {self.n_azimuth}")
 
     @property
+    def model(self) -> SensorModel:
+        """The catalogue entry of the sensor."""
+        return sensor_model(self.sensor)
+
+    @property
+    def n_beams(self) -> int:
+        """Beams of the sensor (the full grid the random draws cover)."""
+        return self.model.n_beams
+
+    def full_elevations_deg(self) -> np.ndarray:
+        """Elevations of all the sensor's beams in degrees (ring 0 first)."""
+        return np.asarray(self.model.elevations_deg, np.float64)
+
+    @property
     def beam_indices(self) -> np.ndarray:
-        """Indices into the 64-beam pattern of the beams used (ring r -> beam_indices[r])."""
-        return np.arange(0, N_BEAMS, N_BEAMS // self.n_rings)
+        """Indices into the sensor's beam pattern of the beams used (ring r -> beam_indices[r])."""
+        return np.arange(0, self.n_beams, self.n_beams // self.n_rings)
 
     @property
     def elevations_deg(self) -> np.ndarray:
         """Elevation of each ring in degrees (ring 0 first)."""
-        return hdl64_elevations_deg()[self.beam_indices]
+        return self.full_elevations_deg()[self.beam_indices]
+
+    def describe(self) -> str:
+        """One line, e.g. ``sensor vlp16 (16 of 16 beams, 1800 azimuth steps)``."""
+        return f"sensor {self.sensor} ({self.n_rings} of {self.n_beams} beams, {self.n_azimuth} azimuth steps)"
 
     def directions(self, phase: float) -> np.ndarray:
-        """Unit ray directions ``(64 * n_azimuth, 3)`` of the FULL 64-beam grid, ring-major."""
-        el = np.radians(hdl64_elevations_deg())
+        """Unit ray directions ``(n_beams * n_azimuth, 3)`` of the sensor's FULL beam grid, ring-major."""
+        el = np.radians(self.full_elevations_deg())
         az = phase + 2.0 * np.pi * np.arange(self.n_azimuth) / self.n_azimuth
         ce, se = np.cos(el)[:, None], np.sin(el)[:, None]
-        d = np.empty((N_BEAMS, self.n_azimuth, 3))
+        d = np.empty((self.n_beams, self.n_azimuth, 3))
         d[..., 0] = ce * np.cos(az)
         d[..., 1] = ce * np.sin(az)
         d[..., 2] = se
@@ -149,8 +189,8 @@ def render_scan(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarr
     import open3d as o3d
 
     n_az = beams.n_azimuth
-    n_all = N_BEAMS * n_az
-    # fixed draw order over the full 64-beam grid (independent of n_rings and of the hits)
+    n_all = beams.n_beams * n_az
+    # fixed draw order over the sensor's full beam grid (independent of n_rings and of the hits)
     phase = rng.uniform(0.0, 2.0 * np.pi / n_az)
     range_noise = rng.standard_normal(n_all, dtype=np.float32)
     u_drop = rng.random(n_all, dtype=np.float32)
@@ -158,7 +198,7 @@ def render_scan(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarr
 
     d = beams.directions(phase)
     sel = None
-    if beams.n_rings != N_BEAMS:
+    if beams.n_rings != beams.n_beams:
         sel = (beams.beam_indices[:, None] * n_az + np.arange(n_az)[None, :]).ravel()
         d = d[sel]
         range_noise, u_drop, u_int = range_noise[sel], u_drop[sel], u_int[sel]
@@ -248,7 +288,7 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
     import open3d as o3d
 
     n_az = beams.n_azimuth
-    n_all = N_BEAMS * n_az
+    n_all = beams.n_beams * n_az
     # the original draws first, in the original order, then the effects' draws
     phase = rng.uniform(0.0, 2.0 * np.pi / n_az)
     range_noise = rng.standard_normal(n_all, dtype=np.float32)
@@ -263,7 +303,7 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
 
     beam_idx = beams.beam_indices
     n_r = len(beam_idx)
-    el_nom = np.radians(hdl64_elevations_deg())[beam_idx]
+    el_nom = np.radians(beams.full_elevations_deg())[beam_idx]
     az_col = phase + 2.0 * np.pi * np.arange(n_az) / n_az
     caz, saz = np.cos(az_col), np.sin(az_col)
     el_true = el_nom
@@ -298,7 +338,7 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
         ray_time = np.broadcast_to(motion.column_time[None, :], (n_r, n_az)).ravel()
     rays = rays.reshape(-1, 6)
     sel = (beam_idx[:, None] * n_az + np.arange(n_az)[None, :]).ravel()
-    if n_r != N_BEAMS:
+    if n_r != beams.n_beams:
         range_noise, u_drop, u_int, u_mix = range_noise[sel], u_drop[sel], u_int[sel], u_mix[sel]
 
     hit = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)

@@ -3,9 +3,13 @@
 Frames are ray cast (open3d ``RaycastingScene``) from the poses of the sensor path
 (:mod:`.path`: by default the project's own route generated from ``route_seed``
 (:mod:`.route`), or a given trajectory) into a procedural town built around that path
-(:mod:`.town`) with an HDL-64E-like beam model (:mod:`.sensor`) and the sensor effects of a
-preset (:mod:`.effects`: ``clean``, ``kitti``, ``raw``). The town is built lazily, once per
-process, town seed and path, and cached; frames are not cached.
+(:mod:`.town`) with the beam model of a sensor (:mod:`.sensor`: HDL-64E-like by default, VLP-16,
+Ouster OS1-64). A preset is the whole world:
+``kitti`` (the default) is the residential town of :meth:`.town.TownConfig.kitti` with moving
+vehicles and pedestrians (:mod:`.actors`) seen through KITTI-like sensor effects
+(:mod:`.effects`); ``raw`` is the same without motion compensation; ``clean`` is the plain
+town without actors through an ideal sensor (for unit tests). The town is built lazily, once
+per process, town seed and path, and cached; frames are not cached.
 """
 
 from __future__ import annotations
@@ -29,13 +33,48 @@ from gr_graph.datasets.synthetic.effects import (PRESETS, SensorEffects, draw_la
                                                  preset as preset_effects, sweep_motion)
 from gr_graph.datasets.synthetic.sensor import ACTOR_ALBEDO, BeamModel, NoiseModel, render_frame
 from gr_graph.datasets.synthetic.town import Town, TownConfig, build_town
+from gr_graph.sensors import DEFAULT_SENSOR, SensorConfig
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PRESET = "clean"
-"""The sensor preset of :class:`SyntheticSequence` when none is given. Still ``clean``: the
-``kitti`` sensor effects alone do not bring the realism statistics within the +-25 % target
-(``benchmarks/results/realism.md``); switch here once the world's effects close the gap."""
+DEFAULT_PRESET = "kitti"
+"""The preset of :class:`SyntheticSequence` when none is given: the KITTI-like world (sensor
+effects and world effects, see :func:`preset_world`). Unit tests that need an ideal world ask
+for ``clean`` explicitly."""
+
+WORLDS = ("clean", "residential", "kitti")
+"""The worlds: ``clean`` (``TownConfig()``, no moving actors), ``residential``
+(``TownConfig.residential()``, every world effect at its first amounts, and ``ActorsConfig()``)
+and ``kitti`` (:data:`KITTI_TOWN` and ``ActorsConfig()``, the world of the ``kitti`` preset)."""
+
+KITTI_TOWN = TownConfig.kitti()
+"""The town of the ``kitti`` and ``raw`` presets: every world effect on, at the amounts of
+:meth:`TownConfig.kitti` (see it for the parameters and where they come from)."""
+
+_FROM_WORLD = object()
+"""Sentinel: take the moving actors from the world."""
+
+
+def preset_world(preset: str) -> str:
+    """The world of preset ``preset``: ``clean`` for ``clean``, ``kitti`` for ``kitti``/``raw``.
+
+    A preset is the whole KITTI-like world: the sensor effects of :func:`.effects.preset` and
+    this world (town effects and moving actors).
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"unknown synthetic preset {preset!r}; choose from {PRESETS}")
+    return "clean" if preset == "clean" else "kitti"
+
+
+def world_parts(world: str) -> tuple[TownConfig, ActorsConfig | None]:
+    """The town configuration and the actors of world ``world`` (one of :data:`WORLDS`)."""
+    if world == "clean":
+        return TownConfig(), None
+    if world == "residential":
+        return TownConfig.residential(), ActorsConfig()
+    if world == "kitti":
+        return KITTI_TOWN, ActorsConfig()
+    raise ValueError(f"unknown synthetic world {world!r}; choose from {WORLDS}")
 
 _CACHE: "OrderedDict[tuple, tuple[Town, object]]" = OrderedDict()
 _CACHE_SIZE = 2
@@ -76,13 +115,15 @@ class SyntheticSequence:
     seed : int
         Seeds the per-frame noise (from ``(seed, frame index)``) and, unless ``town_seed``
         is given, the town. Same seeds -> bit-identical frames.
-    n_rings : int
-        64, 32 or 16 (any divisor of 64): every ``64 // n_rings``-th HDL-64E beam. A
-        lower-ring render equals those rings of the 64-ring render exactly.
-    max_range : float
-        Returns beyond this range (m) are dropped (at most ``ground_extent - 5`` = 130 m).
-    n_azimuth : int
-        Azimuth steps per revolution.
+    n_rings : int, optional
+        Rings rendered; None (default): all the sensor's beams. For a 64-beam sensor also 32 or
+        16 (any divisor of 64): every ``64 // n_rings``-th beam; a lower-ring render equals those
+        rings of the 64-ring render exactly.
+    max_range : float, optional
+        Returns beyond this range (m) are dropped (at most ``ground_extent - 5`` = 130 m);
+        None: the sensor's (HDL-64E and OS1-64 120 m, VLP-16 100 m).
+    n_azimuth : int, optional
+        Azimuth steps per revolution; None: the sensor's (2,000, 1,800, 1,024).
     range_sigma, dropout, min_range : float
         See :class:`~gr_graph.datasets.synthetic.sensor.NoiseModel`.
     town_seed : int, optional
@@ -98,20 +139,30 @@ class SyntheticSequence:
     trajectory_seq : str
         The sequence whose poses are used when ``trajectory`` is a KITTI root.
     preset : str
-        Sensor effects (:mod:`.effects`): ``clean`` (an ideal sensor, constant 2 cm range
-        noise), ``kitti`` (calibration errors, range noise growing with range and incidence,
-        mixed pixels, rough surfaces, the residual motion distortion of KITTI's GPS/IMU
-        compensation) or ``raw`` (the same with the full motion distortion and per-point
-        ``time``). Default :data:`DEFAULT_PRESET`.
+        The world and its sensor: ``clean`` (the plain town without moving actors, an ideal
+        sensor with constant 2 cm range noise: for unit tests), ``kitti`` (the residential
+        world of :data:`KITTI_TOWN` with moving vehicles and pedestrians, and the sensor
+        effects of :mod:`.effects`: calibration errors, range noise growing with range and
+        incidence, mixed pixels, rough surfaces, the residual motion distortion of KITTI's
+        GPS/IMU compensation) or ``raw`` (the same with the full motion distortion and
+        per-point ``time``). Default :data:`DEFAULT_PRESET`.
     effects : SensorEffects, optional
-        Explicit effects, overriding ``preset`` (e.g. one effect alone).
+        Explicit sensor effects, overriding those of ``preset`` (e.g. one effect alone); the
+        world still follows ``preset`` (or ``world``).
+    world : str, optional
+        ``clean``, ``residential`` or ``kitti`` (:data:`WORLDS`), overriding the world of
+        ``preset`` (:func:`preset_world`).
     town_config : TownConfig, optional
-        The town's layout and world effects (default ``TownConfig()``: every effect off;
-        ``TownConfig.residential()``: every world effect on).
+        The town's layout and world effects, overriding the world's (``TownConfig()``: every
+        effect off; ``TownConfig.residential()``: every world effect on).
     actors : ActorsConfig or object, optional
-        Moving vehicles and pedestrians: an :class:`~gr_graph.datasets.synthetic.actors.ActorsConfig`
-        (built on first use, seeded by the town seed) or any object with
-        ``cast(origins, directions, times)``; None = none.
+        Moving vehicles and pedestrians, overriding the world's: an
+        :class:`~gr_graph.datasets.synthetic.actors.ActorsConfig` (built on first use, seeded by
+        the town seed) or any object with ``cast(origins, directions, times)``; None = none.
+    sensor : str
+        The beam model, a catalogue name of :data:`gr_graph.sensors.SENSOR_MODELS`: ``hdl64e``
+        (default), ``vlp16`` or ``os1-64``. The sweep lasts the effects' ``sweep_seconds`` (0.1 s:
+        10 Hz, the route's rate and every model's catalogue rate).
 
     Attributes
     ----------
@@ -122,22 +173,27 @@ class SyntheticSequence:
         False for the ``raw`` motion distortion (the scans need deskewing), else True.
     scan_period : float
         Sweep duration (s).
+    sensor : gr_graph.sensors.SensorConfig
+        The sensor's description (rings in the data; per-point times with the ``raw`` preset).
     """
 
-    def __init__(self, seed: int = 0, n_rings: int = 64, max_range: float = 120.0,
-                 n_azimuth: int = 2000, range_sigma: float = 0.02, dropout: float = 0.02,
+    def __init__(self, seed: int = 0, n_rings: int | None = None, max_range: float | None = None,
+                 n_azimuth: int | None = None, range_sigma: float = 0.02, dropout: float = 0.02,
                  min_range: float = 1.0, town_seed: int | None = None, nthreads: int = 0,
                  route_seed: int = 0, trajectory: str | os.PathLike[str] | None = None,
                  trajectory_seq: str = "00", preset: str | None = None,
                  effects: SensorEffects | None = None, town_config: TownConfig | None = None,
-                 actors=None):
+                 actors=_FROM_WORLD, world: str | None = None, sensor: str = DEFAULT_SENSOR):
         self.seed = int(seed)
         self.town_seed = self.seed if town_seed is None else int(town_seed)
         self.route_seed = int(route_seed)
         if self.seed < 0 or self.town_seed < 0 or self.route_seed < 0:
             raise ValueError(f"seeds must be >= 0, got seed={seed}, town_seed={town_seed}, "
                              f"route_seed={route_seed}")
-        self.beams = BeamModel(n_rings=int(n_rings), n_azimuth=int(n_azimuth))
+        self.beams = BeamModel(n_rings=None if n_rings is None else int(n_rings),
+                               n_azimuth=None if n_azimuth is None else int(n_azimuth), sensor=sensor)
+        model = self.beams.model
+        max_range = model.max_range if max_range is None else float(max_range)
         limit = TownConfig().ground_extent - 5.0
         if not 0 < max_range <= limit:
             raise ValueError(f"max_range must be in (0, {limit}] m (the town's ground extends "
@@ -151,8 +207,12 @@ class SyntheticSequence:
         self.effects = preset_effects(self.preset) if effects is None else effects
         if effects is not None:
             self.preset = "custom"
-        self.laser_calib = draw_laser_calibration(self.effects.calibration, self.seed)
-        self.town_config = town_config or TownConfig()
+        self.laser_calib = draw_laser_calibration(self.effects.calibration, self.seed, n_beams=model.n_beams)
+        self.world = preset_world(DEFAULT_PRESET if preset is None else str(preset)) if world is None else world
+        world_town, world_actors = world_parts(self.world)
+        self.town_config = world_town if town_config is None else town_config
+        if actors is _FROM_WORLD:
+            actors = world_actors
         self.actors_config = actors if isinstance(actors, ActorsConfig) else None
         self._actors = None if isinstance(actors, ActorsConfig) else actors
         self.motion_compensated = self.effects.motion.mode != "raw"
@@ -161,7 +221,9 @@ class SyntheticSequence:
         self.trajectory = None if trajectory is None else str(trajectory)
         self.path = (route_path(self.route_seed) if trajectory is None
                      else trajectory_path(trajectory, trajectory_seq))
-        self.name = "synthetic-00"
+        self.name = "synthetic-00" if model.name == DEFAULT_SENSOR else f"synthetic-00-{model.name}"
+        self.sensor = SensorConfig(model=model.name, has_ring=True, has_time=not self.motion_compensated,
+                                   scan_period=self.scan_period)
         self.timestamps = self.path.times.copy()
         self.T_cam_velo = self.path.T_cam_velo.copy()
         self.gt_poses = self.path.T_w_velo.copy()
@@ -192,11 +254,12 @@ class SyntheticSequence:
         where = (f"route_seed={self.route_seed}" if self.trajectory is None
                  else f"trajectory={self.trajectory!r}")
         return (f"SyntheticSequence(seed={self.seed}, town_seed={self.town_seed}, {where}, "
-                f"n_rings={self.n_rings}, max_range={self.noise.max_range}, "
-                f"n_azimuth={self.beams.n_azimuth}, preset={self.preset!r}, "
+                f"sensor={self.beams.sensor!r}, n_rings={self.n_rings}, max_range={self.noise.max_range}, "
+                f"n_azimuth={self.beams.n_azimuth}, preset={self.preset!r}, world={self.world!r}, "
                 f"effects={self.effects.describe()!r}"
-                + (f", town_config={self.town_config}" if self.town_config != TownConfig() else "")
-                + (f", actors={self.actors_config}" if self.actors_config is not None else "") + ")")
+                + (f", town_config={self.town_config}" if self.town_config != world_parts(self.world)[0] else "")
+                + (f", actors={self.actors_config}" if self.actors_config != world_parts(self.world)[1] else "")
+                + ")")
 
     def frame_rng(self, index: int) -> np.random.Generator:
         """The generator of frame ``index``'s noise: seeded by ``(seed, index)`` only."""

@@ -39,7 +39,15 @@ preset). Each draws from its own generator, so turning one on never moves the ot
   clear of the oncoming lane;
 - ``detached_houses``: 8-17.6 m buildings with 3-14 m gaps (residential streets);
 - ``garden_vegetation``: shrubs and small trees in the front gardens 8.8-16 m off the path;
-- ``terrain_roughness``: 1 m-scale height noise (σ, m) on lawns and verges beyond the sidewalk.
+- ``terrain_roughness``: 1 m-scale height noise (σ, m) on lawns and verges beyond the sidewalk;
+- ``window_recesses``: the wall surface of every facade stands ``window_recess`` (0.15 m by default) in
+  front of the glass of its windows (about 15-35 % of the facade).
+
+Composition amounts (``hedge_fraction``, ``hedge_height``, ``property_gap``, ``low_walls``,
+``garden_shrub_*``, ``garden_tree_fraction``, ``street_tree_spacing``, ``roadside_bush_spacing``,
+``building_setback_max``, ``parking_*``) default to the original town;
+``TownConfig.kitti()`` sets them to the residential streets of KITTI 00 (the world of the
+``kitti`` preset; see its docstring).
 """
 
 from __future__ import annotations
@@ -115,25 +123,99 @@ class TownConfig:
     the path), as in the residential streets of KITTI 00."""
     garden_spacing: tuple[float, float] = (2.5, 8.0)
     """Distance (m) along the street between two garden plantings (where there is room)."""
+    hedge_fraction: float = 0.4
+    """Fraction of the property-line elements (``fences_hedges``) that are hedges; the rest are
+    picket fences and railings in the ratio 35:25."""
+    hedge_height: tuple[float, float] = (0.9, 1.8)
+    """Height range (m) of the property-line hedges."""
+    property_gap: tuple[float, float] = (1.0, 8.0)
+    """Gap (m) along the street between two property-line elements."""
+    garden_shrub_radii: tuple[float, float] = (0.5, 1.2)
+    """Range (m) of the vertical semi-axis of a front-garden shrub (its top is 1.6 of it above
+    the ground: 0.8-1.9 m by default)."""
+    garden_shrub_width: tuple[float, float] = (0.5, 1.5)
+    """Range (m) of the horizontal semi-axes of a front-garden shrub."""
+    roadside_bush_spacing: tuple[float, float] = (3.0, 14.0)
+    """Distance (m) along the street between two bushes 7.6-10 m off the path."""
+    garden_tree_fraction: float = 0.35
+    """Fraction of the front-garden plantings that are small trees (the rest are shrubs)."""
+    window_recesses: bool = False
+    """Facades with recessed windows: the wall surface stands ``window_recess`` in front of the
+    glass, which fills windows 1.0-1.6 m wide and 1.2-1.6 m high (sill 0.8-1.0 m above the
+    storey floor), every 2.2-3.6 m along each storey (3 m): a window-to-wall ratio of about
+    15-35 %. Glass loses returns like car windows (``NoiseModel.glass_dropout``)."""
+    window_recess: float = 0.15
+    """Depth (m) of a window reveal. German masonry walls are 0.3-0.5 m thick (e.g. 36.5 cm
+    solid brick, 17.5 cm sand-lime brick + 12-16 cm insulation) and the window frame sits in
+    the middle or the inner third of the wall, so reveals of 0.1-0.3 m (assumption within that)."""
+    low_walls: bool = True
+    """Plain low walls (1-2.2 m boxes) in some gaps between buildings; ``False`` leaves the
+    property line to ``fences_hedges`` (hedges, picket fences, railings)."""
+    street_tree_spacing: tuple[float, float] = (7.0, 22.0)
+    """Distance (m) along the street between two street trees on each side."""
+    building_setback_max: float = 15.0
+    """Largest distance (m) of a building's front from the path (the smallest is
+    ``building_clearance + 0.5``)."""
+    parking_stay: float = 0.75
+    """Probability that the slot after a parked car is occupied too (parked cars come in runs)."""
+    parking_start: float = 0.25
+    """Probability that the slot after an empty slot is occupied; the long-run occupancy of the
+    kerb is ``parking_start / (1 - parking_stay + parking_start)`` (0.5 by default)."""
     terrain_roughness: float = 0.0
     """Standard deviation (m) of the fine-scale (1 m) height roughness of the terrain beyond
     the sidewalk (uneven lawns and verges); 0 = smooth."""
 
     @classmethod
     def residential(cls, **overrides) -> "TownConfig":
-        """Every world effect on (the world side of the ``kitti`` preset)."""
+        """Every world effect of the first residential world on, at their default amounts
+        (kept for the per-effect tables of ``benchmarks/results/realism_world.md``; the
+        ``kitti`` preset uses :meth:`kitti`)."""
         base = {"porous_vegetation": True, "facade_details": True, "fences_hedges": True,
                 "street_signs": True, "curved_cars": True, "sidewalk_parking": True,
                 "detached_houses": True, "garden_vegetation": True, "terrain_roughness": 0.04}
         base.update(overrides)
         return cls(**base)
 
+    @classmethod
+    def kitti(cls, **overrides) -> "TownConfig":
+        """The world of the ``kitti`` preset: :meth:`residential` with recessed windows and the
+        composition of the residential streets at the start of KITTI 00.
+
+        ``benchmarks/results/realism_diagnosis.md`` found that the real scans are not thicker
+        than ours on the ground or on clean walls (their clean walls are as thin as our
+        facades), but that their points 0.5-2.2 m above the ground are mostly hedges, shrubs,
+        parked cars and trunks, where ours were mostly plain facades and walls. The amounts
+        (layout assumptions, each inside the range of what residential streets show; none is
+        a literature value):
+
+        - ``window_recesses`` with 0.25 m reveals (inside the 0.1-0.3 m of ``window_recess``);
+        - property lines almost continuously planted: ``hedge_fraction`` 0.9, gaps 0.3-2 m,
+          hedges 1.5-2.5 m high (privet, hornbeam or thuja front hedges are 1-2.5 m);
+          ``low_walls`` off (the plain walls gave way to hedges and fences);
+        - front gardens of shrubs, 0.5-2 m apart, ``garden_tree_fraction`` 0.05, shrubs with
+          horizontal semi-axes of 0.8-2 m and a vertical one of 1-2 m (1.6-3.2 m tall:
+          ornamental shrubs such as lilac, hazel or cherry laurel grow 1.5-4 m);
+        - street trees every 5-12 m (street-tree rows are planted about 8-12 m apart);
+        - houses up to 25 m from the path (front gardens of 3-15 m);
+        - kerbside parking occupancy 0.8 (``parking_stay`` 0.9, ``parking_start`` 0.4; both
+          kerbs of the real frames are lined with cars);
+        - tree leaf area density 1.5 m²/m³ (inside the measured 0.5-2.5, see
+          ``leaf_area_density``).
+        """
+        base = {"window_recesses": True, "window_recess": 0.25, "low_walls": False, "hedge_fraction": 0.9,
+                "hedge_height": (1.5, 2.5), "property_gap": (0.3, 2.0), "garden_spacing": (0.5, 2.0),
+                "garden_tree_fraction": 0.05, "garden_shrub_radii": (1.0, 2.0), "garden_shrub_width": (0.8, 2.0),
+                "street_tree_spacing": (5.0, 12.0), "building_setback_max": 25.0,
+                "parking_stay": 0.9, "parking_start": 0.4, "leaf_area_density": 1.5}
+        base.update(overrides)
+        return cls.residential(**base)
+
     @property
     def any_effect(self) -> bool:
         """True if any world effect is on."""
         return (self.porous_vegetation or self.facade_details or self.fences_hedges
                 or self.street_signs or self.curved_cars or self.garden_vegetation or self.detached_houses
-                or self.sidewalk_parking
+                or self.sidewalk_parking or self.window_recesses
                 or self.terrain_roughness > 0)
 
 
@@ -387,6 +469,54 @@ def _facade_details(mb: MeshBuilder, rng: np.random.Generator, centre: np.ndarra
                albedo * 0.8, MATERIAL["building"])
 
 
+def _window_facades(mb: MeshBuilder, rng: np.random.Generator, centre: np.ndarray, yaw: float,
+                    length: float, depth: float, g: float, z0: float, zt: float, albedo: float,
+                    recess: float) -> None:
+    """Recessed windows on every face of a building block (see ``TownConfig.window_recesses``).
+
+    The block's own faces become the glass plane; the wall between the windows is added as
+    panels ``recess`` thick in front of it: per storey a band below the sills, a band above
+    the windows and piers between them, plus a band from the last storey to the top.
+    """
+    ex = np.array([np.cos(yaw), np.sin(yaw)])
+    ey = np.array([-np.sin(yaw), np.cos(yaw)])
+    faces = [(ey, 0.5 * depth, ex, length), (-ey, 0.5 * depth, ex, length),
+             (ex, 0.5 * length, ey, depth), (-ex, 0.5 * length, ey, depth)]
+    n_floors = max(1, int((zt - g) / 3.0))
+    wall = MATERIAL["building"]
+
+    def panel(n, dist, t, u, w, th, za, zb, alb, mat):
+        if w <= 0.02 or zb <= za:
+            return
+        q = centre + n * (dist + 0.5 * th) + t * u
+        mb.add(box(q[0], q[1], np.arctan2(t[1], t[0]), w, th, za, zb), alb, mat)
+
+    for n, dist, t, fw in faces:
+        span = fw + 2.0 * recess  # the panels close the corners
+        ww, wh = rng.uniform(1.0, 1.6), rng.uniform(1.2, 1.6)
+        sill = rng.uniform(0.8, 1.0)
+        spacing = max(rng.uniform(2.2, 3.6), ww + 0.6)
+        n_win = int((fw - 1.0) // spacing)
+        if n_win < 1:
+            panel(n, dist, t, 0.0, span, recess, z0, zt, albedo, wall)
+            continue
+        us = (np.arange(n_win) - 0.5 * (n_win - 1)) * spacing
+        edges = np.concatenate([[-0.5 * span], np.ravel(np.c_[us - 0.5 * ww, us + 0.5 * ww]), [0.5 * span]])
+        z_lo = z0
+        for f in range(n_floors):
+            zf = g + 3.0 * f
+            za, zb = zf + sill, min(zf + sill + wh, zt - 0.3)
+            if zb - za < 0.5:
+                break
+            panel(n, dist, t, 0.0, span, recess, z_lo, za, albedo, wall)
+            for a, b in zip(edges[0::2], edges[1::2]):  # piers between the windows
+                panel(n, dist, t, 0.5 * (a + b), b - a, recess, za, zb, albedo, wall)
+            for u in us:  # the glass, in the block's face
+                panel(n, dist, t, u, ww, 0.02, za, zb, 0.08, MATERIAL["glass"])
+            z_lo = zb
+        panel(n, dist, t, 0.0, span, recess, z_lo, zt, albedo, wall)
+
+
 def _fence_or_hedge(mb: MeshBuilder, rng: np.random.Generator, c: TownConfig, kind: float,
                     centre: np.ndarray, yaw: float, length: float, width: float, ground: GroundModel,
                     fp: dict[str, list]) -> None:
@@ -398,8 +528,9 @@ def _fence_or_hedge(mb: MeshBuilder, rng: np.random.Generator, c: TownConfig, ki
     """
     ex = np.array([np.cos(yaw), np.sin(yaw)])
     albedo = rng.uniform(0.25, 0.75)
-    if kind < 0.4:
-        h = rng.uniform(0.9, 1.8)
+    hedge = c.hedge_fraction
+    if kind < hedge:
+        h = rng.uniform(*c.hedge_height)
         g = float(ground(centre[None])[0])
         alb = rng.uniform(0.15, 0.35)
         if c.porous_vegetation:
@@ -411,7 +542,7 @@ def _fence_or_hedge(mb: MeshBuilder, rng: np.random.Generator, c: TownConfig, ki
             mb.add(leaf_cloud(pts, size, rng), alb, MATERIAL["foliage"])
         else:
             mb.add(box(centre[0], centre[1], yaw, length, width, g - 0.1, g + h), alb, MATERIAL["foliage"])
-    elif kind < 0.75:
+    elif kind < hedge + (1.0 - hedge) * 35.0 / 60.0:
         h, spacing = rng.uniform(0.9, 1.3), rng.uniform(0.12, 0.2)
         us = np.arange(-0.5 * length + 0.05, 0.5 * length, spacing)
         q = centre + us[:, None] * ex
@@ -451,7 +582,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
     rngs = [np.random.default_rng(s) for s in ss.spawn(10)]
     # the world effects draw from their own generators, so the layout (and, with every effect
     # off, the whole town) is the same with and without them
-    fx = [np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), 0x70776E, 1]).spawn(8)]
+    fx = [np.random.default_rng(s) for s in np.random.SeedSequence([int(seed), 0x70776E, 1]).spawn(9)]
     path = resample_path(positions, c.path_step)
     if len(path) < 4:
         raise ValueError("build_town: the path is shorter than 2 m")
@@ -527,7 +658,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             if c.detached_houses:
                 length = 8.0 + 0.4 * (length - 8.0)
             depth = rng.uniform(8.0, 18.0)
-            setback = rng.uniform(c.building_clearance + 0.5, 15.0)
+            setback = rng.uniform(c.building_clearance + 0.5, c.building_setback_max)
             kind = rng.uniform()
             height = (rng.uniform(3.0, 5.0) if kind < 0.1 else rng.uniform(6.0, 12.0)
                       if kind < 0.7 else rng.uniform(12.0, 24.0))
@@ -547,6 +678,9 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
                 # an upper tier set back 2 m from every side of the block
                 mb.add(box(centre[0], centre[1], yaw, length - 4.0, depth - 4.0, zt - 0.2,
                            zt + rng.uniform(3.0, 8.0)), albedo * 0.9, MATERIAL["building"])
+            if c.window_recesses:
+                _window_facades(mb, fx[8], centre, yaw, length, depth, float(hg.mean()), z0, zt, albedo,
+                                c.window_recess)
             if c.facade_details:
                 _facade_details(mb, fx[1], centre, yaw, length, depth, float(hg.mean()), zt, albedo,
                                 roof=not has_tier)
@@ -557,7 +691,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
 
     # ---- low walls / fences (fill some gaps) ------------------------------------------------
     rng = rngs[3]
-    for side in (1.0, -1.0):
+    for side in (1.0, -1.0) if c.low_walls else ():
         s = rng.uniform(0.0, 20.0)
         while s < total:
             length = rng.uniform(4.0, 16.0)
@@ -612,7 +746,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             p = xy[k] + side * left[k] * off
             # street trees: smaller crowns that may reach over facades a little
             add_tree(p[0], p[1], rng, crown_scale=0.75, crown_check=0.5)
-            s += rng.uniform(7.0, 22.0)
+            s += rng.uniform(*c.street_tree_spacing)
 
     rng = rngs[5]
     for side in (1.0, -1.0):
@@ -655,7 +789,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
                 else:
                     mb.add(bush, bush_albedo, MATERIAL["foliage"])
                 fp["bush"].append((p[0], p[1], rr.max()))
-            s += rng.uniform(3.0, 14.0)
+            s += rng.uniform(*c.roadside_bush_spacing)
 
     # ---- parks: trees scattered in open space off the road -----------------------------------
     rng = rngs[7]
@@ -676,7 +810,7 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
         parked = False
         while s < total:
             slot = rng.uniform(5.5, 8.0)
-            parked = rng.uniform() < (0.75 if parked else 0.25)
+            parked = rng.uniform() < (c.parking_stay if parked else c.parking_start)
             if parked:
                 L, W = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
                 off = rng.uniform(3.55, 3.95)
@@ -716,12 +850,12 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
                 length = rng.uniform(4.0, 16.0)
                 kind = rng.uniform()
                 off = rng.uniform(8.1, 8.6)
-                width = 0.7 if kind < 0.4 else 0.12
+                width = 0.7 if kind < c.hedge_fraction else 0.12
                 got = place_rect(s + length / 2, side, off, length, width + 0.2, 7.8)
                 if got is not None:
                     centre, yaw, pts = got
                     _fence_or_hedge(mb, rng, c, kind, centre, yaw, length, width, ground, fp)
-                s += length + rng.uniform(1.0, 8.0)
+                s += length + rng.uniform(*c.property_gap)
     if c.street_signs:
         rng = fx[6]
         for side in (1.0, -1.0):
@@ -748,10 +882,10 @@ def build_town(positions: np.ndarray, seed: int = 0, config: TownConfig | None =
             while s < total:
                 k = frame_at(s)
                 p = xy[k] + side * left[k] * rng.uniform(8.8, 16.0)
-                if rng.uniform() < 0.35:
+                if rng.uniform() < c.garden_tree_fraction:
                     add_tree(p[0], p[1], rng, crown_scale=rng.uniform(0.55, 0.9), crown_check=0.6)
                 else:
-                    rr, rz = rng.uniform(0.5, 1.5, 2), rng.uniform(0.5, 1.2)
+                    rr, rz = rng.uniform(*c.garden_shrub_width, 2), rng.uniform(*c.garden_shrub_radii)
                     pts = layout.rect_samples(p[0], p[1], 0.0, 2 * rr.max(), 2 * rr.max(), spacing=0.4)
                     if layout.try_place(pts, 8.0):
                         g = float(ground(p[None])[0])

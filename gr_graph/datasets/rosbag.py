@@ -1,0 +1,199 @@
+"""ROS1 bags, ROS2 bags (sqlite3 or MCAP) and bare ``.mcap`` files as LiDAR sequences, via ``rosbags``.
+
+No ROS installation is needed: the pure-Python ``rosbags`` library reads the bag and
+deserializes ``sensor_msgs/PointCloud2`` messages (decoded by :mod:`gr_graph.datasets.pointcloud2`).
+
+Topic: the one PointCloud2 topic of the bag, or the one given (``topic``); a bag with several
+PointCloud2 topics and none given is refused with the list, as is an unknown topic.
+
+Streaming: opening the bag reads each message once to index it (its log time and header
+stamp), holding nothing else; frames are then decoded on demand. Reading the frames in order
+continues one pass through the bag; a jump starts a new pass at that message's log time.
+
+Timestamps are the messages' ``header.stamp`` (seconds since the first), or the bag's log times
+when the header stamps do not increase (logged). Per-point times (fields ``t``/``time``/
+``timestamp``) make the sequence ``motion_compensated = False``
+(:mod:`gr_graph.datasets.frame_fields` for units and rings). The bag has no ground truth;
+``poses`` (a KITTI or TUM file with one LiDAR pose a message) adds it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
+from gr_graph.datasets.frame_fields import FieldConventions, frame_period
+from gr_graph.datasets.pointcloud2 import decode_pointcloud2
+
+log = logging.getLogger(__name__)
+
+POINTCLOUD2_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS1 ``.bag``, a ``.mcap``/``.db3`` file, or a ROS2 bag folder (with ``metadata.yaml``)."""
+    return (path.is_file() and path.suffix.lower() in BAG_SUFFIXES) or (path / "metadata.yaml").is_file()
+
+
+def _open_reader(path: Path) -> Any:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    try:
+        reader = AnyReader([path], default_typestore=store)
+        reader.open()
+    except Exception as exc:  # rosbags raises its own error classes per format
+        raise DatasetError(f"{path}: unreadable bag ({type(exc).__name__}: {exc})") from exc
+    return reader
+
+
+def pointcloud_topics(reader: Any) -> dict[str, int]:
+    """PointCloud2 topics of an open reader and their message counts."""
+    topics: dict[str, int] = {}
+    for conn in reader.connections:
+        if conn.msgtype in POINTCLOUD2_TYPES:
+            topics[conn.topic] = topics.get(conn.topic, 0) + int(conn.msgcount)
+    return topics
+
+
+def choose_topic(path: Path, reader: Any, topic: str | None) -> str:
+    """The PointCloud2 topic to read (see the module docstring)."""
+    topics = pointcloud_topics(reader)
+    listing = ", ".join(f"{t} ({n} messages)" for t, n in sorted(topics.items())) or "none"
+    if topic is not None:
+        if topic not in topics:
+            others = sorted({c.topic for c in reader.connections} - set(topics))
+            raise DatasetError(f"{path}: unknown topic {topic!r}; sensor_msgs/PointCloud2 topics: {listing}"
+                               + (f" (other topics: {', '.join(others)})" if others else ""))
+        return topic
+    if not topics:
+        all_topics = ", ".join(sorted(f"{c.topic} ({c.msgtype})" for c in reader.connections)) or "none"
+        raise DatasetError(f"{path}: no sensor_msgs/PointCloud2 topic (topics: {all_topics})")
+    if len(topics) > 1:
+        raise DatasetError(f"{path}: several sensor_msgs/PointCloud2 topics, choose one with --topic "
+                           f"(data.topic): {listing}")
+    return next(iter(topics))
+
+
+class RosbagSequence:
+    """The PointCloud2 messages of one topic of a bag (LidarSequence protocol).
+
+    Parameters
+    ----------
+    path : path
+        A ROS1 ``.bag``, a ROS2 bag folder, or a ``.mcap``/``.db3`` file.
+    topic : str, optional
+        The PointCloud2 topic; required when the bag has several.
+    poses : path, optional
+        Ground truth: KITTI or TUM poses of the LiDAR, one a message.
+
+    Attributes
+    ----------
+    topic : str
+    timestamps : (K,) array
+    log_times : (K,) int64
+        The bag's receive time of each message (ns).
+    motion_compensated : bool
+        False when the clouds carry per-point times.
+    scan_period : float
+    """
+
+    def __init__(self, path: str | Path, topic: str | None = None, poses: str | Path | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise DatasetError(f"{self.path}: no such bag")
+        if not is_bag(self.path):
+            raise DatasetError(f"{self.path}: not a ROS bag (a {'/'.join(BAG_SUFFIXES)} file or a ROS2 bag folder "
+                               "with metadata.yaml)")
+        self._lock = threading.Lock()
+        self._reader = _open_reader(self.path)
+        self.topic = choose_topic(self.path, self._reader, topic)
+        self._connections = [c for c in self._reader.connections if c.topic == self.topic]
+        self.name = f"bag-{self.path.stem}{self.topic.replace('/', '_')}"
+        self.T_cam_velo = np.eye(4)
+        log_times, stamps = [], []
+        first_cloud = None
+        for k, (conn, log_time, raw) in enumerate(self._reader.messages(connections=self._connections)):
+            msg = self._deserialize(conn, raw, k)
+            log_times.append(int(log_time))
+            stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
+            if first_cloud is None:
+                first_cloud = decode_pointcloud2(msg, self._source(0))
+        if not log_times:
+            raise DatasetError(f"{self.path}: topic {self.topic!r} has no messages")
+        self.log_times = np.asarray(log_times, np.int64)
+        stamp_ns = np.asarray(stamps, np.int64)
+        if len(stamp_ns) > 1 and not np.all(np.diff(stamp_ns) > 0):
+            log.warning("%s: header stamps of %s do not increase: using the bag's log times", self.path, self.topic)
+            stamp_ns = self.log_times
+        self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
+        self.scan_period = frame_period(self.timestamps)
+        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(0))
+        self.motion_compensated = not self.conventions.has_time
+        self.n_rings = self.conventions.n_rings
+        self.gt_poses: np.ndarray | None = None
+        if poses is not None:
+            from gr_graph.datasets.folder import read_pose_file
+
+            self.gt_poses, _ = read_pose_file(Path(poses), len(self))
+        self._cursor: tuple[int, Iterator] | None = None
+
+    def _source(self, k: int) -> str:
+        return f"{self.path}: topic {self.topic} message {k}"
+
+    def _deserialize(self, conn: Any, raw: bytes, k: int) -> Any:
+        try:
+            return self._reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # truncated or foreign serialization
+            raise DatasetError(f"{self._source(k)}: cannot deserialize ({type(exc).__name__}: {exc})") from exc
+
+    def __len__(self) -> int:
+        return len(self.log_times)
+
+    def _message(self, i: int) -> Any:
+        """The i-th message, continuing the current pass when it is the next one."""
+        if self._cursor is None or self._cursor[0] != i:
+            t = int(self.log_times[i])
+            same_time_before = int(np.sum(self.log_times[:i] == t))
+            it = self._reader.messages(connections=self._connections, start=t)
+            for _ in range(same_time_before):
+                next(it)
+            self._cursor = (i, it)
+        _, it = self._cursor
+        try:
+            conn, log_time, raw = next(it)
+        except StopIteration as exc:
+            raise DatasetError(f"{self._source(i)}: the bag ended early (it changed since it was opened?)") from exc
+        if int(log_time) != int(self.log_times[i]):
+            raise DatasetError(f"{self._source(i)}: log time {log_time} != indexed {self.log_times[i]} "
+                               "(the bag changed since it was opened?)")
+        self._cursor = (i + 1, it)
+        return self._deserialize(conn, raw, i)
+
+    def __getitem__(self, index: int) -> LidarFrame:
+        i = check_index(index, len(self), self.name)
+        with self._lock:
+            msg = self._message(i)
+        source = self._source(i)
+        cloud = decode_pointcloud2(msg, source)
+        if cloud.dropped_nonfinite:
+            log.debug("%s: dropped %d non-finite points", source, cloud.dropped_nonfinite)
+        return self.conventions.frame(cloud, i, float(self.timestamps[i]), source)
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def close(self) -> None:
+        """Close the bag (frames can no longer be read)."""
+        with self._lock:
+            self._cursor = None
+            self._reader.close()

@@ -1,0 +1,129 @@
+"""The optimised map of a run: every scan placed with the final trajectory, voxel-downsampled, as PLY.
+
+:class:`VoxelMap` accumulates points scan by scan into a voxel grid anchored at the world
+origin (voxel ``floor(p / voxel_size)``) and keeps, per occupied voxel, the sum and the count
+of its points; the map holds one point per voxel, the centroid of every point that fell into
+it, and a ``count`` property. Points are buffered and merged into the grid in batches that
+grow with the map (a merge happens when the buffer holds ``max(flush_points, voxels so far)``
+points), so memory stays at about twice the downsampled map and the total merge cost is
+``O(n log n)``: a whole sequence never sits in RAM point by point.
+
+:func:`write_map` does it for a run's scans (the downsampled, deskewed scans SLAM registered,
+``SlamResult.scans``, LiDAR frame) and poses (``T_w_velo``, world = LiDAR frame of the first
+scan); the pipeline writes ``round_<r>/map.ply`` with it (``output.map``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.cloud_io import write_ply
+
+__all__ = ["VoxelMap", "write_map", "MAP_NAME"]
+
+MAP_NAME = "map.ply"
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+class VoxelMap:
+    """Streaming voxel-grid downsampling (module docstring).
+
+    Parameters
+    ----------
+    voxel_size : float
+        Edge of a voxel [m].
+    flush_points : int
+        Smallest batch merged into the grid.
+    """
+
+    def __init__(self, voxel_size: float, flush_points: int = 1_000_000) -> None:
+        if not voxel_size > 0:
+            raise ValueError(f"VoxelMap: voxel_size must be > 0, got {voxel_size}")
+        self.voxel_size = float(voxel_size)
+        self.flush_points = int(flush_points)
+        self._keys = np.zeros(0, np.int64)
+        self._sums = np.zeros((0, 3), np.float64)
+        self._counts = np.zeros(0, np.int64)
+        self._buffer: list[np.ndarray] = []
+        self._buffered = 0
+        self.n_added = 0
+
+    def keys(self, points: np.ndarray) -> np.ndarray:
+        """One int64 per point naming its voxel (21 bits per axis: +-2^20 voxels from the origin)."""
+        idx = np.floor(np.asarray(points, np.float64) / self.voxel_size).astype(np.int64)
+        if len(idx) and (idx.min() < -_OFFSET or idx.max() >= _OFFSET):
+            raise ValueError(f"VoxelMap: points beyond +-{_OFFSET * self.voxel_size:.0f} m of the origin "
+                             f"at voxel {self.voxel_size} m")
+        idx += _OFFSET
+        return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
+
+    def add(self, points: np.ndarray) -> None:
+        """Add ``(N, 3)`` world points (non-finite rows are dropped)."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        p = p[np.isfinite(p).all(axis=1)]
+        self._buffer.append(p)
+        self._buffered += len(p)
+        self.n_added += len(p)
+        if self._buffered >= max(self.flush_points, len(self._keys)):
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._buffer:
+            return
+        p = np.concatenate(self._buffer)
+        self._buffer, self._buffered = [], 0
+        keys = np.concatenate([self._keys, self.keys(p)])
+        uniq, inv = np.unique(keys, return_inverse=True)
+        sums = np.concatenate([self._sums, p])
+        counts = np.concatenate([self._counts, np.ones(len(p), np.int64)])
+        self._sums = np.stack([np.bincount(inv, weights=sums[:, c], minlength=len(uniq)) for c in range(3)], axis=1)
+        self._counts = np.bincount(inv, weights=counts, minlength=len(uniq)).astype(np.int64)
+        self._keys = uniq
+
+    def __len__(self) -> int:
+        self._flush()
+        return len(self._keys)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(centroids (V, 3) float64, counts (V,) int64)``, one row per occupied voxel, by voxel key."""
+        self._flush()
+        return self._sums / self._counts[:, None], self._counts.copy()
+
+
+def write_map(path: str | os.PathLike[str], scans: Iterable[np.ndarray], poses: np.ndarray,
+              voxel_size: float) -> dict[str, float | int]:
+    """Place every scan with its pose, voxel-downsample, write a PLY (``x, y, z`` float32 and
+    ``count`` int32: points merged into the voxel; open3d reads no unsigned PLY properties) atomically; return ``{"points", "voxels", "voxel_size"}``.
+
+    Parameters
+    ----------
+    scans : iterable of (N_k, 3) arrays
+        Scans in the LiDAR frame, in the order of ``poses`` (read one at a time).
+    poses : (K, 4, 4) array
+        ``T_w_velo`` of each scan.
+    """
+    vmap = VoxelMap(voxel_size)
+    n = 0
+    for k, scan in enumerate(scans):
+        if k >= len(poses):
+            raise ValueError(f"{path}: more scans than the {len(poses)} poses")
+        T = np.asarray(poses[k], np.float64)
+        s = np.asarray(scan, np.float64).reshape(-1, 3)
+        vmap.add(s @ T[:3, :3].T + T[:3, 3])
+        n += 1
+    if n != len(poses):
+        raise ValueError(f"{path}: {n} scans for {len(poses)} poses")
+    centroids, counts = vmap.points()
+    write_ply(path, centroids, extra={"count": np.minimum(counts, np.iinfo(np.int32).max).astype(np.int32)})
+    return {"points": int(vmap.n_added), "voxels": int(len(centroids)), "voxel_size": float(voxel_size)}
+
+
+def map_path(round_dir: str | os.PathLike[str]) -> Path:
+    """``round_dir / map.ply``."""
+    return Path(round_dir) / MAP_NAME

@@ -1,0 +1,60 @@
+"""``--viz``: an open3d window on a run's map, when the machine has a display.
+
+Without a display (no ``DISPLAY`` / ``WAYLAND_DISPLAY`` on Linux) :func:`show_map` prints one
+message saying so and where the map is, and returns False; it never raises for a missing
+display or a window that cannot open.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["display_available", "show_map"]
+
+
+def display_available() -> tuple[bool, str]:
+    """``(True, "")`` if a window can be opened, else ``(False, why)``."""
+    if sys.platform in ("darwin", "win32"):
+        return True, ""
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return True, ""
+    return False, "no display (neither DISPLAY nor WAYLAND_DISPLAY is set)"
+
+
+def show_map(path: str | os.PathLike[str], title: str = "gr_graph map") -> bool:
+    """Open an open3d window on the PLY map at ``path`` (points coloured by height).
+
+    Returns True if a window was shown; False (after printing why to stderr) when there is no
+    map, no display, or the window could not be opened.
+    """
+    p = Path(path)
+    if not p.is_file():
+        print(f"--viz: no map at {p} (output.map.enabled is false?)", file=sys.stderr)
+        return False
+    ok, why = display_available()
+    if not ok:
+        print(f"--viz: {why}; not opening a window. The map is {p}: open it with open3d, CloudCompare or "
+              "MeshLab on a machine with a display.", file=sys.stderr)
+        return False
+    try:
+        import matplotlib
+        import open3d as o3d
+
+        cloud = o3d.io.read_point_cloud(str(p))
+        z = np.asarray(cloud.points)[:, 2] if len(cloud.points) else np.zeros(0)
+        if len(z):
+            lo, hi = np.percentile(z, [2, 98])
+            cloud.colors = o3d.utility.Vector3dVector(
+                matplotlib.colormaps["viridis"](np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1))[:, :3])
+        o3d.visualization.draw_geometries([cloud], window_name=title)
+    except Exception as exc:  # a display that refuses OpenGL must not fail a finished run
+        print(f"--viz: could not open a window ({type(exc).__name__}: {exc}); the map is {p}", file=sys.stderr)
+        return False
+    return True

@@ -1,0 +1,241 @@
+"""``densify_cloud`` and ``gr-densify``: one cloud densified with a network checkpoint, the same
+way the learning rounds densify a scan; checkpoints checked on load; cloud files in and out."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gr_graph.cloud_io import read_cloud, read_ply_covariances, write_cloud
+from gr_graph.config import PreprocessConfig, TrainingConfig
+from gr_graph.datasets.base import DatasetError, LidarFrame
+from gr_graph.densify import densified_sequence, densify_cloud
+from gr_graph.densify_cli import main as densify_main
+from gr_graph.preprocess import preprocess_scan
+from training.densify import anisotropy
+from training.network import CovarianceNet, NetConfig
+from training.predict import predict_covariances
+from training.trainer import CHECKPOINT_FORMAT, TrainingError, load_model, save_atomic
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL_NET = NetConfig(n_points=512, k0=8, k1=8, k2=8, c0=16, c1=16, c2=16, kw=8)
+
+
+def street_cloud(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A ground plane, two walls and clutter around the origin, with intensity."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-12, 12, (6000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > 4.0]
+    ground = np.column_stack([xy, -1.73 + rng.normal(0, 0.01, len(xy))])
+    wall = np.column_stack([rng.uniform(-12, 12, 2000), np.full(2000, 8.0), rng.uniform(-1.7, 4, 2000)])
+    wall2 = wall * [1, -1, 1]
+    clutter = rng.uniform([-10, -10, 0], [10, 10, 3], (500, 3))
+    pts = np.vstack([ground, wall, wall2, clutter])
+    return pts, rng.uniform(0, 1, len(pts)).astype(np.float32)
+
+
+class OneFrame:
+    """A one-frame LidarSequence."""
+
+    name = "one"
+    timestamps = np.zeros(1)
+    gt_poses = None
+    T_cam_velo = np.eye(4)
+
+    def __init__(self, points: np.ndarray, intensity: np.ndarray) -> None:
+        self.frame = LidarFrame(index=0, timestamp=0.0, points=points, intensity=intensity, n_rings=64)
+
+    def __len__(self) -> int:
+        return 1
+
+    def __getitem__(self, i: int) -> LidarFrame:
+        return self.frame
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    """An untrained CovarianceNet with fixed seed, saved as the trainer saves model.pt."""
+    torch.manual_seed(0)
+    net = CovarianceNet(SMALL_NET)
+    path = tmp_path_factory.mktemp("model") / "model.pt"
+    save_atomic({"format_version": CHECKPOINT_FORMAT, "model_state": net.state_dict(),
+                 "net_config": net.config.to_dict()}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def pcd_file(tmp_path_factory) -> Path:
+    """The street cloud written by open3d (legacy API) as PCD, with intensity via the tensor API."""
+    import open3d as o3d
+
+    pts, inten = street_cloud()
+    path = tmp_path_factory.mktemp("cloud") / "scan.pcd"
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(pts.astype(np.float32)))
+    cloud.point.intensity = o3d.core.Tensor(inten.reshape(-1, 1))
+    assert o3d.t.io.write_point_cloud(str(path), cloud)
+    return path
+
+
+def _median_anisotropy(model_path: Path, points: np.ndarray) -> float:
+    s = preprocess_scan(points, PreprocessConfig()).points
+    return float(np.median(anisotropy(predict_covariances(model_path, s, seed=0))))
+
+
+def test_densify_cloud_is_algorithm_2_on_the_preprocessed_cloud(model_path: Path) -> None:
+    pts, inten = street_cloud()
+    tau = _median_anisotropy(model_path, pts)  # about half the points pass
+    res = densify_cloud(pts, model_path, intensity=inten, tau_ani=tau, samples_per_point=3, seed=2)
+    # independent reference: preprocessing, the network, the filter, per-point Gaussians
+    s = preprocess_scan(pts, PreprocessConfig()).points
+    C = predict_covariances(load_model(model_path), s, seed=2)
+    kept = anisotropy(C) > tau
+    np.testing.assert_array_equal(res.network_input, s)
+    np.testing.assert_array_equal(res.kept, kept)
+    assert 0.3 < kept.mean() < 0.7 and res.fallback is None
+    assert res.points.shape == (3 * kept.sum(), 3)
+    np.testing.assert_array_equal(res.source, np.repeat(np.flatnonzero(kept), 3))
+    np.testing.assert_allclose(res.covariances, C[res.source], atol=1e-12)
+    # every sample is near its source point in the metric of its covariance (chi^2(3) tail)
+    d = res.points - s[res.source]
+    m2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(res.covariances), d)
+    assert np.quantile(m2, 0.99) < 20.0 and 2.0 < m2.mean() < 4.0
+    # intensity of the nearest raw point of each source point
+    from scipy.spatial import cKDTree
+
+    _, j = cKDTree(pts).query(s[res.source])
+    np.testing.assert_array_equal(res.intensity, inten[j])
+    # same as frame 0 of the pipeline's densified view with the same settings
+    cfg = TrainingConfig(tau_ani=tau, samples_per_point=3, seed=2)
+    view = densified_sequence(OneFrame(pts, inten), model_path, cfg)
+    np.testing.assert_array_equal(view[0].points, res.points)
+    # deterministic; another seed samples differently
+    np.testing.assert_array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=2).points,
+                                  res.points)
+    assert not np.array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=3).points,
+                              res.points)
+
+
+def test_densify_cloud_refuses_bad_input(model_path: Path) -> None:
+    with pytest.raises(ValueError, match="weights is required"):
+        densify_cloud(np.zeros((10, 3)), None)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        densify_cloud(np.zeros((10, 2)), model_path)
+    with pytest.raises(ValueError, match="after preprocessing"):
+        densify_cloud(np.random.default_rng(0).uniform(5, 6, (50, 3)), model_path)
+    with pytest.raises(ValueError, match="tau_ani"):
+        densify_cloud(street_cloud()[0], model_path, tau_ani=1.5)
+
+
+def test_gr_densify_pcd_to_ply_with_covariances(model_path: Path, pcd_file: Path, tmp_path: Path, capsys) -> None:
+    import open3d as o3d
+
+    pts, inten = read_cloud(pcd_file)
+    assert len(pts) == len(street_cloud()[0]) and inten is not None
+    out, cov = tmp_path / "dense.ply", tmp_path / "dense_cov.npy"
+    argv = [str(pcd_file), str(out), "--weights", str(model_path), "--tau-ani", "0.0", "--samples", "2",
+            "--covariances", str(cov), "--ply-covariances", "--seed", "1"]
+    assert densify_main(argv) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    ref = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.0, samples_per_point=2, seed=1)
+    assert summary["input_points"] == len(pts) and summary["kept_points"] == ref.n_kept
+    assert summary["output_points"] == 2 * ref.n_kept == len(ref.points)
+    # the PLY as open3d reads it (legacy reader: positions only; tensor reader: the properties)
+    legacy = np.asarray(o3d.io.read_point_cloud(str(out)).points)
+    np.testing.assert_allclose(legacy, ref.points.astype(np.float32), atol=0)
+    C = np.load(cov)
+    assert C.shape == (len(ref.points), 3, 3)
+    np.testing.assert_array_equal(C, np.transpose(C, (0, 2, 1)))
+    assert np.linalg.eigvalsh(C).min() > 0  # positive definite
+    np.testing.assert_array_equal(read_ply_covariances(out), C)
+    _, out_inten = read_cloud(out)
+    np.testing.assert_array_equal(out_inten, ref.intensity)
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".bin", ".npy"])
+def test_gr_densify_writes_the_format_of_out(model_path: Path, pcd_file: Path, tmp_path: Path, suffix: str,
+                                             capsys) -> None:
+    out = tmp_path / f"dense{suffix}"
+    assert densify_main([str(pcd_file), str(out), "--weights", str(model_path), "--tau-ani", "0.0",
+                         "--samples", "1"]) == 0
+    n = json.loads(capsys.readouterr().out)["output_points"]
+    back, _ = read_cloud(out)
+    assert back.shape == (n, 3) and n > 1000
+
+
+@pytest.mark.slow
+def test_gr_densify_as_a_module(model_path: Path, pcd_file: Path, tmp_path: Path) -> None:
+    """``python -m gr_graph.densify_cli`` on a .npy input (x,y,z,intensity)."""
+    pts, inten = street_cloud(1)
+    np.save(tmp_path / "in.npy", np.column_stack([pts, inten]).astype(np.float32))
+    out = tmp_path / "out.ply"
+    r = subprocess.run([sys.executable, "-m", "gr_graph.densify_cli", str(tmp_path / "in.npy"), str(out),
+                        "--weights", str(model_path), "--tau-ani", "0.0", "--samples", "1"],
+                       cwd=REPO, capture_output=True, text=True, timeout=300,
+                       env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["output_points"] == len(read_cloud(out)[0])
+
+
+def test_checkpoints_are_checked_on_load(model_path: Path, tmp_path: Path) -> None:
+    state = torch.load(model_path, weights_only=False)
+    # an old checkpoint without format_version loads as before
+    old = {k: v for k, v in state.items() if k != "format_version"}
+    save_atomic(old, tmp_path / "old.pt")
+    a, b = load_model(tmp_path / "old.pt"), load_model(model_path)
+    assert all(torch.equal(a.state_dict()[k], b.state_dict()[k]) for k in a.state_dict())
+    # a newer format, a config this network does not know, weights of another size: errors naming the file
+    save_atomic({**state, "format_version": CHECKPOINT_FORMAT + 1}, tmp_path / "new.pt")
+    with pytest.raises(TrainingError, match=r"new\.pt.*newer"):
+        load_model(tmp_path / "new.pt")
+    save_atomic({**state, "net_config": {**state["net_config"], "depth": 9}}, tmp_path / "unknown.pt")
+    with pytest.raises(TrainingError, match=r"(?s)unknown\.pt.*network configuration.*depth"):
+        load_model(tmp_path / "unknown.pt")
+    save_atomic({**state, "net_config": {**state["net_config"], "c2": 32}}, tmp_path / "mismatch.pt")
+    with pytest.raises(TrainingError, match=r"mismatch\.pt: the weights do not fit"):
+        load_model(tmp_path / "mismatch.pt")
+    (tmp_path / "text.pt").write_text("not a checkpoint")
+    with pytest.raises(TrainingError, match=r"text\.pt: not a torch checkpoint"):
+        load_model(tmp_path / "text.pt")
+    save_atomic({"weights": 1}, tmp_path / "foreign.pt")
+    with pytest.raises(TrainingError, match=r"foreign\.pt: not a training checkpoint"):
+        load_model(tmp_path / "foreign.pt")
+
+
+def test_gr_densify_errors_name_the_file(model_path: Path, pcd_file: Path, tmp_path: Path, capsys) -> None:
+    cases = [
+        ([str(tmp_path / "missing.pcd"), str(tmp_path / "o.ply"), "--weights", str(model_path)], "missing.pcd"),
+        ([str(pcd_file), str(tmp_path / "o.ply"), "--weights", str(tmp_path / "nope.pt")], "nope.pt"),
+        ([str(pcd_file), str(tmp_path / "o.xyz"), "--weights", str(model_path)], "o.xyz"),
+        ([str(pcd_file), str(tmp_path / "o.pcd"), "--weights", str(model_path), "--ply-covariances"], "o.pcd"),
+    ]
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((10, 2)))
+    cases.append(([str(bad), str(tmp_path / "o.ply"), "--weights", str(model_path)], "bad.npy"))
+    for argv, name in cases:
+        assert densify_main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and name in err, err
+    assert not list(tmp_path.glob("o.*"))  # nothing written
+
+
+def test_write_cloud_round_trips(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    x, i = rng.normal(size=(300, 3)) * 10, rng.random(300).astype(np.float32)
+    A = rng.normal(size=(300, 3, 3))
+    C = A @ A.transpose(0, 2, 1)
+    for suffix in (".ply", ".pcd", ".bin", ".npy"):
+        p = write_cloud(tmp_path / f"c{suffix}", x, i, C if suffix == ".ply" else None)
+        back, bi = read_cloud(p)
+        np.testing.assert_array_equal(back, x.astype(np.float32))
+        np.testing.assert_array_equal(bi, i)
+    np.testing.assert_array_equal(read_ply_covariances(tmp_path / "c.ply"), C)
+    with pytest.raises(ValueError, match="only"):
+        write_cloud(tmp_path / "c.pcd", x, covariances=C)
+    with pytest.raises(DatasetError, match="unknown point cloud format"):
+        read_cloud(tmp_path / "c.txt")

@@ -1,0 +1,202 @@
+"""Folders of .bin / .pcd / .ply / .npy scans: rendered frames written with open3d and numpy come back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.datasets.base import DatasetError
+from gr_graph.datasets.folder import FolderSequence, natural_key
+from gr_graph.datasets.point_files import read_pcd, read_ply
+from gr_graph.datasets.registry import guess_dataset, open_sequence
+from loader_support import FRAME_PERIOD_S, drive, float32_frame
+
+N_FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory: pytest.TempPathFactory) -> list:
+    seq = drive("raw", N_FRAMES, str(tmp_path_factory.mktemp("drive")))
+    return [seq[i] for i in range(N_FRAMES)]
+
+
+def _o3d_cloud(frame, with_time: bool = True):
+    import open3d as o3d
+
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor(frame.points.astype(np.float32)))
+    pc.point.intensity = o3d.core.Tensor(frame.intensity[:, None])
+    pc.point.ring = o3d.core.Tensor(frame.ring.astype(np.uint16)[:, None])
+    if with_time:
+        pc.point.t = o3d.core.Tensor((frame.time * FRAME_PERIOD_S).astype(np.float32)[:, None])
+    return pc
+
+
+def _write_o3d(folder: Path, frames: list, suffix: str, names: list[str], **kwargs) -> Path:
+    import open3d as o3d
+
+    folder.mkdir()
+    for frame, name in zip(frames, names):
+        assert o3d.t.io.write_point_cloud(str(folder / f"{name}{suffix}"), _o3d_cloud(frame), **kwargs)
+    return folder
+
+
+def test_natural_sort() -> None:
+    names = ["frame10.pcd", "frame2.pcd", "frame1.pcd", "Frame3.pcd"]
+    assert sorted(names, key=natural_key) == ["frame1.pcd", "frame2.pcd", "Frame3.pcd", "frame10.pcd"]
+
+
+@pytest.mark.parametrize("suffix,kwargs", [(".pcd", {}), (".pcd", {"write_ascii": True}), (".ply", {}),
+                                           (".ply", {"write_ascii": True})])
+def test_open3d_files_round_trip(tmp_path: Path, frames: list, suffix: str, kwargs: dict) -> None:
+    # frame2 must come before frame10: the names are sorted naturally, not as strings
+    folder = _write_o3d(tmp_path / "scans", frames, suffix, ["frame2", "frame10", "frame11"], **kwargs)
+    assert guess_dataset(folder) == "folder"
+    seq = FolderSequence(folder)
+    assert [p.name for p in seq.files] == [f"frame{k}{suffix}" for k in (2, 10, 11)]
+    assert seq.motion_compensated is False  # the files carry a per-point time field "t"
+    for i, frame in enumerate(frames):
+        back = seq[i]
+        if not kwargs:  # binary: bit-exact float32
+            np.testing.assert_array_equal(back.points, float32_frame(frame))
+        elif suffix == ".pcd":  # open3d's ASCII PCD has 10 significant digits: float32 round-trips
+            np.testing.assert_array_equal(back.points.astype(np.float32), frame.points.astype(np.float32))
+        else:  # open3d's ASCII PLY writes 6 significant digits
+            np.testing.assert_allclose(back.points, frame.points, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(back.intensity, frame.intensity, rtol=1e-5)
+        np.testing.assert_array_equal(back.ring, frame.ring)
+        np.testing.assert_allclose(back.time, frame.time - frame.time.min(), atol=1e-6)
+    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S)  # no times file: 0.1 s
+
+
+def test_compressed_pcd_through_open3d(tmp_path: Path, frames: list) -> None:
+    folder = _write_o3d(tmp_path / "c", frames[:1], ".pcd", ["a"], compressed=True)
+    back = FolderSequence(folder)[0]
+    np.testing.assert_array_equal(back.points, float32_frame(frames[0]))
+    np.testing.assert_array_equal(back.intensity, frames[0].intensity)
+
+
+def test_npy_bin_and_side_files(tmp_path: Path, frames: list) -> None:
+    from gr_graph.trajectory import write_kitti_poses, write_tum_poses
+
+    gt = np.tile(np.eye(4), (N_FRAMES, 1, 1))
+    gt[:, :3, 3] = np.arange(N_FRAMES)[:, None] * [1.0, 0.5, 0.0] + [10.0, 0.0, 0.0]
+    times = np.array([3.0, 3.11, 3.2])
+    npy4, npy3, structured, bin4, bin3 = (tmp_path / n for n in ("npy4", "npy3", "npys", "bin4", "bin3"))
+    for folder in (npy4, npy3, structured, bin4, bin3):
+        folder.mkdir()
+    for k, f in enumerate(frames):
+        xyzi = np.column_stack([f.points, f.intensity]).astype(np.float32)
+        np.save(npy4 / f"{k}.npy", xyzi)
+        np.save(npy3 / f"{k}.npy", f.points)
+        arr = np.zeros(len(f), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4"), ("ring", "u1"),
+                                      ("time", "f8")])
+        for c, col in zip("xyz", f.points.T):
+            arr[c] = col
+        arr["intensity"], arr["ring"], arr["time"] = f.intensity, f.ring, 1e3 + f.time * FRAME_PERIOD_S
+        np.save(structured / f"{k}.npy", arr)
+        xyzi.tofile(bin4 / f"{k:06d}.bin")
+        xyzi[:, :3].copy().tofile(bin3 / f"{k:06d}.bin")
+    np.savetxt(npy4 / "times.txt", times)
+    write_kitti_poses(npy4 / "poses.txt", gt)
+    write_tum_poses(tmp_path / "gt.tum", times, gt)
+
+    seq, source = open_sequence(path=npy4)
+    assert "ground truth" in source
+    np.testing.assert_allclose(seq.timestamps, times - 3.0)
+    np.testing.assert_allclose(seq.gt_poses[:, :3, 3], gt[:, :3, 3] - gt[0, :3, 3], atol=1e-12)
+    np.testing.assert_array_equal(seq[1].points, float32_frame(frames[1]))
+    np.testing.assert_array_equal(seq[1].intensity, frames[1].intensity)
+    assert seq[1].ring is None and seq[1].time is None and seq.motion_compensated is True
+
+    tum_seq, _ = open_sequence(path=npy3, poses=tmp_path / "gt.tum")
+    np.testing.assert_allclose(tum_seq.timestamps, times - 3.0)  # the TUM times, for want of a times file
+    np.testing.assert_array_equal(tum_seq[2].points, frames[2].points)  # float64 kept
+    assert not tum_seq[2].intensity.any()
+
+    s = FolderSequence(structured)
+    assert s.motion_compensated is False
+    np.testing.assert_array_equal(s[0].points, frames[0].points)
+    np.testing.assert_array_equal(s[0].ring, frames[0].ring)
+    np.testing.assert_allclose(s[0].time, frames[0].time - frames[0].time.min(), atol=1e-9)
+
+    np.testing.assert_array_equal(FolderSequence(bin4)[2].points, float32_frame(frames[2]))
+    np.testing.assert_array_equal(FolderSequence(bin3, point_format="xyz")[2].points, float32_frame(frames[2]))
+    with pytest.raises(DatasetError, match=r"bin3/000000.bin"):
+        FolderSequence(bin3)  # 12-byte points read as 16-byte ones: the layout check names the file
+
+
+def test_broken_folders_name_the_file(tmp_path: Path, frames: list) -> None:
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    np.save(mixed / "0.npy", frames[0].points)
+    np.save(mixed / "1.npy", frames[1].points)
+    (mixed / "2.pcd").write_text("junk")
+    with pytest.raises(DatasetError, match=r"mixed: mixed file types \(2 \.npy, 1 \.pcd\)"):
+        open_sequence(path=mixed)
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "0.pcd").write_text("VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nPOINTS 1\nDATA ascii\n1 2\n")
+    with pytest.raises(DatasetError, match=r"bad/0.pcd: no field z"):
+        FolderSequence(bad)
+    (bad / "0.pcd").write_bytes(b"\x89\xff\x00garbage" * 10)
+    with pytest.raises(DatasetError, match=r"bad/0.pcd: "):
+        FolderSequence(bad)
+
+    short = tmp_path / "short.pcd"
+    _write = _o3d_cloud(frames[0])
+    import open3d as o3d
+
+    o3d.t.io.write_point_cloud(str(short), _write)
+    short.write_bytes(short.read_bytes()[:-100])
+    with pytest.raises(DatasetError, match=r"short.pcd: .* truncated or wrong field layout"):
+        read_pcd(short)
+    (tmp_path / "x.ply").write_text("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int v\nend_header\n")
+    with pytest.raises(DatasetError, match=r"x.ply: the first PLY element is not 'vertex'"):
+        read_ply(tmp_path / "x.ply")
+
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    np.save(wrong / "0.npy", np.zeros((5, 7)))
+    with pytest.raises(DatasetError, match=r"wrong/0.npy: array of shape \(5, 7\)"):
+        FolderSequence(wrong)
+
+    counted = tmp_path / "counted"
+    counted.mkdir()
+    np.save(counted / "0.npy", frames[0].points)
+    np.savetxt(counted / "times.txt", [0.0, 0.1])
+    with pytest.raises(DatasetError, match=r"counted/times.txt: 2 timestamps for 1 frames"):
+        FolderSequence(counted)
+
+    with pytest.raises(DatasetError, match=r"empty_dir: not a recognised dataset"):
+        (tmp_path / "empty_dir").mkdir()
+        open_sequence(path=tmp_path / "empty_dir")
+    with pytest.raises(DatasetError, match=r"nowhere: no such file or folder"):
+        open_sequence(path=tmp_path / "nowhere")
+
+
+def test_real_ply_pair_matches_open3d(small_gicp_pair_dir: Path) -> None:
+    """CloudCompare's binary PLY (x, y, z, scalar_intensity) of a real scan, against open3d's reader."""
+    import open3d as o3d
+
+    path = small_gicp_pair_dir / "source.ply"
+    cloud = read_ply(path)
+    reference = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+    assert len(cloud.points) == len(reference) == 69792
+    np.testing.assert_array_equal(cloud.points, reference)
+    assert cloud.intensity is not None and np.ptp(cloud.intensity) > 0
+
+
+def test_real_kitti_velodyne_folder_matches_the_odometry_loader(kitti_root: Path) -> None:
+    from gr_graph.datasets.kitti import KittiSequence
+
+    folder = kitti_root / "sequences" / "00" / "velodyne"
+    assert guess_dataset(folder) == "folder"
+    seq = FolderSequence(folder)
+    kitti = KittiSequence(kitti_root, "00")
+    assert len(seq) == len(kitti) == 6
+    for i in (0, 5):
+        np.testing.assert_array_equal(seq[i].points, kitti[i].points)
+        np.testing.assert_array_equal(seq[i].intensity, kitti[i].intensity)

@@ -1,0 +1,65 @@
+"""The registry's dataset choice: --dataset / data.dataset, guessing from a path, the CLI's PATH."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.config import load_config
+from gr_graph.datasets.base import DatasetError
+from gr_graph.datasets.registry import KITTI_ROOT_ENV, guess_dataset, open_configured_sequence, open_sequence
+from gr_graph.slam import build_parser, main, overrides_from_args
+
+
+def test_path_datasets_need_a_path_and_synthetic_takes_none(tmp_path: Path) -> None:
+    for kind in ("folder", "rosbag", "kitti_raw"):
+        with pytest.raises(DatasetError, match=f"dataset '{kind}' needs a path"):
+            open_sequence(dataset=kind)
+    with pytest.raises(DatasetError, match="synthetic sequence takes no path"):
+        open_sequence(path=tmp_path, dataset="synthetic")
+    with pytest.raises(DatasetError, match="dataset must be one of"):
+        open_sequence(dataset="pcap")
+
+
+def test_kitti_dataset_without_root_is_an_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    with pytest.raises(DatasetError, match="dataset 'kitti': no KITTI root with sequence 00 found"):
+        open_sequence(dataset="kitti")
+
+
+def test_kitti_odometry_root_and_sequence_folder_as_path(kitti_root: Path) -> None:
+    assert guess_dataset(kitti_root) == "kitti"
+    seq, source = open_sequence(path=kitti_root, frames="0:2")
+    assert "KITTI sequence 00" in source and len(seq) == 2
+    seq2, source2 = open_sequence(path=kitti_root / "sequences" / "00", frames="0:2")
+    assert "KITTI sequence 00" in source2
+    np.testing.assert_array_equal(seq[1].points, seq2[1].points)
+
+
+def test_config_and_cli_reach_the_loader(tmp_path: Path) -> None:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        np.save(folder / f"scan{k}.npy", rng.normal(0, 5, (200, 3)))
+    args = build_parser().parse_args([str(folder), "--dataset", "folder", "--frames", "1:3"])
+    cfg = load_config(None, overrides_from_args(args))
+    assert cfg.data.path == str(folder) and cfg.data.dataset == "folder"
+    seq, source = open_configured_sequence(cfg.data)
+    assert source.startswith(f"folder {folder} (3 .npy files)") and len(seq) == 2 and seq[0].index == 1
+    cfg_bag = load_config(None, {"data": {"path": str(folder), "dataset": "rosbag"}})
+    with pytest.raises(DatasetError, match="scans: not a ROS bag"):
+        open_configured_sequence(cfg_bag.data)
+
+
+def test_cli_error_names_the_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    np.save(folder / "a.npy", np.zeros((5, 3)))
+    (folder / "b.ply").write_text("ply\n")
+    assert main([str(folder), "--out", str(tmp_path / "out")]) == 2
+    assert f"error: {folder}: mixed file types (1 .npy, 1 .ply)" in capsys.readouterr().err

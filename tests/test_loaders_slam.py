@@ -1,0 +1,48 @@
+"""SLAM on a generated ROS2 bag: ``python -m gr_graph.slam BAG`` recovers the rendered trajectory."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.round_output import round_dir
+from gr_graph.trajectory import read_kitti_poses, write_kitti_poses
+from loader_support import CloudLayout, cloud_array, drive, write_bag
+
+N_FRAMES = 40
+MAX_ATE_M = 0.15
+MAX_DRIFT = 0.02
+
+
+@pytest.mark.slow
+def test_slam_on_a_ros2_bag_recovers_the_rendered_trajectory(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from gr_graph.slam import main
+
+    # the 'raw' preset: every scan is motion-distorted and carries per-point times, which the bag keeps
+    # (field t, uint32 ns): the loader must mark the sequence as not motion-compensated so deskew turns on
+    seq = drive("raw", N_FRAMES, str(tmp_path / "drive"))
+    bag = write_bag(tmp_path / "vlp_like", {"/lidar/points": [cloud_array(seq[i], CloudLayout(with_time=True))
+                                                              for i in range(N_FRAMES)]})
+    gt = np.linalg.inv(seq.gt_poses[0]) @ seq.gt_poses
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    out = tmp_path / "run"
+    code = main([str(bag), "--poses", str(tmp_path / "gt.txt"), "--out", str(out), "--no-loops", "--no-memory",
+                 "--no-progress", "--log-level", "WARNING"])
+    assert code == 0
+    brief = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert brief["frames"] == N_FRAMES
+    summary = json.loads((out / "metrics.json").read_text())
+    assert "bag" in summary["source"] and "/lidar/points" in summary["source"]
+    deskew = summary["rounds"]["0"]["deskew"]  # per-point times from the bag drove the deskewing
+    assert deskew["enabled"] and deskew["time_source"] == {"data": N_FRAMES, "azimuth": 0}
+    poses = read_kitti_poses(round_dir(out, 0) / "poses_kitti.txt")  # T_cam_velo = I: LiDAR-frame poses
+    errors = np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)
+    travelled = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)))
+    assert travelled > 25.0
+    # unaligned drift: measured 0.40 m after 31 m (the same run on the SyntheticSequence directly: ATE 0.0945 m
+    # against 0.0955 m from the bag)
+    assert errors[-1] < MAX_DRIFT * travelled, (errors[-1], travelled)
+    assert brief["ate_rmse"] < MAX_ATE_M  # evo-aligned ATE of the pipeline against the rendered poses

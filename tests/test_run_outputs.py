@@ -1,0 +1,180 @@
+"""What a run leaves to look at: the map PLY (streamed voxel map), the trajectory plot with
+readable covariance ellipses, the RPE-per-round figure, ``--viz`` without a display."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.map_export import VoxelMap, map_path, write_map
+from gr_graph.plots import ellipse_axes, ellipse_scale, plot_rounds, plot_trajectory
+from gr_graph.viewer import show_map
+
+
+def _reference_voxel_map(points: np.ndarray, voxel: float) -> dict[tuple[int, int, int], tuple[np.ndarray, int]]:
+    """Centroid and count per voxel, one point at a time in a dict."""
+    acc: dict[tuple[int, int, int], list] = {}
+    for p in points:
+        key = tuple(int(v) for v in np.floor(p / voxel))
+        e = acc.setdefault(key, [np.zeros(3), 0])
+        e[0] += p
+        e[1] += 1
+    return {k: (s / n, n) for k, (s, n) in acc.items()}
+
+
+def test_voxel_map_streams_to_the_same_centroids_as_a_dict() -> None:
+    rng = np.random.default_rng(0)
+    chunks = [rng.normal(0, 3, (500, 3)) + rng.normal(0, 5, 3) for _ in range(12)]
+    chunks[3][:5] = np.nan  # dropped
+    voxel = 0.7
+    streamed = VoxelMap(voxel, flush_points=300)  # many merges
+    for c in chunks:
+        streamed.add(c)
+    once = VoxelMap(voxel, flush_points=10**9)
+    once.add(np.concatenate(chunks))
+    ca, na = streamed.points()
+    cb, nb = once.points()
+    np.testing.assert_allclose(ca, cb, atol=1e-12)
+    np.testing.assert_array_equal(na, nb)
+    allp = np.concatenate(chunks)
+    ref = _reference_voxel_map(allp[np.isfinite(allp).all(1)], voxel)
+    assert len(ca) == len(ref) and na.sum() == len(allp) - 5
+    keys = [tuple(int(v) for v in np.floor(p / voxel)) for p in allp[np.isfinite(allp).all(1)]]
+    # every output centroid is the reference centroid of one voxel
+    ref_c = np.array([ref[k][0] for k in sorted(ref)])
+    np.testing.assert_allclose(np.array(sorted(map(tuple, ca))), np.array(sorted(map(tuple, ref_c))), atol=1e-12)
+    assert len(set(keys)) == len(ca)
+    with pytest.raises(ValueError, match="beyond"):
+        VoxelMap(0.2, flush_points=1).add(np.array([[1e6, 0.0, 0.0]]))
+
+
+def test_write_map_places_scans_with_their_poses(tmp_path: Path) -> None:
+    import open3d as o3d
+
+    rng = np.random.default_rng(1)
+    world = rng.uniform(-20, 20, (3000, 3))
+    poses, scans = [], []
+    for k in range(5):  # each scan sees the same world points from its own pose
+        c, s = np.cos(0.3 * k), np.sin(0.3 * k)
+        T = np.eye(4)
+        T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        T[:3, 3] = [2.0 * k, -k, 0.1 * k]
+        poses.append(T)
+        scans.append(((world - T[:3, 3]) @ T[:3, :3]).astype(np.float64))
+    counts = write_map(tmp_path / "map.ply", iter(scans), np.array(poses), voxel_size=0.01)
+    cloud = o3d.t.io.read_point_cloud(str(tmp_path / "map.ply"))
+    pts = cloud.point.positions.numpy()
+    # a 1 cm grid separates the world points: the map is the world, each voxel seen 5 times
+    assert counts == {"points": 15000, "voxels": 3000, "voxel_size": 0.01}
+    np.testing.assert_allclose(np.array(sorted(map(tuple, pts))), np.array(sorted(map(tuple, world))), atol=1e-5)
+    assert set(cloud.point["count"].numpy().ravel()) == {5}
+    with pytest.raises(ValueError, match="4 scans for 5 poses"):
+        write_map(tmp_path / "bad.ply", scans[:4], np.array(poses), 0.1)
+
+
+def test_ellipse_axes_and_scale_closed_form() -> None:
+    th = np.radians(30.0)
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    cov = R @ np.diag([0.2**2, 0.05**2]) @ R.T
+    w, h, ang = ellipse_axes(cov[None])
+    np.testing.assert_allclose([w[0], h[0]], [6 * 0.2, 6 * 0.05])
+    assert np.isclose(ang[0] % 180, 30.0)
+    assert ellipse_scale(np.array([0.1]), 600.0) == 50.0  # 0.015 * 600 / 0.1 = 90 -> 50
+    assert ellipse_scale(np.array([0.1]), 20.0) == 2.0  # 3 -> 2
+    assert ellipse_scale(np.array([1.0]), 20.0) == 1.0  # already visible: true size
+    assert ellipse_scale(np.zeros(3), 600.0) == 1.0
+
+
+def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, monkeypatch) -> None:
+    import matplotlib.patches
+
+    from gr_graph import plots
+
+    captured = {}
+
+    def grab(fig, path, **kw):
+        ax = fig.axes[0]
+        captured["ellipses"] = [p for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
+        captured["labels"] = [t.get_text() for t in ax.get_legend().get_texts()]
+        Path(path).write_bytes(b"png")
+        return Path(path)
+
+    monkeypatch.setattr(plots, "atomic_savefig", grab)
+    K = 120
+    poses = np.tile(np.eye(4), (K, 1, 1))
+    poses[:, 0, 3] = np.linspace(0, 600, K)  # a 600 m drive
+    cov = np.tile(np.diag([0.02**2, 0.01**2, 1e-4]), (K, 1, 1))  # 3-sigma major axis 0.12 m
+    plot_trajectory(tmp_path / "t.png", poses, gt=poses, position_cov=cov)
+    scale = ellipse_scale(np.full(K, 0.12), 600.0)
+    assert scale == 50.0
+    widths = sorted({round(e.width, 9) for e in captured["ellipses"]})
+    assert widths == [round(50.0 * 0.12, 9)] and len(captured["ellipses"]) == 60
+    assert any("magnified x50" in t and "3σ" in t for t in captured["labels"])
+
+
+def test_rounds_figure_from_metrics(tmp_path: Path) -> None:
+    metrics = {"rounds": {"0": {"slam": {"rpe300_consecutive_mean": 1.2, "ate_rmse": 3.0},
+                                "odometry": {"rpe300_consecutive_mean": 2.0, "ate_rmse": 5.0}},
+                          "1": {"slam": {"rpe300_consecutive_mean": 1.0, "ate_rmse": 2.5},
+                                "odometry": {"rpe300_consecutive_mean": 1.9, "ate_rmse": 4.0}}}}
+    png = plot_rounds(tmp_path / "rounds.png", metrics, title="t")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    plot_rounds(tmp_path / "empty.png", {"rounds": {"0": {}, "1": {}}})  # no ground truth: no crash
+    assert (tmp_path / "empty.png").is_file()
+
+
+def test_revisit_run_writes_its_map_and_plot(revisit_run: Path) -> None:
+    """The map is round 0's memory scans placed with the optimised poses (independent rebuild)."""
+    import open3d as o3d
+
+    from gr_graph.memory import load_memory
+
+    rd = revisit_run / "round_0"
+    summary = json.loads((rd / "round.json").read_text())
+    cloud = o3d.t.io.read_point_cloud(str(map_path(rd)))
+    pts = cloud.point.positions.numpy().astype(np.float64)
+    assert summary["map"]["voxels"] == len(pts) and summary["map"]["voxel_size"] == 0.2
+    with np.load(rd / "marginals.npz") as z:
+        poses = z["poses"]
+    mem = load_memory(rd / "memory")
+    world = np.concatenate([np.asarray(mem.scan(k), np.float64) @ poses[k][:3, :3].T + poses[k][:3, 3]
+                            for k in range(mem.n_scans)])
+    assert summary["map"]["points"] == len(world)
+    ref = VoxelMap(0.2, flush_points=10**9)
+    ref.add(world)
+    c, n = ref.points()
+    np.testing.assert_allclose(pts, c, atol=1e-4)  # float32 in the PLY
+    np.testing.assert_array_equal(cloud.point["count"].numpy().ravel(), n)
+    assert (revisit_run / "trajectory.png").is_file()
+    assert not (revisit_run / "rounds.png").exists()  # one round only
+
+
+def test_viz_without_display_is_a_message_not_a_crash(tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    write_map(tmp_path / "map.ply", [np.random.default_rng(0).normal(size=(100, 3))], np.eye(4)[None], 0.2)
+    assert show_map(tmp_path / "map.ply") is False
+    err = capsys.readouterr().err
+    assert "no display" in err and str(tmp_path / "map.ply") in err
+    assert show_map(tmp_path / "missing.ply") is False
+    assert "no map at" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_learning_run_outputs_and_slam_viz(learning_run, monkeypatch, capsys) -> None:
+    """With rounds: a map per round and the RPE-per-round figure; ``--viz`` on the finished run
+    (resumed, nothing recomputed) without a display prints the message and exits 0."""
+    from gr_graph.slam import main
+
+    run_dir, argv = learning_run
+    assert (run_dir / "rounds.png").is_file()
+    for r in (0, 1):
+        assert map_path(run_dir / f"round_{r}").is_file()
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main([*argv, "--viz"]) == 0
+    err = capsys.readouterr().err
+    assert "--viz: no display" in err and str(map_path(run_dir / "round_1")) in err
