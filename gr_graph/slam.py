@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         from gr_graph.round_output import round_dir
         from gr_graph.viewer import show_map
 
-        show_map(map_path(round_dir(cfg.output.out_dir, last["round"])), title=f"gr_graph map: {cfg.output.out_dir}")
+        show_map(map_path(round_dir(cfg.output.out_dir, int(max(metrics["rounds"], key=int)))), title=f"gr_graph map: {cfg.output.out_dir}")
     return 0
 
 
