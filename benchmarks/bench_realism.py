@@ -171,7 +171,8 @@ def main() -> None:
             lines.append(f"| {name} | " + " | ".join(within(k, results[name][k]) for k in KEYS) + " |")
     base = results.get("clean")
     kit = results.get("kitti")
-    if base is not None and kit is not None:
+    has_effect_rows = any(n.startswith(("only ", "kitti without ")) for n in results)
+    if base is not None and kit is not None and has_effect_rows:
         lines += ["", "## What each effect moves", "",
                   "Change of each statistic when the effect is turned on alone (from `clean`) and when it is "
                   "turned off alone (from `kitti`: the change is `kitti` minus `kitti without`, i.e. what the "

@@ -150,6 +150,43 @@ def bench_world(n_frames: int, out: Path) -> None:
     print(text)
 
 
+def bench_kitti_preset(n_frames: int, out: Path) -> None:
+    """Render speed of the ``kitti`` preset (its world, actors and every sensor effect), 64 rings,
+    one ray-casting thread, written to ``out``: wall-clock and CPU-time frames/s (the machine is
+    shared; the CPU time of this process is the figure less disturbed by other jobs)."""
+    load0 = os.getloadavg()
+    seq = SyntheticSequence(seed=0, n_rings=64, nthreads=1, preset="kitti")
+    t0 = time.perf_counter()
+    n_tri = len(seq.town.triangles)
+    t_build = time.perf_counter() - t0
+    seq[999]  # warm up: BVH and actors
+    frames = np.arange(1000, 1000 + n_frames)
+    n_pts = 0
+    t0, c0 = time.perf_counter(), time.process_time()
+    for i in frames:
+        n_pts += len(seq[int(i)])
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    load1 = os.getloadavg()
+    lines = [
+        "# Synthetic renderer: speed of the kitti preset (every world and sensor effect)",
+        "",
+        f"Reproduce: `python benchmarks/bench_render.py --kitti-preset --frames {n_frames}`",
+        "",
+        f"- date (UTC): {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M}",
+        f"- machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; load average {load0[0]:.1f} before / "
+        f"{load1[0]:.1f} after (shared machine)",
+        f"- 64 rings, 1 ray-casting thread, frames {frames[0]}..{frames[-1]} of the generated route, seed 0; "
+        "target >= 10 frames/s",
+        "",
+        "| town build [s] | triangles | frames/s (wall clock) | frames/s (CPU time of the process) | points/frame |",
+        "|---:|---:|---:|---:|---:|",
+        f"| {t_build:.1f} | {n_tri / 1e6:.2f} M | {n_frames / wall:.1f} | {n_frames / cpu:.1f} | "
+        f"{n_pts / n_frames:,.0f} |",
+    ]
+    atomic_write_text(out, "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=60, help="frames timed per configuration")
@@ -160,7 +197,12 @@ def main() -> None:
                     help=f"default {RESULTS} (with --world-effects: render_world.md beside it)")
     ap.add_argument("--world-effects", action="store_true",
                     help="only time the world effects (town effects, actors) at 64 rings, 1 thread")
+    ap.add_argument("--kitti-preset", action="store_true",
+                    help="only time the kitti preset (its world and every sensor effect) at 64 rings, 1 thread")
     args = ap.parse_args()
+    if args.kitti_preset:
+        bench_kitti_preset(args.frames, args.out or RESULTS.with_name("render_kitti.md"))
+        return
     if args.world_effects:
         bench_world(args.frames, args.out or RESULTS.with_name("render_world.md"))
         return

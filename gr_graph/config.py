@@ -235,6 +235,19 @@ class TrainingConfig(_Section):
         "learned", description="rounds >= 1, odometry edges: 'learned' = pose-likelihood Hessian H(C) of the network's "
         "covariances (Lambda_i = (2 C_qi)^-1); 'registration' = the VGICP information of round 0"
     )
+    covariances: Literal["network", "pca"] = Field(
+        "network", description="rounds >= 1: per-point covariances from the trained network, or 'pca' (ablation, no "
+        "training): the covariance of each preprocessed point's preprocess.num_neighbors nearest neighbours + "
+        "trainer.net.eps I (gr_graph.pca_covariances), used for densification and the learned edge noise"
+    )
+    densify: bool = Field(
+        True, description="rounds >= 1: SLAM on the densified scans; false (ablation): SLAM on the raw scans while the "
+        "learned edge noise still comes from the covariances"
+    )
+    stop_on_reject: bool = Field(
+        True, description="the learning rounds stop after a rejected round; false: every round runs (the harness's "
+        "unguarded 2-step), the acceptance is still recorded"
+    )
     learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies H(C) before the eigenvalue floor")
     learned_noise_min_correspondences: int = Field(
         50, ge=3, description="fewer nearest-neighbour pairs (within odometry.corr_max_distance): registration fallback"

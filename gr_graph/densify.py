@@ -284,11 +284,15 @@ class DensifiedSequence:
             self._record(idx, len(s), 0, len(raw.points), "nonfinite_covariance")
             return raw
         self._keep(idx, s, res.input_covariances)  # only covariances densify accepted (finite, positive definite)
+        if not cfg.densify:  # ablation (training.densify: false): raw scans, predictions kept for the edge noise
+            self._record(idx, len(s), res.n_kept, len(raw.points), None)
+            return raw
         self._record(idx, len(s), res.n_kept, len(res.points), res.fallback)
         intensity = source_intensity(raw.points, raw.intensity, s)[res.source]
         return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),
                           intensity=intensity.astype(np.float32), ring=None, n_rings=raw.n_rings,
                           dropped_nonfinite=raw.dropped_nonfinite)
+
 
 def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: TrainingConfig | None = None,
                        device: str = "cpu", preprocess: PreprocessConfig | None = None,

@@ -12,7 +12,8 @@ edges' information from the network's covariances (:mod:`gr_graph.edge_noise`,
 Acceptance: every learning round is tested against the last accepted round without ground
 truth (:mod:`gr_graph.round_acceptance`, ``training.acceptance``); its summary carries
 ``accepted`` and ``acceptance`` (the test's figures). After a rejected round the rounds stop (the
-next round would train on the rejected round's memory). The run's final trajectory, the accepted
+next round would train on the rejected round's memory) unless ``training.stop_on_reject`` is
+false (the harness's unguarded rounds: later rounds are then tested against the last accepted one). The run's final trajectory, the accepted
 round with the lowest mean map entropy (round 0 when none is accepted), is copied to
 ``poses_kitti.txt`` / ``poses_tum.txt`` at the top of ``--out`` and named in ``metrics.json``
 (``final_round``).
@@ -85,7 +86,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
                                                  "device": True})
     else:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
-                                                 "training": {"rounds", "convergence_delta", "acceptance"}})
+                                                 "training": {"rounds", "convergence_delta", "acceptance",
+                                                              "stop_on_reject"}})
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -144,11 +146,15 @@ class SlamPipeline:
             converged = previous_poses is not None and self.converged(r, summary, previous_poses, poses)
             write_metrics(self.out, metrics)  # after converged() added trajectory_change to the summary
             if not accepted:
-                metrics["stopped"] = f"round {r} rejected by the acceptance test: no further rounds"
-                log.warning("round %d rejected: the learning rounds stop here (the final trajectory is an accepted "
-                            "round's)", r)
-                break
-            reference = r
+                if self.cfg.training.stop_on_reject:
+                    metrics["stopped"] = f"round {r} rejected by the acceptance test: no further rounds"
+                    log.warning("round %d rejected: the learning rounds stop here (the final trajectory is an "
+                                "accepted round's)", r)
+                    break
+                log.warning("round %d rejected; training.stop_on_reject is false: the rounds go on (later rounds are "
+                            "tested against round %d)", r, reference)
+            else:
+                reference = r
             if converged:
                 break
             previous_poses = poses
@@ -293,6 +299,12 @@ class SlamPipeline:
         from training.train import train_from_memory  # imports torch: only when a learning round runs
 
         tc = self.cfg.training
+        if tc.covariances == "pca":  # ablation: no network, no training
+            from gr_graph.pca_covariances import PcaCovariances
+
+            pca = PcaCovariances(self.cfg.preprocess.num_neighbors, tc.trainer.net.eps)
+            return densified_sequence(self.sequence, pca, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
+                                      keep_predictions=max(16, self.cfg.data.prefetch + 8))
         init = None
         if r >= 2 and tc.warm_start:
             init = self.round_dir(r - 1) / "training" / "model.pt"

@@ -21,6 +21,7 @@ from gr_graph.cli_common import LOG_LEVELS, setup_logging
 from gr_graph.datasets import realism
 from gr_graph.datasets.synthetic import __main__ as synthetic_export
 from gr_graph.datasets.synthetic import plots as synthetic_plots
+from gr_graph.experiments import cli as experiments_cli
 from gr_graph.trajectory import read_kitti_poses
 from training import ddp, train
 
@@ -45,6 +46,8 @@ CLIS: dict[str, tuple[Callable[[], argparse.ArgumentParser], Callable[[list[str]
                                           {"--out", "--seed", "--log-level"}),
     "gr_graph.densify_cli": (densify_cli.build_parser, densify_cli.main, ["IN.pcd", "OUT.ply", "--weights", "W"],
                              {"--seed", "--device", "--point-format", "--log-level"}),
+    "gr_graph.experiments": (experiments_cli.build_parser, experiments_cli.main, ["table1"],
+                             {"--device", "--log-level"}),
     "gr_graph.datasets.realism": (realism.build_parser, realism.main, ["DIR"],
                                   {"--out", "--point-format", "--no-progress", "--log-level"}),
 }
@@ -100,7 +103,7 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
                "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes", "--synthetic-preset": "noisy",
-               "--preset": "noisy", "--world": "urban", "--dataset": "pcap", "--sensor": "hdl32e"}
+               "--preset": "noisy", "--world": "urban", "--dataset": "pcap", "--sensor": "hdl32e", "--budget": "huge"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 

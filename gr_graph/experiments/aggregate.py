@@ -1,0 +1,216 @@
+"""Aggregating finished cells into a table: mean +- std over seeds, relative reductions, markdown.
+
+Conventions (stated in every report):
+
+* ``std`` is the sample standard deviation over seeds (``ddof=1``); with one seed it is None
+  (shown as "n/a"); values that could not be computed (None, e.g. RPE-300 on a window shorter
+  than 300 frames) are left out and the count ``n`` says how many seeds remain;
+* a relative reduction is ``100 (raw - x) / raw`` per seed, where ``raw`` is the same seed's
+  round 0; the table gives mean +- std of the per-seed reductions (not the reduction of means);
+* "2-step unguarded" is round 2 as computed (the cells run with ``training.stop_on_reject:
+  false``); "2-step guarded" is the last round r <= 2 such that rounds 1..r were all accepted
+  (round 0 when round 1 was rejected): what a run that stops after a rejection ends with. When
+  ``metrics.json`` has no ``accepted`` key every round counts as accepted (reported);
+* a round that was not run because the run converged (``training.convergence_delta``) is
+  replaced by the last round before it (noted).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from gr_graph.experiments.cells import PAPER_REDUCTIONS, PAPER_REGISTRATION
+from gr_graph.experiments.run_cell import METRIC_KEYS
+
+__all__ = ["mean_std", "reduction_percent", "select_round", "table1_summary", "table2_summary",
+           "ablation_summary", "fmt_ms", "STEPS", "METRIC_LABELS"]
+
+STEPS = ("raw", "1-step", "2-step", "2-step guarded")
+METRIC_LABELS = {
+    "rpe300_consecutive_mean": "RPE-300 mean (consec.) [m]",
+    "rpe300_consecutive_rmse": "RPE-300 RMSE (consec.) [m]",
+    "rpe300_all_pairs_mean": "RPE-300 mean (all pairs) [m]",
+    "rpe300_all_pairs_rmse": "RPE-300 RMSE (all pairs) [m]",
+    "ate_rmse": "ATE RMSE [m]",
+    "kitti_t_err_percent": "KITTI [%]",
+}
+
+
+def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
+    """``{"mean", "std", "n", "values"}`` over the non-None, finite values (std: ddof=1, None if n < 2)."""
+    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    n = len(vals)
+    if n == 0:
+        return {"mean": None, "std": None, "n": 0, "values": []}
+    m = sum(vals) / n
+    s = math.sqrt(sum((v - m) ** 2 for v in vals) / (n - 1)) if n >= 2 else None
+    return {"mean": m, "std": s, "n": n, "values": vals}
+
+
+def reduction_percent(raw: float | None, value: float | None) -> float | None:
+    """``100 (raw - value) / raw``; None if either is missing or ``raw`` is 0."""
+    if raw is None or value is None or raw == 0:
+        return None
+    return 100.0 * (raw - value) / raw
+
+
+def select_round(rounds: dict[str, Any], step: str) -> tuple[int | None, str | None]:
+    """The round of a cell's ``rounds`` (:func:`gr_graph.experiments.run_cell.round_figures`)
+    standing for ``step`` (one of :data:`STEPS`) and a note when it is not the nominal round."""
+    have = sorted(int(r) for r in rounds)
+    if not have:
+        return None, "no round finished"
+    if step == "2-step guarded":
+        r = 0
+        for k in range(1, 3):
+            if k not in have:
+                break
+            if rounds[str(k)].get("accepted") is False:
+                break
+            r = k
+        return r, None if r == min(2, have[-1]) else f"round {r + 1} rejected"
+    want = {"raw": 0, "1-step": 1, "2-step": 2}[step]
+    if want in have:
+        return want, None
+    earlier = [k for k in have if k < want]
+    if not earlier:
+        return None, f"round {want} missing"
+    return earlier[-1], f"round {want} not run (the run stopped after round {earlier[-1]}, e.g. converged)"
+
+
+def fmt_ms(d: dict[str, Any] | None, fmt: str = "{:.3f}", pct: bool = False) -> str:
+    """``mean ± std`` (``n/a`` parts when missing)."""
+    if not d or d.get("mean") is None:
+        return "n/a"
+    u = " %" if pct else ""
+    if d.get("std") is None:
+        return f"{fmt.format(d['mean'])}{u} (n={d['n']})"
+    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])}{u}"
+
+
+def acceptance_recorded(results: Sequence[dict[str, Any]]) -> bool:
+    """Whether any learning round of ``results`` carries an ``accepted`` flag."""
+    return any(v.get("accepted") is not None for c in results for r, v in c.get("rounds", {}).items() if r != "0")
+
+
+def table1_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per group (``16ch``, ``32ch``, ``64ch``, ``full-16ch``) and step: every metric's per-seed
+    values and mean +- std, the per-seed reductions vs raw, KISS-ICP, the 2x2 acceptance count."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for c in results:
+        groups.setdefault(c["definition"]["group"], []).append(c)
+    out: dict[str, Any] = {}
+    for g, cells in groups.items():
+        cells = sorted(cells, key=lambda c: c["definition"]["seed"])
+        ch = cells[0]["definition"]["channels"]
+        steps: dict[str, Any] = {}
+        for step in STEPS:
+            if step != "raw" and all(max(int(r) for r in c["rounds"]) < 1 for c in cells):
+                continue
+            if step.startswith("2-step") and all(c["definition"]["params"]["rounds"] < 2 for c in cells):
+                continue
+            per_seed, notes = [], []
+            for c in cells:
+                r, note = select_round(c["rounds"], step)
+                fig = c["rounds"][str(r)]["slam"] if r is not None else {}
+                raw = c["rounds"]["0"]["slam"]
+                per_seed.append({"seed": c["definition"]["seed"], "round": r, **fig,
+                                 **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k)) for k in METRIC_KEYS}})
+                if note:
+                    notes.append(f"seed {c['definition']['seed']}: {note}")
+            steps[step] = {"per_seed": per_seed, "notes": notes,
+                           **{k: mean_std(p.get(k) for p in per_seed) for k in METRIC_KEYS},
+                           **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
+                              for k in METRIC_KEYS}}
+        kiss = [c.get("kiss_icp") for c in cells if c.get("kiss_icp")]
+        out[g] = {"channels": ch, "seeds": [c["definition"]["seed"] for c in cells],
+                  "frames": cells[0]["definition"]["frames"], "steps": steps,
+                  "kiss_icp": {k: mean_std(x.get(k) for x in kiss) for k in METRIC_KEYS} if kiss else None,
+                  "paper_reduction": PAPER_REDUCTIONS.get(ch) if not g.startswith("full") else None,
+                  "acceptance_2x2": acceptance_counts(cells)}
+    return out
+
+
+def acceptance_counts(cells: Sequence[dict[str, Any]], key: str = "rpe300_all_pairs_mean") -> dict[str, int]:
+    """2x2 count over the learning rounds of ``cells``: accepted/rejected x better/worse than the
+    previous round by ground truth (``key``); rounds without an ``accepted`` flag are not counted."""
+    counts = {"accepted_better": 0, "accepted_worse": 0, "rejected_better": 0, "rejected_worse": 0}
+    for c in cells:
+        rounds = c.get("rounds", {})
+        for r in sorted(int(k) for k in rounds):
+            if r == 0 or rounds[str(r)].get("accepted") is None:
+                continue
+            now, before = rounds[str(r)]["slam"].get(key), rounds[str(r - 1)]["slam"].get(key)
+            if now is None or before is None:
+                continue
+            a = "accepted" if rounds[str(r)]["accepted"] else "rejected"
+            counts[f"{a}_{'better' if now <= before else 'worse'}"] += 1
+    return counts
+
+
+def table2_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per channel count, step (raw / 1-step / 2-step) and solver: success rate [%] per seed and
+    mean +- std; ``best_step`` is the densified step with the highest mean, beside the paper's."""
+    out: dict[str, Any] = {}
+    for c in results:
+        d = c["definition"]
+        ch, step = d["channels"], ("raw" if d["params"]["round"] == 0 else f"{d['params']['round']}-step")
+        for solver, s in c["summary"].items():
+            row = out.setdefault(str(ch), {}).setdefault(step, {}).setdefault(solver, {"per_seed": []})
+            row["per_seed"].append({"seed": d["seed"], "success_percent": 100.0 * (s["success_rate"] or 0.0),
+                                    "n_pairs": s["n_pairs"], "note": c.get("note")})
+    for ch, steps in out.items():
+        for step, solvers in list(steps.items()):
+            for solver, row in solvers.items():
+                row.update(mean_std(p["success_percent"] for p in row["per_seed"]))
+        best: dict[str, Any] = {}
+        solvers_all = {s for st in steps.values() for s in st}
+        for solver in sorted(solvers_all):
+            dens = [(st, steps[st][solver]["mean"]) for st in steps if st != "raw" and solver in steps[st]]
+            if dens:
+                st, m = max(dens, key=lambda x: x[1])
+                best[solver] = {"step": st, "mean": m}
+        steps_sorted = dict(sorted(steps.items(), key=lambda kv: (kv[0] != "raw", kv[0])))
+        out[ch] = {"steps": steps_sorted, "best_step": best, "paper": PAPER_REGISTRATION.get(int(ch))}
+    return dict(sorted(out.items(), key=lambda kv: -int(kv[0])))
+
+
+def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default") -> dict[str, Any]:
+    """Per ablation and step (1-step, 2-step): metric mean +- std over seeds and the per-seed
+    difference to the ``baseline`` cell of the same seed (mean +- std, and whether all seeds
+    agree in sign with ``|mean| > std``: the rule for changing a default)."""
+    by: dict[str, dict[int, dict[str, Any]]] = {}
+    for c in results:
+        by.setdefault(c["definition"]["group"], {})[c["definition"]["seed"]] = c
+    out: dict[str, Any] = {}
+    base = by.get(baseline, {})
+    for name, cells in by.items():
+        steps: dict[str, Any] = {}
+        for step in ("raw", "1-step", "2-step"):
+            per_seed = []
+            for seed, c in sorted(cells.items()):
+                r, note = select_round(c["rounds"], step)
+                fig = c["rounds"][str(r)]["slam"] if r is not None else {}
+                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig}
+                b = base.get(seed)
+                if b is not None:
+                    rb, _ = select_round(b["rounds"], step)
+                    bfig = b["rounds"][str(rb)]["slam"] if rb is not None else {}
+                    for k in METRIC_KEYS:
+                        row[f"diff_{k}"] = (None if fig.get(k) is None or bfig.get(k) is None
+                                            else fig[k] - bfig[k])
+                per_seed.append(row)
+            entry: dict[str, Any] = {"per_seed": per_seed, **{k: mean_std(p.get(k) for p in per_seed)
+                                                              for k in METRIC_KEYS}}
+            for k in METRIC_KEYS:
+                diff = mean_std(p.get(f"diff_{k}") for p in per_seed)
+                vals = diff["values"]
+                diff["consistent"] = bool(len(vals) >= 2 and (all(v > 0 for v in vals) or all(v < 0 for v in vals))
+                                          and diff["std"] is not None and abs(diff["mean"]) > diff["std"])
+                entry[f"diff_{k}"] = diff
+            steps[step] = entry
+        out[name] = {"what": next(iter(cells.values()))["what"].split(",")[0], "seeds": sorted(cells),
+                     "steps": steps, "reuse": {s: c.get("reuse") for s, c in sorted(cells.items())}}
+    return out

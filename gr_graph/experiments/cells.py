@@ -1,0 +1,232 @@
+"""The cells of Table I, Table II and the ablations: pure data, no computation.
+
+A :class:`Cell` is one resumable run: a SLAM run with learning rounds (``kind="slam"``: Table I
+and the ablations) or a global-registration evaluation of one round's scans (``kind=
+"registration"``: Table II, on a Table I cell's ground truth and trained model). Its
+:meth:`Cell.fingerprint` hashes its definition; a cell whose stored fingerprint differs is
+recomputed from scratch (:mod:`gr_graph.experiments.run_cell`).
+
+Seeds are paired: seed ``i`` sets both the world (``SlamConfig.seed``: the synthetic town,
+sensor noise and calibration) and the training (``training.seed``).
+
+Budgets: ``paper`` is the issue's protocol (Table I: 1,500-frame window with a revisit at 16 and
+32 channels, 3 seeds; 64 channels rounds 0-1, 1 seed; the full 4,541-frame 16-channel run;
+Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``smoke`` keeps the structure with tiny
+sizes (a few dozen frames, 2 seeds, 1 epoch, a tiny network) to test the machinery in minutes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+__all__ = ["Budget", "BUDGETS", "Cell", "TABLES", "cells_for", "table1_cells", "table2_cells", "ablation_cells",
+           "PAPER_REDUCTIONS", "PAPER_REGISTRATION", "TABLE1_WINDOW", "ABLATION_WINDOW", "ABLATIONS",
+           "estimate_slam_minutes", "estimate_registration_minutes"]
+
+TABLES = ("table1", "table2", "ablations")
+
+# First windows of the generated route (route seed 0) holding a revisit (frames >= 100 apart
+# within 5 m), found by gr_graph.experiments.revisits.first_revisit_window (3,159 revisit pairs
+# each; tests/test_experiments.py recomputes them).
+TABLE1_WINDOW = (0, 1500)
+ABLATION_WINDOW = (0, 600)
+FULL_SEQUENCE = (0, 4541)
+
+# The paper's Table I: relative RPE-300 reduction of 1-step / 2-step vs raw [%], per channel count;
+# its Table II: global-registration success of raw scans and of the best densification step [%].
+PAPER_REDUCTIONS = {16: {1: 35.6, 2: 49.5}, 32: {1: 39.1, 2: 47.8}, 64: {1: 4.9, 2: 6.0}}
+PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "best_step": 96.0},
+                      64: {"raw": 97.0, "best_step": 98.0}}
+
+# CPU seconds per frame, measured on the full 16-channel 2-round run (issue 10): round 0 166 s,
+# training 799 s for 3 epochs, densified-frame wait 319 s, SLAM < 120 s per learning round, for
+# 4,541 frames. Other channel counts scaled by their points per scan (rough).
+_S_ROUND0 = 166 / 4541
+_S_EPOCH = 799 / 3 / 4541
+_S_DENSIFY = 319 / 4541
+_S_SLAM = 120 / 4541
+_S_KISS = 0.03  # rendering again + KISS-ICP, per frame
+_CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
+_S_PAIR = 3.0  # two scans (densified) + KISS-Matcher + FPFH/RANSAC per pair
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Sizes of one budget (see the module docstring)."""
+
+    name: str
+    window: tuple[int, int]
+    ablation_window: tuple[int, int]
+    full: tuple[int, int] | None
+    seeds: tuple[int, ...]
+    epochs: int
+    n_pairs: int
+    trainer: dict[str, Any] = field(default_factory=dict)
+
+
+BUDGETS: dict[str, Budget] = {
+    "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100),
+    "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,
+                    trainer={"max_corr": 200, "num_threads": 1,
+                             "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16, "c2": 16,
+                                     "kw": 8}}),
+}
+
+ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {
+    # name: (what, training overrides, what it reuses from the default cell: "round0" or "round1_training")
+    "default": ("default method (geometric head, learned edge noise, densification)", {}, None),
+    "untrained": ("untrained network (training.epochs 0)", {"epochs": 0}, "round0"),
+    "pca": ("PCA covariances of the k nearest neighbours, no network", {"covariances": "pca"}, "round0"),
+    "cholesky": ("the paper's literal Cholesky head", {"trainer": {"net": {"head": "cholesky"}}}, "round0"),
+    "edge-noise-off": ("learned edge noise off (registration Hessian)", {"edge_noise": "registration"},
+                       "round1_training"),
+    "densify-off": ("densification off (raw scans, learned edge noise)", {"densify": False}, "round1_training"),
+}
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One resumable run of a table (module docstring).
+
+    ``overrides`` is the nested ``SlamConfig`` override of a SLAM cell (output options are
+    set by the runner); ``source`` names the cell whose results this one uses (Table II: the
+    Table I cell; ablations: the default cell they reuse round 0 / round-1 training from);
+    ``params`` holds kind-specific settings (``kiss_icp``, ``round``, ``n_pairs``,
+    ``solvers``, ``reuse``).
+    """
+
+    table: str
+    key: str
+    what: str
+    kind: Literal["slam", "registration"]
+    seed: int
+    channels: int
+    frames: tuple[int, int]
+    group: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+    source: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    est_cpu_minutes: float = 0.0
+
+    def definition(self) -> dict[str, Any]:
+        """Everything that determines the cell's result (JSON-serialisable; no estimate)."""
+        d = asdict(self)
+        d.pop("est_cpu_minutes")
+        d["frames"] = list(self.frames)
+        return d
+
+    def fingerprint(self) -> str:
+        """Hash of :meth:`definition` (16 hex digits)."""
+        return hashlib.sha256(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, kiss_icp: bool) -> float:
+    """Rough CPU minutes of a SLAM cell (constants above)."""
+    f = _CHANNEL_FACTOR[channels]
+    s = frames * f * (_S_ROUND0 + rounds * (epochs * _S_EPOCH + _S_DENSIFY + _S_SLAM))
+    if kiss_icp:
+        s += frames * f * _S_KISS
+    return round(s / 60.0, 1)
+
+
+def estimate_registration_minutes(n_pairs: int, channels: int) -> float:
+    """Rough CPU minutes of a Table II cell."""
+    return round(n_pairs * _S_PAIR * _CHANNEL_FACTOR[channels] / 60.0, 1)
+
+
+def _slam_overrides(budget: Budget, seed: int, channels: int, frames: tuple[int, int], rounds: int,
+                    training: dict[str, Any] | None = None) -> dict[str, Any]:
+    # every round runs: no stop after a rejection (guarded = read from the acceptance flags), no
+    # convergence stop (a 2-step cell computes round 2 even when round 1 barely moved)
+    tr: dict[str, Any] = {"rounds": rounds, "seed": seed, "epochs": budget.epochs, "stop_on_reject": False,
+                          "convergence_delta": 0.0}
+    if budget.trainer:
+        tr["trainer"] = json.loads(json.dumps(budget.trainer))
+    for k, v in (training or {}).items():
+        if k == "trainer":
+            t = tr.setdefault("trainer", {})
+            for kk, vv in v.items():
+                t[kk] = {**t.get(kk, {}), **vv} if isinstance(vv, dict) else vv
+        else:
+            tr[k] = v
+    return {"seed": seed, "data": {"seq": "00", "channels": channels, "frames": list(frames),
+                                   "synthetic_preset": "kitti"},
+            "training": tr}
+
+
+def table1_cells(budget: Budget) -> list[Cell]:
+    """16 and 32 channels x seeds on the revisit window (2 rounds); 64 channels rounds 0-1, first
+    seed; the full-sequence 16-channel 2-round headline (first seed). KISS-ICP on every one."""
+    cells = []
+    w = budget.window
+    for ch in (16, 32):
+        for s in budget.seeds:
+            cells.append(Cell("table1", f"{ch}ch-s{s}", f"{ch} channels, frames {w[0]}:{w[1]}, 2 rounds, seed {s}",
+                              "slam", s, ch, w, f"{ch}ch", _slam_overrides(budget, s, ch, w, 2),
+                              params={"kiss_icp": True, "rounds": 2},
+                              est_cpu_minutes=estimate_slam_minutes(w[1] - w[0], ch, 2, budget.epochs, True)))
+    s = budget.seeds[0]
+    cells.append(Cell("table1", f"64ch-s{s}", f"64 channels, frames {w[0]}:{w[1]}, 1 round, seed {s}", "slam", s, 64,
+                      w, "64ch", _slam_overrides(budget, s, 64, w, 1), params={"kiss_icp": True, "rounds": 1},
+                      est_cpu_minutes=estimate_slam_minutes(w[1] - w[0], 64, 1, budget.epochs, True)))
+    if budget.full is not None:
+        f = budget.full
+        cells.append(Cell("table1", f"full-16ch-s{s}", f"headline: 16 channels, frames {f[0]}:{f[1]}, 2 rounds, "
+                          f"seed {s}", "slam", s, 16, f, "full-16ch", _slam_overrides(budget, s, 16, f, 2),
+                          params={"kiss_icp": True, "rounds": 2},
+                          est_cpu_minutes=estimate_slam_minutes(f[1] - f[0], 16, 2, budget.epochs, True)))
+    return cells
+
+
+def table2_cells(budget: Budget) -> list[Cell]:
+    """Global registration on raw (round 0) and densified (rounds 1, 2) scans of every Table I
+    window cell, both solvers, ``n_pairs`` pairs within 10 m (sampled with the cell's seed)."""
+    cells = []
+    for src in table1_cells(budget):
+        if src.group.startswith("full"):
+            continue
+        for r in range(src.params["rounds"] + 1):
+            step = "raw" if r == 0 else f"{r}-step"
+            cells.append(Cell("table2", f"{src.key}-r{r}", f"global registration, {src.channels} channels, {step} "
+                              f"scans, seed {src.seed} (models of table1/{src.key})", "registration", src.seed,
+                              src.channels, src.frames, f"{src.channels}ch", source=f"table1/{src.key}",
+                              params={"round": r, "n_pairs": budget.n_pairs, "max_distance": 10.0,
+                                      "solvers": ["kiss_matcher", "fpfh_ransac"]},
+                              est_cpu_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
+    return cells
+
+
+def ablation_cells(budget: Budget) -> list[Cell]:
+    """Every ablation x seed at 16 channels on the ablation window, 2 rounds; the default cell of
+    a seed comes first (the others reuse its round 0, and two of them its round-1 training)."""
+    cells = []
+    w = budget.ablation_window
+    for s in budget.seeds:
+        for name, (what, training, reuse) in ABLATIONS.items():
+            rounds = 2
+            epochs = 0 if training.get("covariances") == "pca" or training.get("epochs") == 0 else budget.epochs
+            trained_rounds = rounds if reuse != "round1_training" else rounds - 1
+            est = estimate_slam_minutes(w[1] - w[0], 16, trained_rounds, epochs, False)
+            if reuse is not None:
+                est -= estimate_slam_minutes(w[1] - w[0], 16, 0, 0, False)  # round 0 reused
+            cells.append(Cell("ablations", f"{name}-s{s}", f"{what}, 16 channels, frames {w[0]}:{w[1]}, seed {s}",
+                              "slam", s, 16, w, name, _slam_overrides(budget, s, 16, w, rounds, training),
+                              source=None if reuse is None else f"ablations/default-s{s}",
+                              params={"kiss_icp": False, "rounds": rounds, "reuse": reuse},
+                              est_cpu_minutes=round(max(est, 0.1), 1)))
+    return cells
+
+
+def cells_for(table: str, budget: Budget | str) -> list[Cell]:
+    """The cells of ``table`` (one of :data:`TABLES`) under ``budget`` (a :class:`Budget` or its name)."""
+    b = BUDGETS[budget] if isinstance(budget, str) else budget
+    if table == "table1":
+        return table1_cells(b)
+    if table == "table2":
+        return table2_cells(b)
+    if table == "ablations":
+        return ablation_cells(b)
+    raise ValueError(f"unknown table {table!r}; choose from {TABLES}")

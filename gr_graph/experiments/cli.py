@@ -1,0 +1,120 @@
+"""Command line of the experiment harness: ``python -m gr_graph.experiments TABLE [options]``.
+
+Without ``--cell``/``--list``/``--report`` every unfinished cell runs in order (a cell that
+fails is reported and the next one runs; the exit status is 1 if any failed), finished
+memories are pruned, then the report is written. ``--cell K`` runs one cell (index or key)
+and prunes, without the report. ``--report`` only writes the report of the finished cells.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from gr_graph.cli_common import add_device, add_log_level, make_parser, setup_logging
+from gr_graph.experiments.cells import BUDGETS, TABLES, Cell, cells_for
+from gr_graph.experiments.run_cell import CellDependencyError, is_done, prune_finished, run_cell
+
+log = logging.getLogger(__name__)
+
+__all__ = ["main", "build_parser", "list_cells", "default_root"]
+
+EXAMPLES = (
+    "python -m gr_graph.experiments table1 --list",
+    "python -m gr_graph.experiments table1 --root runs/experiments",
+    "python -m gr_graph.experiments table2 --root runs/experiments --cell 0",
+    "python -m gr_graph.experiments ablations --budget smoke --root /tmp/exp-smoke",
+    "python -m gr_graph.experiments table1 --root runs/experiments --report --publish",
+)
+
+
+def default_root(budget: str) -> Path:
+    """``runs/experiments`` (paper budget) or ``runs/experiments-<budget>``."""
+    return Path("runs/experiments" if budget == "paper" else f"runs/experiments-{budget}")
+
+
+def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
+    """The argument parser of ``python -m gr_graph.experiments``."""
+    ap = make_parser("python -m gr_graph.experiments", __doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
+                     EXAMPLES)
+    ap.add_argument("table", choices=TABLES, help="which table's cells")
+    ap.add_argument("--root", default=None, metavar="DIR",
+                    help="results root; cells go to DIR/<table>/<key> (default: runs/experiments[-<budget>])")
+    ap.add_argument("--budget", choices=tuple(BUDGETS), default="paper",
+                    help="paper: the issue's protocol; smoke: tiny sizes to test the machinery")
+    ap.add_argument("--list", action="store_true", help="print the cells (index, key, estimated CPU minutes, what)")
+    ap.add_argument("--cell", default=None, metavar="K", help="run only cell K (index or key)")
+    ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")
+    ap.add_argument("--publish", action="store_true",
+                    help="also write benchmarks/results/<table>.md (+ .json, figures/)")
+    add_device(ap, "torch device of training and densification")
+    add_log_level(ap)
+    return ap
+
+
+def list_cells(cells: list[Cell], root: Path | None = None) -> str:
+    """One line per cell: index, key, estimated CPU minutes, done/-, what; then the total."""
+    rows = [f"{'#':>3}  {'key':<24} {'est. CPU min':>12}  {'done':<4}  what"]
+    for i, c in enumerate(cells):
+        done = "yes" if root is not None and is_done(root, c) else "-"
+        rows.append(f"{i:>3}  {c.key:<24} {c.est_cpu_minutes:>12.1f}  {done:<4}  {c.what}")
+    total = sum(c.est_cpu_minutes for c in cells)
+    rows.append(f"{len(cells)} cells, estimated {total:.0f} CPU minutes ({total / 60:.1f} h)")
+    return "\n".join(rows)
+
+
+def _pick(cells: list[Cell], k: str) -> Cell:
+    if k.isdigit():
+        i = int(k)
+        if not 0 <= i < len(cells):
+            raise SystemExit(f"error: --cell {k}: there are {len(cells)} cells (0-{len(cells) - 1}); see --list")
+        return cells[i]
+    for c in cells:
+        if c.key == k:
+            return c
+    raise SystemExit(f"error: --cell {k}: no such cell key; see --list")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point (see the module docstring); returns the exit status."""
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    root = Path(args.root) if args.root else default_root(args.budget)
+    budget = BUDGETS[args.budget]
+    cells = cells_for(args.table, budget)
+    command = f"python -m gr_graph.experiments {args.table} --budget {args.budget} --root {root}"
+    if args.device != "cpu":
+        command += f" --device {args.device}"
+    if args.list:
+        print(list_cells(cells, root))
+        return 0
+    if args.report:
+        from gr_graph.experiments.report import write_report
+
+        print(write_report(args.table, root, budget, cells, command, args.publish, args.device))
+        return 0
+    todo = [_pick(cells, args.cell)] if args.cell is not None else cells
+    failed = []
+    for c in todo:
+        try:
+            run_cell(root, c, args.device, command + (f" --cell {c.key}" if args.cell is not None else ""))
+        except CellDependencyError as exc:
+            log.error("%s", exc)
+            failed.append(c.key)
+        except Exception:  # one failing cell must not lose the others' runs; reported and counted
+            if args.cell is not None:
+                raise
+            log.exception("%s/%s failed", c.table, c.key)
+            failed.append(c.key)
+        for p in prune_finished(root, cells):
+            log.info("pruned %s", p)
+    if args.cell is None:
+        from gr_graph.experiments.report import write_report
+
+        print(write_report(args.table, root, budget, cells, command, args.publish, args.device))
+    if failed:
+        print(f"{len(failed)} cell(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0

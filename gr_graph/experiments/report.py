@@ -1,0 +1,247 @@
+"""The report of a table: markdown + JSON in ``ROOT/<table>/`` (and, with ``publish``, in
+``benchmarks/results/<table>.md`` with its figures in ``benchmarks/results/figures/``).
+
+Every report states the exact command, the seeds, the budget (cells, frames, seeds, estimated
+and measured CPU time), the machine, which cells are missing, and the conventions of
+:mod:`gr_graph.experiments.aggregate`.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from gr_graph.atomic import atomic_write_json, atomic_write_text
+from gr_graph.experiments import aggregate as agg
+from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
+from gr_graph.experiments.run_cell import METRIC_KEYS, cell_dir, read_cell_result
+
+__all__ = ["write_report", "RESULTS_DIR", "budget_lines", "machine_line"]
+
+RESULTS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
+
+
+def machine_line() -> str:
+    """CPU, core count, Python."""
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.platform()}, "
+            f"Python {platform.python_version()}")
+
+
+def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[str]:
+    """The budget paragraph: cells, frames, seeds, estimated and measured CPU time."""
+    est = sum(c.est_cpu_minutes for c in cells)
+    done = [results[c.key] for c in cells if c.key in results]
+    cpu = sum(d.get("cpu_s", 0.0) for d in done) / 60.0
+    wall = sum(d.get("wall_s", 0.0) for d in done) / 60.0
+    frames = sorted({f"{c.frames[0]}:{c.frames[1]}" for c in cells})
+    lines = [f"- budget `{budget.name}`: {len(cells)} cells ({len(done)} finished), frames {', '.join(frames)}, "
+             f"seeds {', '.join(map(str, budget.seeds))} (world seed i paired with training seed i), "
+             f"{budget.epochs} training epochs per round"
+             + (f", {budget.n_pairs} pairs per registration cell" if table == "table2" else ""),
+             f"- estimated CPU time of all cells: {est:.0f} min ({est / 60:.1f} h; rough, from the issue's "
+             f"measured full run); measured on the finished cells: CPU {cpu:.1f} min, wall {wall:.1f} min"]
+    missing = [f"{i} `{c.key}`" for i, c in enumerate(cells) if c.key not in results]
+    if missing:
+        lines.append(f"- **missing cells** (not finished): {', '.join(missing)}")
+    return lines
+
+
+def _header(table: str, title: str, budget: Budget, root: Path, cells: list[Cell],
+            results: dict[str, dict[str, Any]], command: str) -> list[str]:
+    return [f"# {title}", "",
+            f"Command: `{command}` (one cell: add `--cell K`; `--list` shows the cells). Results in `{root}`.", "",
+            *budget_lines(table, budget, cells, results),
+            f"- machine: {machine_line()}",
+            f"- written {datetime.now(timezone.utc).isoformat(timespec='minutes')}; data: synthetic sequence "
+            "(generated route, `kitti` sensor preset), world and training seeds paired",
+            "- mean ± std over seeds (sample std, ddof=1; `(n=1)`: one seed, no spread)"
+            + ("; relative reductions are computed per seed against the same seed's raw round, then averaged"
+               if table == "table1" else ""),
+            *([f"- **smoke budget**: {budget.window[1] - budget.window[0]} frames, {budget.epochs} epoch(s), a tiny "
+               "network: tests the machinery, the figures are no evidence for or against the method"]
+              if budget.name == "smoke" else []), ""]
+
+
+def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
+    lines: list[str] = []
+    if not acceptance:
+        lines += ["Note: no round carries an `accepted` flag (round acceptance not implemented in this "
+                  "pipeline): every round counts as accepted, so \"2-step guarded\" equals \"2-step\".", ""]
+    for g, s in summary.items():
+        lines += [f"## {g}: {s['channels']} channels, frames {s['frames'][0]}:{s['frames'][1]}, "
+                  f"seeds {', '.join(map(str, s['seeds']))}", "",
+                  "| step | " + " | ".join(agg.METRIC_LABELS[k] for k in METRIC_KEYS) + " |",
+                  "|---|" + "---|" * len(METRIC_KEYS)]
+        for step, d in s["steps"].items():
+            lines.append(f"| {step} | " + " | ".join(agg.fmt_ms(d[k]) for k in METRIC_KEYS) + " |")
+        if s.get("kiss_icp"):
+            lines.append("| KISS-ICP 1.3.0 | " + " | ".join(agg.fmt_ms(s["kiss_icp"][k]) for k in METRIC_KEYS) + " |")
+        lines += ["", "Relative reduction vs raw (per seed, then mean ± std; positive = better):", "",
+                  "| step | " + " | ".join(agg.METRIC_LABELS[k].split(" [")[0] for k in METRIC_KEYS)
+                  + " | paper (RPE-300) |", "|---|" + "---|" * (len(METRIC_KEYS) + 1)]
+        paper = s.get("paper_reduction") or {}
+        for step, d in s["steps"].items():
+            if step == "raw":
+                continue
+            nominal = {"1-step": 1, "2-step": 2, "2-step guarded": 2}[step]
+            p = paper.get(nominal)
+            lines.append(f"| {step} | " + " | ".join(agg.fmt_ms(d[f"reduction_{k}"], "{:.1f}", pct=True)
+                                                     for k in METRIC_KEYS)
+                         + f" | {'n/a' if p is None else f'{p} %'} |")
+        notes = [n for d in s["steps"].values() for n in d["notes"]]
+        if notes:
+            lines += ["", "Notes: " + "; ".join(sorted(set(notes)))]
+        a = s["acceptance_2x2"]
+        if acceptance:
+            lines += ["", f"Round acceptance vs ground truth (RPE-300 all pairs vs the previous round): accepted "
+                      f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
+                      f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
+        lines.append("")
+    return lines
+
+
+def _table2_md(summary: dict[str, Any]) -> list[str]:
+    lines = ["Success = rotation error < 10° and translation error < 2 m, pairs within 10 m (ground truth), "
+             "sampled with the world seed; the same pairs for every step of a seed.", "",
+             "| channels | step | solver | success [%] | per seed | paper |", "|---|---|---|---|---|---|"]
+    for ch, s in summary.items():
+        paper = s.get("paper") or {}
+        for step, solvers in s["steps"].items():
+            for solver, row in solvers.items():
+                pap = paper.get("raw") if step == "raw" else None
+                lines.append(f"| {ch} | {step} | {solver} | {agg.fmt_ms(row, '{:.1f}')} | "
+                             f"{', '.join('%.0f' % q['success_percent'] for q in row['per_seed'])} | "
+                             f"{'' if pap is None else f'raw {pap:.0f}'} |")
+        for solver, b in s["best_step"].items():
+            lines.append(f"| {ch} | best densified step | {solver} | {b['mean']:.1f} ({b['step']}) | | "
+                         f"{'best step %.0f' % paper['best_step'] if paper else ''} |")
+    lines.append("")
+    return lines
+
+
+def _ablations_md(summary: dict[str, Any]) -> list[str]:
+    keys = ("rpe300_all_pairs_mean", "rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")
+    lines = ["Difference to the default cell of the same seed (ablation − default; negative = the ablation is "
+             "better), mean ± std over seeds; **bold**: all seeds agree in sign and |mean| > std (the rule for "
+             "changing a default).", ""]
+    for step in ("1-step", "2-step"):
+        lines += [f"## {step}", "", "| ablation | " + " | ".join(agg.METRIC_LABELS[k] for k in keys) + " | "
+                  + " | ".join(f"Δ {agg.METRIC_LABELS[k].split(' [')[0]}" for k in keys) + " |",
+                  "|---|" + "---|" * (2 * len(keys))]
+        for name, s in summary.items():
+            d = s["steps"].get(step)
+            if d is None:
+                continue
+            diffs = []
+            for k in keys:
+                t = agg.fmt_ms(d[f"diff_{k}"]) if name != "default" else "—"
+                diffs.append(f"**{t}**" if d[f"diff_{k}"].get("consistent") else t)
+            lines.append(f"| {name}: {ABLATIONS.get(name, (s['what'],))[0]} | "
+                         + " | ".join(agg.fmt_ms(d[k]) for k in keys) + " | " + " | ".join(diffs) + " |")
+        lines.append("")
+    reuse = {n: s["reuse"] for n, s in summary.items() if any(v for v in s["reuse"].values())}
+    if reuse:
+        lines += ["Reuse: " + "; ".join(f"{n} seed {seed}: {r.get('copied') or r.get('note')}"
+                                        for n, rs in reuse.items() for seed, r in rs.items() if r), ""]
+    notes = sorted({f"{n} seed {p['seed']}: {p['note']}" for n, s in summary.items() for st in s["steps"].values()
+                    for p in st["per_seed"] if p.get("note")})
+    if notes:
+        lines += ["Notes: " + "; ".join(notes), ""]
+    return lines
+
+
+def _figures(table: str, root: Path, cells: list[Cell], results: dict[str, dict[str, Any]],
+             summary: dict[str, Any], device: str) -> dict[str, Path]:
+    from gr_graph.experiments import figures as fig
+
+    out: dict[str, Path] = {}
+    fdir = root / table / "figures"
+    if table == "table1":
+        p = fig.plot_rpe_over_rounds(summary, fdir / "table1_rpe_over_rounds.png")
+        if p is not None:
+            out["error over rounds (RPE-300, ATE)"] = p
+        for c in cells:
+            if c.key in results and c.seed == cells[0].seed:
+                p = fig.plot_round_trajectories(cell_dir(root, c), fdir / f"table1_trajectories_{c.key}.png",
+                                                title=f"{c.what}: each round against ground truth")
+                if p is not None:
+                    out[f"trajectories {c.key}"] = p
+        c32 = next((c for c in cells if c.channels == 32 and c.key in results), None)
+        if c32 is not None:
+            p = _raw_vs_densified(root, c32, fdir / "table1_raw_vs_densified_32ch.png", device)
+            if p is not None:
+                out["raw vs densified 32-channel scan"] = p
+    return out
+
+
+def _raw_vs_densified(root: Path, cell: Cell, path: Path, device: str) -> Path | None:
+    """One scan of a 32-channel cell (middle of the window), raw and densified with round 1's model."""
+    from gr_graph.config import load_config
+    from gr_graph.datasets.registry import open_configured_sequence
+    from gr_graph.densify import densified_sequence
+    from gr_graph.experiments.figures import plot_raw_vs_densified
+
+    slam = cell_dir(root, cell) / "slam"
+    model = slam / "round_1" / "training" / "model.pt"
+    if not model.is_file():
+        return None
+    if path.is_file() and path.stat().st_mtime > model.stat().st_mtime:
+        return path  # rendering a frame again is not free: keep a picture newer than the model
+    cfg = load_config(slam / "config.yaml", {"device": device})
+    seq, _ = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+    k = len(seq) // 2
+    dense = densified_sequence(seq, model, cfg.training, device=device, preprocess=cfg.preprocess)
+    return plot_raw_vs_densified(seq[k].points, dense[k].points, path,
+                                 title=f"32 channels, frame {cell.frames[0] + k}, seed {cell.seed}: raw vs densified "
+                                       f"(round-1 model, tau_ani {cfg.training.tau_ani}, "
+                                       f"M = {cfg.training.samples_per_point})")
+
+
+TITLES = {"table1": "Table I: trajectory error over learning rounds, gr_graph vs KISS-ICP",
+          "table2": "Table II: global registration on raw and densified scans",
+          "ablations": "Ablations: what the self-supervised learning contributes (16 channels)"}
+
+
+def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell], command: str,
+                 publish: bool = False, device: str = "cpu") -> Path:
+    """Aggregate the finished cells of ``table``; write ``ROOT/<table>/report.md`` and
+    ``report.json`` (and publish them); return the markdown path."""
+    root = Path(root)
+    results = {c.key: r for c in cells if (r := read_cell_result(root, c)) is not None}
+    res_list = [results[c.key] for c in cells if c.key in results]
+    lines = _header(table, TITLES[table], budget, root, cells, results, command)
+    if table == "table1":
+        summary = agg.table1_summary(res_list)
+        lines += _table1_md(summary, agg.acceptance_recorded(res_list))
+        lines += ["Paper (Table I, relative RPE-300 reduction vs raw): "
+                  + "; ".join(f"{ch} ch: 1-step {v[1]} %, 2-step {v[2]} %" for ch, v in PAPER_REDUCTIONS.items()), ""]
+    elif table == "table2":
+        summary = agg.table2_summary(res_list)
+        lines += _table2_md(summary)
+    else:
+        summary = agg.ablation_summary(res_list)
+        lines += _ablations_md(summary)
+    figs = _figures(table, root, cells, results, summary, device)
+    md_dir = root / table
+    pub_dir = RESULTS_DIR
+    fig_lines = list(figs.items())
+    doc = {"table": table, "command": command, "budget": budget.name, "seeds": list(budget.seeds),
+           "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
+                                                        "est_cpu_minutes": c.est_cpu_minutes}
+                                                for i, c in enumerate(cells)},
+           "summary": summary, "figures": {k: str(v) for k, v in figs.items()}}
+    fig_md = ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""] if fig_lines else []
+    local = lines + fig_md
+    atomic_write_json(md_dir / "report.json", doc)
+    md = atomic_write_text(md_dir / "report.md", "\n".join(local) + "\n")
+    if publish:
+        (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
+        for _, p in fig_lines:
+            shutil.copyfile(p, pub_dir / "figures" / p.name)
+        atomic_write_text(pub_dir / f"{table}.md", "\n".join(lines + fig_md) + "\n")
+        atomic_write_json(pub_dir / f"{table}.json", doc)
+    return md

@@ -1,0 +1,269 @@
+"""Running one cell: a resumable run in ``ROOT/<table>/<cell-key>/``.
+
+Layout of a cell's folder::
+
+    definition.json   the cell's definition and fingerprint, written when the cell starts
+    slam/             SLAM cells: the pipeline's --out (rounds resume on their own)
+    kiss_icp.json     Table I cells: the KISS-ICP baseline on the same scans (resumed when present)
+    pairs.json        Table II cells: the sampled scan pairs
+    registration.json Table II cells: gr_graph.global_registration.evaluate_pairs output
+    cell.json         written last and atomically: the cell's figures + fingerprint; marks it done
+
+Resume: a cell whose ``cell.json`` holds the current fingerprint is skipped. A cell whose stored
+definition (``definition.json`` or ``cell.json``) has another fingerprint is deleted and
+recomputed from scratch (its memories may be pruned, so the pipeline's own round resume could
+not be trusted). An unfinished cell with the same definition continues where it stopped (the
+pipeline skips its finished rounds, training resumes from its checkpoint).
+
+Pruning: once a SLAM cell is done and every cell reusing it is done, its ``round_*/memory``
+folders and training ``checkpoint.pt`` files are deleted; ``model.pt``, the poses, the
+marginals and ``metrics.json`` stay (Table II densifies with ``round_<r>/training/model.pt``).
+
+Reuse (ablations): a cell with ``params["reuse"]`` copies, from its source cell if that one is
+done and not pruned, ``round_0`` (round 0 does not depend on the ``training`` section) and, for
+``"round1_training"``, ``round_1/training`` (its checkpoint resumes as finished, since the
+trainer's settings are equal); otherwise it computes everything itself (logged and recorded
+in ``cell.json["reuse"]``). Training is deterministic given the seed, so both give the same result.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gr_graph.atomic import atomic_write_json
+from gr_graph.experiments.cells import Cell
+
+log = logging.getLogger(__name__)
+
+__all__ = ["METRIC_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done", "run_cell",
+           "prune_cell", "prune_finished", "round_figures"]
+
+METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
+               "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
+CELL_JSON = "cell.json"
+DEFINITION_JSON = "definition.json"
+
+
+class CellDependencyError(RuntimeError):
+    """A cell needs another cell's results that are not there (run that cell first)."""
+
+
+def cell_dir(root: str | Path, cell: Cell) -> Path:
+    """``root/<table>/<key>``."""
+    return Path(root) / cell.table / cell.key
+
+
+def _read_json(p: Path) -> dict[str, Any] | None:
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError:
+        return None
+
+
+def read_cell_result(root: str | Path, cell: Cell) -> dict[str, Any] | None:
+    """The cell's ``cell.json`` if it is finished with the current definition, else None."""
+    d = _read_json(cell_dir(root, cell) / CELL_JSON)
+    if d is None or d.get("fingerprint") != cell.fingerprint():
+        return None
+    return d
+
+
+def is_done(root: str | Path, cell: Cell) -> bool:
+    """Whether the cell is finished with its current definition."""
+    return read_cell_result(root, cell) is not None
+
+
+def _start(root: Path, cell: Cell) -> Path:
+    """Create the cell's folder; delete it first if it holds another definition."""
+    d = cell_dir(root, cell)
+    fp = cell.fingerprint()
+    stored = [_read_json(d / n) for n in (DEFINITION_JSON, CELL_JSON)]
+    if any(s is not None and s.get("fingerprint") != fp for s in stored):
+        log.warning("%s/%s: the stored results were made with another definition; recomputing from scratch",
+                    cell.table, cell.key)
+        shutil.rmtree(d)
+    d.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(d / DEFINITION_JSON, {"fingerprint": fp, "definition": cell.definition()})
+    return d
+
+
+def round_figures(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per round of a pipeline ``metrics.json``: SLAM and odometry-only figures (:data:`METRIC_KEYS`),
+    ``accepted`` (None when the pipeline did not record it), loops and densification fallbacks."""
+    out: dict[str, dict[str, Any]] = {}
+    for r, s in sorted(metrics.get("rounds", {}).items(), key=lambda kv: int(kv[0])):
+        acc = s.get("accepted")
+        if acc is None and isinstance(s.get("acceptance"), dict):
+            acc = s["acceptance"].get("accepted")
+        lc = s.get("loop_closure") or {}
+        dens = s.get("densify") or {}
+        out[str(r)] = {
+            "slam": {k: (s.get("slam") or {}).get(k) for k in METRIC_KEYS},
+            "odometry": {k: (s.get("odometry") or {}).get(k) for k in METRIC_KEYS},
+            "accepted": acc,
+            "n_loops": s.get("n_loops"),
+            "loop_precision": lc.get("precision"),
+            "densify_fallbacks": dens.get("fallbacks"),
+            "trajectory_change": s.get("trajectory_change"),
+            "runtime_s": s.get("runtime_s"),
+        }
+    return out
+
+
+def _slam_config(d: Path, cell: Cell, device: str) -> Any:
+    from gr_graph.config import load_config
+
+    out = {"out_dir": str(d / "slam"), "progress": False, "plot": True, "write_memory": True, "resume": True}
+    return load_config(None, {**cell.overrides, "device": device, "output": out})
+
+
+def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
+    """Copy round 0 (and round 1's training) from the source cell when possible (module docstring)."""
+    what = cell.params.get("reuse")
+    if what is None or cell.source is None:
+        return None
+    slam = d / "slam"
+    if (slam / "round_0" / "round.json").is_file():
+        return {"source": cell.source, "what": what, "note": "already in place"}
+    src = Path(root) / cell.source / "slam"
+    if _read_json(Path(root) / cell.source / CELL_JSON) is None or not (src / "round_0" / "memory").is_dir():
+        log.info("%s: source %s not finished (or pruned): computing round 0 itself", cell.key, cell.source)
+        return {"source": cell.source, "what": None, "note": "source not available: everything computed here"}
+    slam.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(slam / "round_0", ignore_errors=True)
+    shutil.copytree(src / "round_0", slam / "round_0")
+    copied = ["round_0"]
+    if what == "round1_training" and (src / "round_1" / "training" / "checkpoint.pt").is_file():
+        dst = slam / "round_1" / "training"
+        shutil.rmtree(dst, ignore_errors=True)
+        shutil.copytree(src / "round_1" / "training", dst)
+        copied.append("round_1/training")
+    return {"source": cell.source, "what": what, "copied": copied}
+
+
+def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
+    from gr_graph.datasets.registry import open_configured_sequence
+    from gr_graph.pipeline import SlamPipeline
+
+    cfg = _slam_config(d, cell, device)
+    reuse = _reuse(root, d, cell)
+    metrics = SlamPipeline(cfg).run()
+    result: dict[str, Any] = {"rounds": round_figures(metrics), "source": metrics.get("source"),
+                              "provenance": metrics.get("provenance"), "reuse": reuse}
+    if cell.params.get("kiss_icp"):
+        kp = d / "kiss_icp.json"
+        kiss = _read_json(kp)
+        if kiss is None:
+            from gr_graph.experiments.kiss_baseline import kiss_icp_metrics
+
+            seq, _ = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+            kiss = kiss_icp_metrics(seq)
+            atomic_write_json(kp, kiss)
+        result["kiss_icp"] = {"system": kiss["system"], **{k: kiss["metrics"].get(k) for k in METRIC_KEYS},
+                              "wall_s": kiss["wall_s"], "cpu_s": kiss["cpu_s"]}
+    return result
+
+
+def _source_round(src_slam: Path, r: int) -> tuple[int, str | None]:
+    """The round of the source run to use for round ``r``: ``r`` itself, or the last finished
+    round before it when the run converged earlier (noted)."""
+    metrics = _read_json(src_slam / "metrics.json") or {}
+    rounds = sorted(int(k) for k in metrics.get("rounds", {}))
+    if r in rounds:
+        return r, None
+    earlier = [k for k in rounds if k < r]
+    if not earlier:
+        raise CellDependencyError(f"{src_slam}: no round <= {r} finished")
+    return earlier[-1], f"round {r} was not run (converged or stopped after round {earlier[-1]}): its scans used"
+
+
+def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
+    from gr_graph.config import load_config
+    from gr_graph.datasets.registry import open_configured_sequence
+    from gr_graph.densify import densified_sequence
+    from gr_graph.global_registration import evaluate_pairs, sample_pairs, save_pairs, write_results
+
+    assert cell.source is not None
+    src = Path(root) / cell.source
+    if _read_json(src / CELL_JSON) is None:
+        table, key = cell.source.split("/")
+        raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished: run "
+                                  f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
+    cfg = load_config(src / "slam" / "config.yaml", {"device": device})
+    seq, desc = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+    gt = np.asarray(seq.gt_poses, np.float64)[: len(seq)]
+    pairs = sample_pairs(gt, cell.params["n_pairs"], cell.params["max_distance"], seed=cell.seed)
+    save_pairs(d / "pairs.json", pairs, {"sequence": desc, "seed": cell.seed, "n_pairs": cell.params["n_pairs"],
+                                         "max_distance_m": cell.params["max_distance"]})
+    r, note = _source_round(src / "slam", cell.params["round"])
+    scans: Any = seq
+    stats = None
+    if r > 0:
+        model = src / "slam" / f"round_{r}" / "training" / "model.pt"
+        if not model.is_file():
+            raise CellDependencyError(f"{model} not found (the Table I cell's round-{r} model)")
+        scans = densified_sequence(seq, model, cfg.training, device=device, preprocess=cfg.preprocess)
+    res = evaluate_pairs(scans, gt, pairs, cell.params["solvers"], seed=cell.seed, progress=False)
+    if r > 0:
+        stats = scans.stats()
+    res["settings"].update(sequence=desc, channels=cell.channels, round_used=r, note=note)
+    write_results(d / "registration.json", res)
+    return {"summary": res["summary"], "round_used": r, "note": note, "densify": stats, "source": desc}
+
+
+def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "") -> dict[str, Any]:
+    """Run ``cell`` under ``root`` unless it is finished; return its ``cell.json`` content."""
+    root = Path(root)
+    done = read_cell_result(root, cell)
+    if done is not None:
+        log.info("%s/%s: finished; skipped", cell.table, cell.key)
+        return done
+    d = _start(root, cell)
+    log.info("%s/%s: %s", cell.table, cell.key, cell.what)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if cell.kind == "slam":
+        result = _run_slam_cell(root, d, cell, device)
+    else:
+        result = _run_registration_cell(root, d, cell, device)
+    doc = {"table": cell.table, "key": cell.key, "what": cell.what, "fingerprint": cell.fingerprint(),
+           "definition": cell.definition(), "device": device, "command": command,
+           "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+           "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+           "est_cpu_minutes": cell.est_cpu_minutes, **result}
+    atomic_write_json(d / CELL_JSON, doc)
+    return doc
+
+
+def prune_cell(root: str | Path, cell: Cell) -> list[Path]:
+    """Delete the memories and training checkpoints of a finished SLAM cell; return what was deleted."""
+    if cell.kind != "slam" or not is_done(root, cell):
+        return []
+    slam = cell_dir(root, cell) / "slam"
+    gone: list[Path] = []
+    for p in sorted(slam.glob("round_*/memory")):
+        shutil.rmtree(p)
+        gone.append(p)
+    for p in sorted(slam.glob("round_*/training/checkpoint.pt")):
+        p.unlink()
+        gone.append(p)
+    return gone
+
+
+def prune_finished(root: str | Path, cells: list[Cell]) -> list[Path]:
+    """Prune every finished SLAM cell of ``cells`` whose reusing cells (in ``cells``) are finished too."""
+    gone: list[Path] = []
+    for c in cells:
+        users = [u for u in cells if u.source == f"{c.table}/{c.key}" and u.params.get("reuse")]
+        if is_done(root, c) and all(is_done(root, u) for u in users):
+            gone += prune_cell(root, c)
+    return gone

@@ -1,0 +1,394 @@
+"""The experiment harness (gr_graph.experiments): cell definitions, resume, pruning, reuse,
+aggregation math against hand computations, the ablation options, and a smoke cell end to end."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+
+import numpy as np
+import pytest
+
+from gr_graph.config import PreprocessConfig, TrainingConfig, load_config
+from gr_graph.experiments import aggregate as agg
+from gr_graph.experiments import run_cell as rc
+from gr_graph.experiments.cells import (
+    ABLATION_WINDOW,
+    ABLATIONS,
+    BUDGETS,
+    TABLE1_WINDOW,
+    TABLES,
+    cells_for,
+)
+from gr_graph.experiments.cli import main
+from gr_graph.experiments.revisits import count_revisits, first_revisit_window, revisit_pairs
+
+# ----------------------------------------------------------------------------- cell definitions
+
+
+@pytest.mark.parametrize("budget", sorted(BUDGETS))
+@pytest.mark.parametrize("table", TABLES)
+def test_cells_have_unique_keys_and_paired_seeds(table, budget):
+    cells = cells_for(table, budget)
+    assert len({c.key for c in cells}) == len(cells)
+    assert len({c.fingerprint() for c in cells}) == len(cells)
+    for c in cells:
+        assert c.table == table and c.est_cpu_minutes > 0
+        if c.kind == "slam":
+            cfg = load_config(None, c.overrides)  # a valid configuration
+            assert cfg.seed == cfg.training.seed == c.seed  # world seed i with training seed i
+            assert cfg.data.channels == c.channels and cfg.data.frames == c.frames
+            assert cfg.data.synthetic_preset == "kitti"
+            assert not cfg.training.stop_on_reject and cfg.training.convergence_delta == 0.0
+        else:
+            src = {s.key: s for s in cells_for("table1", budget)}[c.source.split("/")[1]]
+            assert (src.seed, src.channels, src.frames) == (c.seed, c.channels, c.frames)
+
+
+def test_paper_budget_follows_the_protocol():
+    b = BUDGETS["paper"]
+    assert len(b.seeds) >= 3
+    t1 = {c.key: c for c in cells_for("table1", "paper")}
+    for ch in (16, 32):
+        assert [c.seed for c in t1.values() if c.group == f"{ch}ch"] == list(b.seeds)
+        assert all(c.frames == TABLE1_WINDOW and c.params["rounds"] == 2 for c in t1.values() if c.group == f"{ch}ch")
+    assert [(c.params["rounds"], c.seed) for c in t1.values() if c.group == "64ch"] == [(1, b.seeds[0])]
+    full = t1[f"full-16ch-s{b.seeds[0]}"]
+    assert full.frames == (0, 4541) and full.params["rounds"] == 2 and full.params["kiss_icp"]
+    t2 = cells_for("table2", "paper")
+    assert len(t2) == 3 * 3 * 2 + 2 and all(c.params["n_pairs"] == 100 for c in t2)
+    ab = cells_for("ablations", "paper")
+    assert {c.group for c in ab} == set(ABLATIONS) and len(ab) == len(ABLATIONS) * len(b.seeds)
+    assert all(c.frames == ABLATION_WINDOW and c.channels == 16 for c in ab)
+    for c in ab:  # the default cell of a seed comes before the cells reusing it
+        if c.source:
+            assert [x.key for x in ab].index(c.source.split("/")[1]) < [x.key for x in ab].index(c.key)
+
+
+def test_ablation_overrides_reach_the_config():
+    ab = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "paper")}
+    assert ab["untrained-s0"].epochs == 0 and ab["default-s0"].epochs == 3
+    assert ab["pca-s0"].covariances == "pca" and ab["default-s0"].covariances == "network"
+    assert ab["cholesky-s0"].trainer.net.head == "cholesky" and ab["default-s0"].trainer.net.head == "geometric"
+    assert ab["edge-noise-off-s0"].edge_noise == "registration" and ab["default-s0"].edge_noise == "learned"
+    assert ab["densify-off-s0"].densify is False and ab["default-s0"].densify is True
+    smoke = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "smoke")}
+    assert smoke["cholesky-s0"].trainer.net.head == "cholesky" and smoke["cholesky-s0"].trainer.net.c0 == 8
+
+
+def test_revisit_window_helpers_against_brute_force():
+    rng = np.random.default_rng(0)
+    P = np.cumsum(rng.normal(0, 1, (400, 3)), axis=0)
+    P[350] = P[20] + 1.0  # one revisit 330 frames later
+    pairs = revisit_pairs(P, min_gap=100, radius=5.0)
+    d = np.linalg.norm(P[:, None] - P[None], axis=2)
+    i, j = np.nonzero(np.triu(d <= 5.0) & (np.arange(400)[None] - np.arange(400)[:, None] >= 100))
+    np.testing.assert_array_equal(pairs, np.stack([i, j], axis=1))
+    assert count_revisits(P, (0, 400)) == len(pairs) >= 1
+    a, b = first_revisit_window(P, 340, step=10)
+    assert b - a == 340 and count_revisits(P, (a, b)) >= 1
+    with pytest.raises(ValueError, match="no 50-frame window"):
+        first_revisit_window(P, 50)
+
+
+@pytest.mark.slow
+def test_chosen_windows_contain_a_revisit():
+    """The Table I and ablation windows hold frames >= 100 apart within 5 m (route ground truth)."""
+    from gr_graph.experiments.revisits import route_positions
+
+    P = route_positions(0)
+    assert len(P) == 4541
+    for w in (TABLE1_WINDOW, ABLATION_WINDOW):
+        assert count_revisits(P, w, min_gap=100, radius=5.0) > 0
+        assert first_revisit_window(P, w[1] - w[0]) == w
+
+
+def test_list_prints_index_key_estimate(capsys, tmp_path):
+    assert main(["table1", "--list", "--root", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    cells = cells_for("table1", "paper")
+    for i, c in enumerate(cells):
+        line = next(ln for ln in out.splitlines() if ln.split()[:2] == [str(i), c.key])
+        assert f"{c.est_cpu_minutes:.1f}" in line and c.what in line
+    assert f"{len(cells)} cells, estimated {sum(c.est_cpu_minutes for c in cells):.0f} CPU minutes" in out
+
+
+def test_bad_cell_index_is_an_error(capsys, tmp_path):
+    with pytest.raises(SystemExit, match="there are 8 cells"):
+        main(["table1", "--root", str(tmp_path), "--cell", "99"])
+
+
+# ----------------------------------------------------------------------------- resume and pruning
+
+
+def _fake_slam_cell(calls: list[str]):
+    """A stand-in for the SLAM run of a cell: writes a pipeline-like folder."""
+
+    def run(root, d, cell, device):
+        calls.append(cell.key)
+        slam = d / "slam"
+        for r in range(3):
+            (slam / f"round_{r}" / "memory").mkdir(parents=True, exist_ok=True)
+            (slam / f"round_{r}" / "memory" / "scans.npy").write_bytes(b"x" * 100)
+            (slam / f"round_{r}" / "poses_kitti.txt").write_text("pose\n")
+            if r:
+                (slam / f"round_{r}" / "training").mkdir(exist_ok=True)
+                (slam / f"round_{r}" / "training" / "model.pt").write_bytes(b"m")
+                (slam / f"round_{r}" / "training" / "checkpoint.pt").write_bytes(b"c")
+        (slam / "metrics.json").write_text("{}")
+        return {"rounds": {}, "marker": len(calls)}
+
+    return run
+
+
+def test_finished_cell_is_skipped_and_changed_definition_recomputed(tmp_path, monkeypatch):
+    calls: list[str] = []
+    monkeypatch.setattr(rc, "_run_slam_cell", _fake_slam_cell(calls))
+    cell = cells_for("table1", "smoke")[0]
+    first = rc.run_cell(tmp_path, cell)
+    assert calls == [cell.key] and rc.is_done(tmp_path, cell)
+    assert rc.run_cell(tmp_path, cell) == first and calls == [cell.key]  # skipped
+    d = rc.cell_dir(tmp_path, cell)
+    (d / "stale.txt").write_text("from the old definition")
+    changed = dataclasses.replace(cell, overrides={**cell.overrides, "loops": {"enabled": False}})
+    assert changed.key == cell.key and changed.fingerprint() != cell.fingerprint()
+    assert not rc.is_done(tmp_path, changed)
+    doc = rc.run_cell(tmp_path, changed)
+    assert calls == [cell.key, cell.key] and doc["fingerprint"] == changed.fingerprint()
+    assert not (d / "stale.txt").exists()  # recomputed from scratch
+
+
+def test_unfinished_cell_with_another_definition_is_cleared(tmp_path, monkeypatch):
+    calls: list[str] = []
+    cell = cells_for("table1", "smoke")[0]
+    d = rc.cell_dir(tmp_path, cell)
+
+    def crash(root, dd, c, device):
+        (dd / "partial.txt").write_text("half done")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rc, "_run_slam_cell", crash)
+    with pytest.raises(KeyboardInterrupt):
+        rc.run_cell(tmp_path, cell)
+    monkeypatch.setattr(rc, "_run_slam_cell", _fake_slam_cell(calls))
+    rc.run_cell(tmp_path, cell)  # same definition: the partial run stays (the pipeline resumes it)
+    assert (d / "partial.txt").exists()
+    (d / "cell.json").unlink()
+    changed = dataclasses.replace(cell, what="another definition")
+    rc.run_cell(tmp_path, changed)
+    assert not (d / "partial.txt").exists()
+
+
+def test_pruning_keeps_models_and_poses_and_waits_for_reusing_cells(tmp_path, monkeypatch):
+    calls: list[str] = []
+    monkeypatch.setattr(rc, "_run_slam_cell", _fake_slam_cell(calls))
+    cells = cells_for("ablations", "smoke")
+    default, reusing = cells[0], [c for c in cells if c.source == f"ablations/{cells[0].key}"]
+    assert default.group == "default" and len(reusing) == len(ABLATIONS) - 1
+    rc.run_cell(tmp_path, default)
+    assert rc.prune_finished(tmp_path, cells) == []  # its reusing cells are not finished
+    for c in reusing:
+        rc.run_cell(tmp_path, c)
+    gone = rc.prune_finished(tmp_path, cells)
+    slam = rc.cell_dir(tmp_path, default) / "slam"
+    assert slam / "round_0" / "memory" in gone
+    assert not list(slam.glob("round_*/memory")) and not list(slam.glob("round_*/training/checkpoint.pt"))
+    assert (slam / "round_1" / "training" / "model.pt").is_file() and (slam / "round_2" / "poses_kitti.txt").is_file()
+    assert (slam / "metrics.json").is_file()
+    unfinished = rc.cell_dir(tmp_path, cells[len(ABLATIONS)]) / "slam" / "round_0" / "memory"
+    unfinished.mkdir(parents=True)
+    rc.prune_finished(tmp_path, cells)
+    assert unfinished.is_dir()  # an unfinished cell keeps its memory
+
+
+def test_reuse_copies_round0_and_round1_training_from_a_finished_source(tmp_path, monkeypatch):
+    calls: list[str] = []
+    monkeypatch.setattr(rc, "_run_slam_cell", _fake_slam_cell(calls))
+    cells = {c.group: c for c in cells_for("ablations", "smoke") if c.seed == 0}
+    dst = rc.cell_dir(tmp_path, cells["edge-noise-off"])
+    dst.mkdir(parents=True)
+    assert rc._reuse(tmp_path, dst, cells["edge-noise-off"])["what"] is None  # source not finished
+    rc.run_cell(tmp_path, cells["default"])
+    (rc.cell_dir(tmp_path, cells["default"]) / "slam" / "round_0" / "round.json").write_text("{}")
+    info = rc._reuse(tmp_path, dst, cells["edge-noise-off"])
+    assert info["copied"] == ["round_0", "round_1/training"]
+    assert (dst / "slam" / "round_0" / "memory" / "scans.npy").is_file()
+    assert (dst / "slam" / "round_1" / "training" / "checkpoint.pt").is_file()
+    dst2 = rc.cell_dir(tmp_path, cells["pca"])
+    assert rc._reuse(tmp_path, dst2, cells["pca"])["copied"] == ["round_0"]
+    assert not (dst2 / "slam" / "round_1").exists()
+
+
+def test_registration_cell_needs_its_table1_cell(tmp_path):
+    cell = cells_for("table2", "smoke")[0]
+    with pytest.raises(rc.CellDependencyError, match="--cell 16ch-s0"):
+        rc.run_cell(tmp_path, cell)
+
+
+# ----------------------------------------------------------------------------- aggregation math
+
+
+def test_mean_std_and_reduction_by_hand():
+    d = agg.mean_std([1.0, None, 2.0, 4.0])
+    assert d["n"] == 3 and d["mean"] == pytest.approx(7 / 3)
+    assert d["std"] == pytest.approx(statistics.stdev([1.0, 2.0, 4.0]))
+    assert agg.mean_std([5.0])["std"] is None and agg.mean_std([None])["mean"] is None
+    assert agg.reduction_percent(0.2, 0.15) == pytest.approx(25.0)
+    assert agg.reduction_percent(0.2, 0.3) == pytest.approx(-50.0)
+    assert agg.reduction_percent(None, 1.0) is None and agg.reduction_percent(0.0, 1.0) is None
+
+
+def _t1_result(seed: int, rpe: list[float], accepted: list[bool | None], group: str = "16ch", ch: int = 16):
+    rounds = {}
+    for r, v in enumerate(rpe):
+        slam = {k: None for k in rc.METRIC_KEYS}
+        slam.update(rpe300_consecutive_mean=v, rpe300_all_pairs_mean=v * 1.1, ate_rmse=v / 2)
+        rounds[str(r)] = {"slam": slam, "accepted": None if r == 0 else accepted[r - 1]}
+    return {"definition": {"group": group, "seed": seed, "channels": ch, "frames": [0, 1500],
+                           "params": {"rounds": len(rpe) - 1}},
+            "rounds": rounds, "kiss_icp": {k: (0.5 if k == "ate_rmse" else None) for k in rc.METRIC_KEYS}}
+
+
+def test_table1_reductions_per_seed_then_mean_std():
+    rpe = {0: [0.20, 0.15, 0.10], 1: [0.40, 0.20, 0.30], 2: [0.10, 0.09, 0.12]}
+    acc = {0: [True, True], 1: [True, False], 2: [True, True]}
+    res = [_t1_result(s, rpe[s], acc[s]) for s in rpe]
+    s = agg.table1_summary(res)["16ch"]
+    red1 = [100 * (v[0] - v[1]) / v[0] for v in rpe.values()]  # 25, 50, 10
+    red2 = [100 * (v[0] - v[2]) / v[0] for v in rpe.values()]  # 50, 25, -20
+    d = s["steps"]["1-step"]["reduction_rpe300_consecutive_mean"]
+    assert d["mean"] == pytest.approx(np.mean(red1)) and d["std"] == pytest.approx(np.std(red1, ddof=1))
+    d = s["steps"]["2-step"]["reduction_rpe300_consecutive_mean"]
+    assert d["mean"] == pytest.approx(np.mean(red2)) and d["std"] == pytest.approx(np.std(red2, ddof=1))
+    # guarded: seed 1 rejected round 2, so its guarded 2-step is round 1 (reduction 50 %)
+    g = s["steps"]["2-step guarded"]
+    assert [p["round"] for p in g["per_seed"]] == [2, 1, 2]
+    assert g["reduction_rpe300_consecutive_mean"]["values"] == pytest.approx([50.0, 50.0, -20.0])
+    assert s["steps"]["raw"]["rpe300_consecutive_mean"]["mean"] == pytest.approx(np.mean([0.2, 0.4, 0.1]))
+    assert s["kiss_icp"]["ate_rmse"]["mean"] == 0.5 and s["kiss_icp"]["rpe300_consecutive_mean"]["n"] == 0
+    assert s["paper_reduction"] == {1: 35.6, 2: 49.5}
+    # 2x2 count by ground truth (all-pairs RPE vs the previous round)
+    assert s["acceptance_2x2"] == {"accepted_better": 4, "accepted_worse": 1, "rejected_better": 0,
+                                   "rejected_worse": 1}
+    assert agg.acceptance_recorded(res)
+
+
+def test_missing_acceptance_counts_every_round_as_accepted():
+    res = [_t1_result(0, [0.2, 0.3, 0.1], [None, None])]
+    assert not agg.acceptance_recorded(res)
+    s = agg.table1_summary(res)["16ch"]
+    assert s["steps"]["2-step guarded"]["per_seed"][0]["round"] == 2
+    rounds = {"0": {}, "1": {"accepted": False}, "2": {"accepted": True}}
+    assert agg.select_round(rounds, "2-step guarded") == (0, "round 1 rejected")
+    r, note = agg.select_round({"0": {}, "1": {}}, "2-step")
+    assert r == 1 and "round 2 not run" in note
+
+
+def test_table2_success_mean_std_and_best_step():
+    res = []
+    rates = {(0, 0): 0.8, (0, 1): 0.9, (0, 2): 0.85, (1, 0): 0.7, (1, 1): 0.8, (1, 2): 0.9}
+    for (seed, r), v in rates.items():
+        res.append({"definition": {"channels": 32, "seed": seed, "params": {"round": r}},
+                    "summary": {"fpfh_ransac": {"success_rate": v, "n_pairs": 100}}})
+    s = agg.table2_summary(res)["32"]
+    raw = s["steps"]["raw"]["fpfh_ransac"]
+    assert raw["mean"] == pytest.approx(75.0) and raw["std"] == pytest.approx(np.std([80, 70], ddof=1))
+    assert s["best_step"]["fpfh_ransac"]["step"] == "2-step"  # 87.5 > 85
+    assert s["best_step"]["fpfh_ransac"]["mean"] == pytest.approx(87.5)
+    assert s["paper"] == {"raw": 90.0, "best_step": 96.0}
+
+
+def test_ablation_differences_and_the_consistency_rule():
+    res = []
+    vals = {"default": [0.10, 0.20, 0.30], "pca": [0.15, 0.26, 0.34], "untrained": [0.5, 0.1, 0.2]}
+    for name, v in vals.items():
+        for seed, x in enumerate(v):
+            r = _t1_result(seed, [0.4, x, x], [True, True], group=name)
+            r["what"] = f"{name}, 16 channels"
+            res.append(r)
+    s = agg.ablation_summary(res)
+    d = s["pca"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]
+    diffs = [0.05, 0.06, 0.04]
+    assert d["values"] == pytest.approx(diffs) and d["mean"] == pytest.approx(0.05)
+    assert d["consistent"]  # all positive and the mean gap exceeds the spread
+    assert not s["untrained"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]["consistent"]  # signs disagree
+    assert s["default"]["steps"]["1-step"]["diff_rpe300_consecutive_mean"]["values"] == [0.0, 0.0, 0.0]
+
+
+# ----------------------------------------------------------------------------- the new options
+
+
+def test_pca_covariances_against_numpy():
+    from gr_graph.pca_covariances import pca_covariances
+
+    rng = np.random.default_rng(1)
+    P = rng.normal(0, 1, (60, 3)) * [3.0, 1.0, 0.1]
+    C = pca_covariances(P, k=8, eps=1e-6)
+    d = np.linalg.norm(P[:, None] - P[None], axis=2)
+    for i in (0, 17, 59):
+        nb = P[np.argsort(d[i])[:8]]
+        np.testing.assert_allclose(C[i], np.cov(nb.T, bias=True) + 1e-6 * np.eye(3), atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(C) >= 1e-6 - 1e-12)
+    with pytest.raises(ValueError, match="k must be"):
+        pca_covariances(P, 1)
+
+
+def test_densify_off_returns_raw_frames_and_keeps_predictions():
+    from gr_graph.densify import densified_sequence
+    from gr_graph.pca_covariances import PcaCovariances
+    from test_learning_rounds import PlaneScenes
+
+    seq = PlaneScenes(n=2)
+    cfg = TrainingConfig(densify=False, tau_ani=0.5)
+    view = densified_sequence(seq, PcaCovariances(10, 1e-6), cfg, preprocess=PreprocessConfig())
+    f = view[1]
+    np.testing.assert_array_equal(f.points, seq[1].points)
+    pts, C = view.predicted(1)
+    assert C.shape == (len(pts), 3, 3) and len(pts) < len(f.points)
+    assert view.stats()["fallbacks"] == {} and view.stats()["mean_kept_points"] > 0
+    on = densified_sequence(seq, PcaCovariances(10, 1e-6), cfg.model_copy(update={"densify": True}),
+                            preprocess=PreprocessConfig())
+    assert len(on[1].points) != len(seq[1].points)
+
+
+def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
+    from gr_graph.pipeline import round_fingerprint
+
+    a = load_config(None, {"training": {"rounds": 2}})
+    b = load_config(None, {"training": {"rounds": 2, "stop_on_reject": False}})
+    c = load_config(None, {"training": {"rounds": 2, "densify": False}})
+    assert round_fingerprint(a, 1) == round_fingerprint(b, 1) != round_fingerprint(c, 1)
+    assert round_fingerprint(a, 0) == round_fingerprint(c, 0)
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+@pytest.mark.slow
+def test_smoke_cell_end_to_end_through_the_cli(tmp_path, capsys):
+    """table1 cell 0 of the smoke budget (60 frames, 16 channels, 1 epoch, tiny network)."""
+    root = tmp_path / "exp"
+    assert main(["table1", "--budget", "smoke", "--root", str(root), "--cell", "0", "--log-level", "WARNING"]) == 0
+    cell = cells_for("table1", "smoke")[0]
+    d = rc.cell_dir(root, cell)
+    doc = json.loads((d / "cell.json").read_text())
+    assert doc["fingerprint"] == cell.fingerprint() and doc["cpu_s"] > 0
+    assert set(doc["rounds"]) == {"0", "1", "2"}  # no convergence stop in a cell
+    assert doc["rounds"]["1"]["slam"]["ate_rmse"] is not None
+    assert doc["kiss_icp"]["system"].startswith("KISS-ICP 1.3.0") and doc["kiss_icp"]["ate_rmse"] < 1.0
+    slam = d / "slam"
+    assert not list(slam.glob("round_*/memory"))  # pruned
+    assert (slam / "round_1" / "training" / "model.pt").is_file() and (slam / "metrics.json").is_file()
+    assert (slam / "round_2" / "poses_kitti.txt").is_file()
+    mtime = (d / "cell.json").stat().st_mtime_ns
+    assert main(["table1", "--budget", "smoke", "--root", str(root), "--cell", cell.key]) == 0
+    assert (d / "cell.json").stat().st_mtime_ns == mtime  # finished: skipped
+    capsys.readouterr()
+    assert main(["table1", "--budget", "smoke", "--root", str(root), "--report"]) == 0
+    md = (root / "table1" / "report.md").read_text()
+    assert "budget `smoke`: 6 cells (1 finished)" in md and "missing cells" in md
+    assert "| raw |" in md and "KISS-ICP 1.3.0" in md and "seeds 0" in md
+    rep = json.loads((root / "table1" / "report.json").read_text())
+    assert rep["summary"]["16ch"]["seeds"] == [0]
+    assert (root / "table1" / "figures" / "table1_trajectories_16ch-s0.png").is_file()
