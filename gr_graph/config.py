@@ -188,6 +188,24 @@ class OutputConfig(_Section):
     progress: bool = True
 
 
+class AcceptanceConfig(_Section):
+    """GT-free acceptance test of learning rounds (:mod:`gr_graph.round_acceptance`)."""
+
+    enabled: bool = Field(True, description="test each learning round; a rejected round stops the rounds")
+    n_windows: int = Field(60, ge=1, description="local maps (windows) spread evenly over the run")
+    half_window: int = Field(5, ge=1, description="a window holds the centre frame and this many frames each side")
+    radius: float = Field(0.5, gt=0.0, description="neighbourhood radius of the map entropy [m]")
+    min_neighbors: int = Field(10, ge=4, description="query points with fewer map neighbours are skipped")
+    max_query_points: int = Field(1500, ge=10, description="points of the centre scan queried per window")
+    max_mean_entropy_increase: float = Field(
+        0.02, description="reject when the mean map entropy (per window, minus the reference) rose by more [nats]")
+    window_quantile: float = Field(0.9, gt=0.0, le=1.0, description="quantile of the per-window entropy increase tested")
+    max_window_entropy_increase: float = Field(
+        0.1, description="reject when that quantile of per-window entropy increases is above this [nats]")
+    max_flagged_rate_increase: float = Field(
+        0.02, description="reject when the fraction of failed odometry registrations rose by more")
+
+
 class TrainingConfig(_Section):
     """Learning rounds (Algorithm 3): training f_theta (Algorithm 1) and densification (Algorithm 2).
 
@@ -245,6 +263,8 @@ class TrainingConfig(_Section):
     learned_noise_degeneracy_rel: float = Field(
         1e-4, ge=0.0, lt=1.0, description="H(C) eigenvalue below this x largest (rotations as arc at 10 m): degenerate, fallback"
     )
+    acceptance: AcceptanceConfig = Field(
+        default_factory=AcceptanceConfig, description="GT-free acceptance test of each learning round")
     trainer: TrainOptions = Field(
         default_factory=TrainOptions, description="trainer hyper-parameters, e.g. {lr: 1e-3, net: {n_points: 1024}}"
     )

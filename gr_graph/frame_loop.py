@@ -428,10 +428,11 @@ class _FrameLoop:
             res = self.graph.optimize(marginals=False)
             if self.edge_noise is not None and self.edge_noise.calibrate:
                 res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
-        covs = None
+        covs, marginals = None, None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):
-                covs = self.graph.marginal_covariances()
+                covs, report = self.graph.marginals_with_fallback()  # never raises on an indeterminate graph
+            marginals = report.to_dict()
         log.info("pose graph: error %.4g -> %.4g in %d iterations; %d loops", res.initial_error, res.final_error,
                  res.iterations, self.n_loops)
         return SlamResult(
@@ -449,7 +450,8 @@ class _FrameLoop:
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
-                             "loop_max_rmse": self.loop_cfg.max_rmse}},
+                             "loop_max_rmse": self.loop_cfg.max_rmse},
+                  "marginals": marginals},
         )
 
 

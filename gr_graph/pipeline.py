@@ -9,6 +9,15 @@ edges' information from the network's covariances (:mod:`gr_graph.edge_noise`,
 ``training.edge_noise``). The rounds stop early when the trajectory moves less than
 ``training.convergence_delta`` (mean position change).
 
+Acceptance: every learning round is tested against the last accepted round without ground
+truth (:mod:`gr_graph.round_acceptance`, ``training.acceptance``); its summary carries
+``accepted`` and ``acceptance`` (the test's figures). After a rejected round the rounds stop (the
+next round would train on the rejected round's memory) unless ``training.stop_on_reject`` is
+false (the harness's unguarded rounds: later rounds are then tested against the last accepted one). The run's final trajectory, the accepted
+round with the lowest mean map entropy (round 0 when none is accepted), is copied to
+``poses_kitti.txt`` / ``poses_tum.txt`` at the top of ``--out`` and named in ``metrics.json``
+(``final_round``).
+
 In rounds r ≥ 1 SLAM preprocesses with ``training.slam_voxel_size`` if set, and the memory
 stores round 0's raw downsampled scans (not the densified ones: Algorithm 2 returns
 M+ = (S_k, T̂+, C+), so the next training sees the input densification saw), with T̂ and
@@ -19,7 +28,8 @@ Outputs: :mod:`gr_graph.round_output`.
 Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` exists and
 whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options the round
 depends on) equals the current one; a round with a missing or different ``round.json`` is
-recomputed, with everything after it. An unfinished round's training resumes from its
+recomputed, with everything after it. Finished rounds are re-judged (the test is cheap and
+deterministic), so a rerun with a changed ``training.acceptance`` re-decides without recomputing. An unfinished round's training resumes from its
 checkpoint unless an earlier round was recomputed (the memory changed).
 ``output.resume: false`` recomputes all rounds.
 """
@@ -35,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from gr_graph.atomic import atomic_write_bytes
 from gr_graph.config import SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
@@ -68,16 +79,17 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     """Hash of the options round ``r``'s result depends on.
 
     Round 0 does not depend on the ``training`` section or the device; no round depends on
-    the number of rounds or the convergence threshold (so ``--rounds 2`` after ``--rounds 1``
-    reuses both finished rounds), nor on output options.
+    the number of rounds, the convergence threshold or the acceptance test (so ``--rounds 2``
+    after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
+    nor on output options.
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}, "training": True,
                                                  "device": True})
     else:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
-                                                 "training": {"rounds", "convergence_delta",
-                                                                              "stop_on_reject"}})
+                                                 "training": {"rounds", "convergence_delta", "acceptance",
+                                                              "stop_on_reject"}})
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -107,6 +119,7 @@ class SlamPipeline:
         self.sequence = sequence
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
+        self._raw_scans: list[np.ndarray] | None = None  # round 0's scans, for the acceptance test
 
     def provenance(self) -> dict[str, Any]:
         """Commit, packages, seeds, threads and device of this run (``metrics.json["provenance"]``)."""
@@ -123,21 +136,33 @@ class SlamPipeline:
                                    "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
                                    "provenance": self.provenance(),
                                    "rounds": {}}
-        previous_poses, recomputed = None, False
+        previous_poses, recomputed, reference = None, False, 0
         for r in range(self.cfg.training.rounds + 1):
             summary = None if recomputed else self.finished_round(r)
             if summary is None:
                 summary = self.compute_round(r, resume_training=self.cfg.output.resume and not recomputed)
                 recomputed = True
             metrics["rounds"][str(r)] = summary
+            accepted = self.judge(r, reference, metrics["rounds"])
             poses = read_round_poses(self.round_dir(r))
             converged = previous_poses is not None and self.converged(r, summary, previous_poses, poses)
             write_metrics(self.out, metrics)  # after converged() added trajectory_change to the summary
+            if not accepted:
+                if self.cfg.training.stop_on_reject:
+                    metrics["stopped"] = f"round {r} rejected by the acceptance test: no further rounds"
+                    log.warning("round %d rejected: the learning rounds stop here (the final trajectory is an "
+                                "accepted round's)", r)
+                    break
+                log.warning("round %d rejected; training.stop_on_reject is false: the rounds go on (later rounds are "
+                            "tested against round %d)", r, reference)
+            else:
+                reference = r
             if converged:
                 break
             previous_poses = poses
+        self.write_final(metrics)
         if self.cfg.output.plot:
-            self.plot(max(int(k) for k in metrics["rounds"]))
+            self.plot(metrics["final_round"])
             if len(metrics["rounds"]) > 1:
                 plot_metrics_rounds(self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, "
                                                              f"{len(self.sequence)} frames")
@@ -183,6 +208,66 @@ class SlamPipeline:
         t0 = time.perf_counter()
         densified = self.densified_scans(r, resume_training)
         return self.slam_round(r, densified, train_seconds=time.perf_counter() - t0)
+
+    def judge(self, r: int, reference: int, summaries: dict[str, dict[str, Any]]) -> bool:
+        """Round ``r``'s ``accepted`` (and, for r ≥ 1, ``acceptance``: the GT-free test against
+        round ``reference``, :mod:`gr_graph.round_acceptance`) in its summary and ``round.json``.
+
+        Round 0 is accepted by definition; with ``training.acceptance.enabled: false`` every round is.
+        """
+        summary = summaries[str(r)]
+        ac = self.cfg.training.acceptance
+        if r == 0 or not ac.enabled:
+            summary["accepted"] = True
+            summary.pop("acceptance", None)
+            return True
+        from gr_graph.round_acceptance import evaluate_round
+
+        if self._raw_scans is None:
+            self._raw_scans = [np.array(s, np.float64) for s in self._round0_scans()]
+        verdict = json.loads(json.dumps(evaluate_round(self.out, r, reference, summaries, ac, scans=self._raw_scans)))
+        stored = json.dumps([summary.get("accepted"), summary.get("acceptance")], sort_keys=True)
+        if stored != json.dumps([verdict["accepted"], verdict], sort_keys=True):  # (NaN != NaN: compare text)
+            summary["accepted"] = bool(verdict["accepted"])
+            summary["acceptance"] = verdict
+            write_round_summary(self.round_dir(r), summary)  # the round's folder says whether it was accepted
+        return summary["accepted"]
+
+    def _round0_scans(self) -> list[np.ndarray]:
+        mem = load_memory(self.round_dir(0) / "memory")
+        return [np.array(mem.scan(k)) for k in range(mem.n_scans)]
+
+    def write_final(self, metrics: dict[str, Any]) -> None:
+        """The run's final trajectory at the top of ``--out``: the accepted round with the lowest
+        mean map entropy (:mod:`gr_graph.round_acceptance`; round 0 when no learning round was
+        accepted or tested), ``poses_kitti.txt`` and ``poses_tum.txt`` (atomic copies);
+        ``metrics["final_round"]`` names it."""
+        rounds = metrics["rounds"]
+        accepted = sorted(int(k) for k, s in rounds.items() if s.get("accepted", True))
+        entropy = {0: None}
+        for k in accepted:
+            a = rounds[str(k)].get("acceptance")
+            if a is not None:
+                entropy[k] = a.get("mean_entropy")
+                entropy.setdefault(a["reference_round"], a.get("reference_mean_entropy"))
+        if self.cfg.training.acceptance.enabled:
+            scored = [k for k in accepted if entropy.get(k) is not None]
+            final = min(scored, key=lambda k: (entropy[k], k)) if scored else 0
+            reason = ("the accepted round with the lowest mean map entropy" if scored else
+                      "no learning rounds" if len(rounds) == 1 else "no learning round accepted")
+        else:
+            final, reason = accepted[-1], "acceptance test disabled: the last round"
+        rd = self.round_dir(final)
+        for name in ("poses_kitti.txt", "poses_tum.txt"):
+            atomic_write_bytes(self.out / name, (rd / name).read_bytes())
+        metrics["final_round"] = final
+        metrics["final_round_reason"] = reason
+        metrics["accepted_rounds"] = accepted
+        metrics["rejected_rounds"] = sorted(int(k) for k, s in rounds.items() if not s.get("accepted", True))
+        metrics["marginals_fallback_rounds"] = sorted(
+            int(k) for k, s in rounds.items() if (s.get("marginals") or {}).get("status", "ok") != "ok")
+        write_metrics(self.out, metrics)
+        log.info("final trajectory: round %d (%s) -> %s", final, reason, self.out / "poses_kitti.txt")
 
     def converged(self, r: int, summary: dict[str, Any], previous: np.ndarray, poses: np.ndarray) -> bool:
         """Record ``trajectory_change`` (mean position change) in ``summary``; whether it is below delta."""

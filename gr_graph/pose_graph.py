@@ -8,12 +8,22 @@ loop factors get a robust kernel).
 Marginal covariances (``gtsam.Marginals``) are 6x6 in the tangent space of each pose,
 gtsam order [ω, v], right perturbation (P ∘ Exp(ξ)); the world-frame position covariance
 is R Σ_vv Rᵀ.
+
+Graphs gtsam cannot marginalise (``IndeterminateLinearSystemException``: a part of the graph
+not tied to the prior, or a system too poorly conditioned to factor) never lose a run:
+:meth:`PoseGraph.marginals_with_fallback` reports the failing variable and the connected
+components, then retries (1) with every unanchored component's first pose anchored like pose 0
+(those poses' covariances are relative to that pose), (2) with a weak regularising prior on every
+pose (:data:`REGULARISING_SIGMA`); poses whose covariances come from a retry are
+listed; if every retry fails the covariances are NaN (:class:`MarginalsReport`).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import re
+from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -61,6 +71,54 @@ class GraphResult:
     initial_error: float
     final_error: float
     iterations: int
+
+
+@dataclass
+class MarginalsReport:
+    """How the marginal covariances of a graph were obtained (``round.json["marginals"]``).
+
+    Attributes
+    ----------
+    status : str
+        ``"ok"`` (plain ``gtsam.Marginals``), ``"anchored"`` (after anchoring unanchored
+        components), ``"regularised"`` (after a weak prior on every pose) or ``"failed"``
+        (covariances are NaN).
+    error : str or None
+        The first line of gtsam's message naming the variable it failed near.
+    failed_near_pose : int or None
+        Pose index of that variable.
+    n_components : int
+        Connected components of the graph's variables (1 for a connected graph).
+    unanchored_components : list of [int, int, int]
+        ``[first pose, last pose, number of poses]`` of every component without the prior.
+    fallback_poses : int
+        Poses whose covariances come from a retry (0 when ``status == "ok"``).
+    regularising_sigma : float or None
+        Sigma of the regularising prior when it was used.
+    """
+
+    status: str = "ok"
+    error: str | None = None
+    failed_near_pose: int | None = None
+    n_components: int = 1
+    unanchored_components: list[list[int]] = field(default_factory=list)
+    fallback_poses: int = 0
+    regularising_sigma: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+#: Sigma [rad, m] of the weak prior put on every pose by the last retry of
+#: :meth:`PoseGraph.marginals_with_fallback`: information 1e-4, far below any edge's (the
+#: information floor is ``graph.min_information_eigenvalue``, 1e-2 by default).
+REGULARISING_SIGMA = 100.0
+
+_NEAR_SYMBOL = re.compile(r"Symbol:\s*x(\d+)")
+
+
+def _indeterminate(exc: RuntimeError) -> bool:
+    return "ndetermina" in str(exc)
 
 
 class PoseGraph:
@@ -134,13 +192,92 @@ class PoseGraph:
         covs = None
         want = self.cfg.marginals if marginals is None else marginals
         if want:
-            covs = self.marginal_covariances()
+            covs, _ = self.marginals_with_fallback()
         return GraphResult(poses, covs, e0, e1, it + it2)
 
     def marginal_covariances(self) -> np.ndarray:
-        """(K, 6, 6) marginal covariances at the current estimate, gtsam order [ω, v]."""
-        m = gtsam.Marginals(self.graph, self.values)
+        """(K, 6, 6) marginal covariances at the current estimate, gtsam order [ω, v].
+
+        Raises gtsam's ``RuntimeError`` on an indeterminate graph; see
+        :meth:`marginals_with_fallback`.
+        """
+        return self._marginals(self.graph)
+
+    def _marginals(self, graph: gtsam.NonlinearFactorGraph) -> np.ndarray:
+        m = gtsam.Marginals(graph, self.values)
         return np.stack([m.marginalCovariance(X(i)) for i in range(self.n_poses)])
+
+    def components(self) -> list[np.ndarray]:
+        """Connected components of the poses (through the graph's factors), each sorted, the
+        component of pose 0 first."""
+        parent = np.arange(self.n_poses)
+
+        def find(a: int) -> int:
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = int(parent[a])
+            return a
+
+        for i in range(self.graph.size()):
+            f = self.graph.at(i)
+            if f is None:
+                continue
+            keys = [gtsam.Symbol(k).index() for k in f.keys()]
+            for k in keys[1:]:
+                ra, rb = find(keys[0]), find(k)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+        roots = np.array([find(i) for i in range(self.n_poses)])
+        return [np.flatnonzero(roots == r) for r in np.unique(roots)]
+
+    def marginals_with_fallback(self) -> tuple[np.ndarray, MarginalsReport]:
+        """Marginal covariances that never raise on an indeterminate graph (module docstring).
+
+        Returns
+        -------
+        covariances : (K, 6, 6) array
+            NaN for the poses no retry could marginalise.
+        report : MarginalsReport
+        """
+        try:
+            return self._marginals(self.graph), MarginalsReport()
+        except RuntimeError as exc:
+            if not _indeterminate(exc):
+                raise
+            message = " ".join(str(exc).split())
+        near = _NEAR_SYMBOL.search(message)
+        comps = self.components()
+        report = MarginalsReport(status="failed", error=message.split(". Thrown")[0][:300],
+                                 failed_near_pose=int(near.group(1)) if near else None, n_components=len(comps),
+                                 unanchored_components=[[int(c[0]), int(c[-1]), len(c)] for c in comps[1:]])
+        log.warning("marginals: gtsam could not marginalise the graph (near pose %s; %d connected components, "
+                    "unanchored: %s); retrying", report.failed_near_pose, len(comps), report.unanchored_components)
+        prior = gtsam.noiseModel.Isotropic.Sigma(6, self.cfg.prior_sigma)
+        anchored = gtsam.NonlinearFactorGraph(self.graph)
+        for c in comps[1:]:
+            k = int(c[0])
+            anchored.add(gtsam.PriorFactorPose3(X(k), self.values.atPose3(X(k)), prior))
+        retries = [("anchored", anchored, None)] if len(comps) > 1 else []
+        sigma = REGULARISING_SIGMA
+        regularised = gtsam.NonlinearFactorGraph(anchored)
+        weak = gtsam.noiseModel.Isotropic.Sigma(6, sigma)
+        for i in range(self.n_poses):
+            regularised.add(gtsam.PriorFactorPose3(X(i), self.values.atPose3(X(i)), weak))
+        retries.append(("regularised", regularised, sigma))
+        for status, graph, used_sigma in retries:
+            try:
+                covs = self._marginals(graph)
+            except RuntimeError as exc:
+                if not _indeterminate(exc):
+                    raise
+                continue
+            report.status, report.regularising_sigma = status, used_sigma
+            report.fallback_poses = (sum(len(c) for c in comps[1:]) if status == "anchored" else self.n_poses)
+            log.warning("marginals: computed %s (%d poses flagged)", status, report.fallback_poses)
+            return covs, report
+        log.error("marginals: every retry failed; covariances are NaN, the poses are kept")
+        report.fallback_poses = self.n_poses
+        return np.full((self.n_poses, 6, 6), np.nan), report
 
     def current_poses(self) -> np.ndarray:
         """(K, 4, 4) poses of the current estimate."""

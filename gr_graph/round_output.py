@@ -4,8 +4,10 @@ Output directory (``--out``)::
 
     config.yaml              the resolved configuration
     gt_poses_kitti.txt       ground truth of the run's frames, camera frame (when known)
-    metrics.json             per round: trajectory metrics, loops, runtimes (rewritten per round)
-    trajectory.png           last round against ground truth (top-down, LiDAR frame), with the
+    metrics.json             per round: trajectory metrics, loops, runtimes, acceptance (rewritten per round)
+    poses_kitti.txt          the final trajectory (metrics.json "final_round": the best accepted round)
+    poses_tum.txt            the same in TUM form
+    trajectory.png           the final round against ground truth (top-down, LiDAR frame), with the
                              3-sigma position ellipses (magnified, the legend says by how much)
     rounds.png               with learning rounds: RPE and ATE per round (ground truth needed)
     round_<r>/poses_kitti.txt    optimised poses, camera frame, KITTI format (first = identity)
@@ -29,11 +31,16 @@ against the ground truth, both in the camera frame: RPE over 300 frames mean/RMS
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
 ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
-``config_fingerprint``; with ground truth and marginals, ``noise_consistency`` (NEES per
-edge kind and of the marginals, :mod:`gr_graph.noise_consistency`); learning rounds add
-``edge_noise``, ``densify``, ``covariance_failures`` (:mod:`gr_graph.covariance_health`) and
-``runtime_s.training``, and every round after the first ``trajectory_change``; ``map``
-(points in, voxels out, voxel size) when the map is written.
+``config_fingerprint``, ``marginals`` (:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
+or how a graph gtsam could not marginalise was handled, which poses failed; None when disabled);
+with ground truth and marginals, ``noise_consistency`` (NEES per edge kind and of the marginals,
+:mod:`gr_graph.noise_consistency`); learning rounds add ``edge_noise``, ``densify``,
+``covariance_failures`` (:mod:`gr_graph.covariance_health`) and ``runtime_s.training``, and every
+round after the first ``trajectory_change``; ``map`` (points in, voxels out, voxel size) when the
+map is written. Every round carries ``accepted`` (round 0: true); learning rounds ``acceptance``
+(:mod:`gr_graph.round_acceptance`). The run adds ``final_round`` (and why), ``accepted_rounds``,
+``rejected_rounds``, ``stopped`` (after a rejection) and ``marginals_fallback_rounds`` (rounds whose
+marginals needed a fallback).
 
 """
 
@@ -127,6 +134,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "mean_points_per_scan": mean_points_per_scan,
         "deskew": res.info.get("deskew"),
         "sensor": res.info.get("sensor"),
+        "marginals": res.info.get("marginals"),
     }
 
 

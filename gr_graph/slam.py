@@ -7,7 +7,10 @@ Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algo
 they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
 project's generated route through a procedural town) and says so.
 Outputs (see :mod:`gr_graph.pipeline`) go to ``--out``; rerunning with the same ``--out``
-skips finished rounds.
+skips finished rounds. Each learning round is accepted or rejected by a test without ground
+truth (:mod:`gr_graph.round_acceptance`); a rejection stops the rounds, and the final trajectory
+(the best accepted round) is written to ``--out``/poses_kitti.txt and named in the one-line JSON
+summary printed at the end (``final_round``, ``final_poses``).
 
 Examples: see ``EXAMPLES`` (shown by ``--help``).
 """
@@ -17,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from gr_graph.cli_common import (
@@ -186,12 +190,16 @@ def main(argv: list[str] | None = None) -> int:
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    last = metrics["rounds"][max(metrics["rounds"], key=int)]
-    brief = {"out": cfg.output.out_dir, "frames": last["n_frames"], "loops": last["n_loops"],
-             "flagged_odometry_edges": last["n_flagged_odometry_edges"],
-             "runtime_s": round(last["runtime_s"]["total"], 1)}
-    if "slam" in last:
-        s = last["slam"]
+    final_round = metrics["final_round"]
+    final = metrics["rounds"][str(final_round)]
+    brief = {"out": cfg.output.out_dir, "final_round": final_round,
+             "final_poses": str(Path(cfg.output.out_dir) / "poses_kitti.txt"),
+             "accepted_rounds": metrics["accepted_rounds"], "rejected_rounds": metrics["rejected_rounds"],
+             "frames": final["n_frames"], "loops": final["n_loops"],
+             "flagged_odometry_edges": final["n_flagged_odometry_edges"],
+             "runtime_s": round(sum(s["runtime_s"]["total"] for s in metrics["rounds"].values()), 1)}
+    if "slam" in final:
+        s = final["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})
     print(json.dumps(brief))
     if args.viz:
@@ -199,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         from gr_graph.round_output import round_dir
         from gr_graph.viewer import show_map
 
-        show_map(map_path(round_dir(cfg.output.out_dir, last["round"])), title=f"gr_graph map: {cfg.output.out_dir}")
+        show_map(map_path(round_dir(cfg.output.out_dir, int(max(metrics["rounds"], key=int)))), title=f"gr_graph map: {cfg.output.out_dir}")
     return 0
 
 

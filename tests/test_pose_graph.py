@@ -102,3 +102,62 @@ def test_between_factor_convention_matches_memory():
     v.insert(1, gtsam.Pose3(Tl))
     v.insert(2, gtsam.Pose3(Tk))
     assert f.error(v) < 1e-20
+
+
+def test_unanchored_component_is_reported_and_anchored():
+    """Two chains, the second tied to nothing: plain gtsam.Marginals raises (indeterminate);
+    the fallback names the component, anchors its first pose, keeps the first chain exact."""
+    Lam = np.diag([400.0, 400.0, 400.0, 100.0, 100.0, 100.0])
+    g = PoseGraph(GraphConfig(prior_sigma=1e-7, min_information_eigenvalue=1e-9))
+    for i in range(4):
+        g.add_pose(pose((float(i), 0.0, 0.0)))
+    g.add_edge(1, 0, pose((1.0, 0, 0)), Lam)
+    g.add_edge(3, 2, pose((1.0, 0, 0)), Lam)
+    res = g.optimize(marginals=False)  # optimisation itself works (LM damping)
+    np.testing.assert_allclose(res.poses[1][:3, 3], [1.0, 0, 0], atol=1e-8)
+    with pytest.raises(RuntimeError, match="ndetermina"):
+        g.marginal_covariances()
+    covs, report = g.marginals_with_fallback()
+    assert report.status == "anchored"
+    assert report.failed_near_pose in (2, 3)
+    assert report.n_components == 2 and report.unanchored_components == [[2, 3, 2]]
+    assert report.fallback_poses == 2
+    # pose 1 and pose 3 (relative to its anchored pose 2): the factor's covariance, as in the closed form
+    np.testing.assert_allclose(covs[1], np.linalg.inv(Lam), rtol=1e-5, atol=1e-10)
+    np.testing.assert_allclose(covs[3], np.linalg.inv(Lam), rtol=1e-5, atol=1e-10)
+    assert report.to_dict()["status"] == "anchored"
+
+
+def test_poorly_conditioned_graph_gets_the_regularising_prior():
+    """A connected graph with an edge that fixes nothing along z: anchoring cannot help; the
+    weak prior on every pose (sigma s) does. Along z, poses 2 and 3 are tied together and held
+    only by their two weak priors (information a = 1/s^2 each, coupled by c = 100): the 2x2
+    information [[a+c, -c], [-c, a+c]] gives variance (a+c) / (a (a+2c)), about s^2 / 2."""
+    from gr_graph.pose_graph import REGULARISING_SIGMA
+
+    g = PoseGraph(GraphConfig(min_information_eigenvalue=1e-30))
+    for _ in range(4):
+        g.add_pose(np.eye(4))
+    g.add_edge(1, 0, np.eye(4), np.eye(6) * 100.0)
+    g.add_edge(2, 1, np.eye(4), np.diag([1e6] * 5 + [1e-30]))
+    g.add_edge(3, 2, np.eye(4), np.eye(6) * 100.0)
+    g.optimize(marginals=False)
+    covs, report = g.marginals_with_fallback()
+    assert report.status == "regularised" and report.regularising_sigma == REGULARISING_SIGMA
+    assert report.n_components == 1 and report.unanchored_components == []
+    assert report.fallback_poses == 4
+    assert np.all(np.isfinite(covs))
+    a, c = REGULARISING_SIGMA**-2, 100.0
+    assert covs[3][5, 5] == pytest.approx((a + c) / (a * (a + 2 * c)), rel=1e-6)
+    assert covs[1][5, 5] == pytest.approx(1 / c, rel=1e-3)  # held through the edge by the prior on pose 0
+
+
+def test_connected_graph_marginals_report_ok():
+    g = PoseGraph(GraphConfig())
+    g.add_pose(np.eye(4))
+    g.add_pose(pose((1.0, 0, 0)))
+    g.add_edge(1, 0, pose((1.0, 0, 0)), np.eye(6) * 100.0)
+    g.optimize(marginals=False)
+    covs, report = g.marginals_with_fallback()
+    assert report.status == "ok" and report.error is None and report.fallback_poses == 0
+    np.testing.assert_allclose(covs, g.marginal_covariances())

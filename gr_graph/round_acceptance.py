@@ -1,0 +1,276 @@
+"""Ground-truth-free acceptance test of a learning round (rounds r >= 1 never make things worse).
+
+A learning round is compared with the *reference*, the last accepted round (round 0 at first),
+on figures that need no ground truth:
+
+* **Map sharpness of the raw scans** (:func:`map_sharpness`): the raw downsampled scans of round 0
+  (``round_0/memory``, the same points for every round) are placed with the round's trajectory in
+  local maps of ``2 * half_window + 1`` consecutive frames around ``n_windows`` evenly spaced
+  centre frames; for (at most ``max_query_points``) points of the centre frame, the covariance
+  Σ of the map points within ``radius`` gives the differential entropy ½ ln det(2πe Σ) (mean map
+  entropy, MME) and the smallest eigenvalue of Σ (mean plane variance, MPV). A wrong trajectory
+  smears surfaces (a stopped vehicle that creeps 3 cm a frame spreads its scans over 30 cm in an
+  11-frame window), so the entropy of those windows rises. Computed identically for every round, so
+  the figures are comparable between rounds of one run (not between runs).
+* **Registration failures**: the fraction of odometry edges flagged as failed.
+* **Loop rejections**: the fraction of verified loop candidates rejected (reported, not decided on).
+* **Relative-pose agreement** with the reference: for consecutive frames the difference of the
+  two rounds' relative poses, its squared Mahalanobis distance under the sum of the two odometry
+  edges' covariances (inverse edge information), the fraction beyond the chi-square(6) 99.9 %
+  quantile, and the median translation difference (reported, not decided on).
+
+A round is accepted when (:func:`decide`) every pose is finite, the mean entropy difference (round
+minus reference, per window, averaged) is at most ``max_mean_entropy_increase``, the
+``window_quantile`` quantile of the per-window differences is at most
+``max_window_entropy_increase`` (a creep limited to a stop raises a few windows a lot), and the
+registration-failure rate grew by at most ``max_flagged_rate_increase``. Thresholds:
+``training.acceptance`` in :mod:`gr_graph.config`; how they were chosen: README.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gr_graph.config import AcceptanceConfig
+
+log = logging.getLogger(__name__)
+
+__all__ = ["window_centres", "map_sharpness", "relative_pose_agreement", "round_figures", "decide",
+           "evaluate_round", "CHI2_6_999"]
+
+#: chi-square quantile, 6 degrees of freedom, 99.9 %.
+CHI2_6_999 = 22.4577
+
+
+def window_centres(n_frames: int, n_windows: int, half_window: int) -> np.ndarray:
+    """``n_windows`` evenly spaced centre frames whose windows lie inside ``0..n_frames-1``
+    (fewer when the run is short; at least one when it has a frame)."""
+    if n_frames <= 0:
+        return np.zeros(0, np.int64)
+    lo, hi = min(half_window, n_frames - 1), max(n_frames - 1 - half_window, 0)
+    if hi < lo:
+        return np.array([n_frames // 2], np.int64)
+    return np.unique(np.round(np.linspace(lo, hi, max(1, min(n_windows, hi - lo + 1)))).astype(np.int64))
+
+
+def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def map_sharpness(scans: Sequence[np.ndarray], poses: np.ndarray, centres: np.ndarray, half_window: int,
+                  radius: float, min_neighbors: int, max_query_points: int) -> dict[str, np.ndarray]:
+    """Entropy and plane variance of local maps of ``scans`` placed with ``poses``.
+
+    Parameters
+    ----------
+    scans : sequence of (N_k, 3) arrays
+        Scans in their sensor frames (the same for every trajectory compared).
+    poses : (K, 4, 4) array
+        T_w_k of every scan.
+    centres : (W,) int array
+        Centre frame of each window (:func:`window_centres`).
+    half_window : int
+        A window holds frames ``c - half_window .. c + half_window`` (clipped to the run).
+    radius : float
+        Neighbourhood radius [m].
+    min_neighbors : int
+        Query points with fewer map points within ``radius`` are skipped.
+    max_query_points : int
+        At most this many points of the centre scan, evenly strided, are queried.
+
+    Returns
+    -------
+    dict
+        ``entropy`` (W,) mean differential entropy ½ ln det(2πe Σ) [nats] per window,
+        ``plane_variance`` (W,) mean smallest eigenvalue of Σ [m²], ``n_query`` (W,) points used
+        (NaN figures for a window without any).
+    """
+    poses = np.asarray(poses, np.float64)
+    if len(scans) != len(poses):
+        raise ValueError(f"map_sharpness: {len(scans)} scans but {len(poses)} poses")
+    W = len(centres)
+    entropy, plane, n_query = np.full(W, np.nan), np.full(W, np.nan), np.zeros(W, np.int64)
+    for w, c in enumerate(np.asarray(centres, np.int64)):
+        frames = range(max(0, c - half_window), min(len(scans), c + half_window + 1))
+        world = np.concatenate([_transform(poses[j], scans[j]) for j in frames])
+        centre = _transform(poses[c], scans[c])
+        if len(centre) == 0 or len(world) < min_neighbors:
+            continue
+        step = max(1, int(np.ceil(len(centre) / max_query_points)))
+        query = centre[::step]
+        tree = cKDTree(world)
+        neighbours = tree.query_ball_point(query, radius)
+        counts = np.array([len(n) for n in neighbours])
+        keep = np.flatnonzero(counts >= min_neighbors)
+        if len(keep) == 0:
+            continue
+        covs = np.empty((len(keep), 3, 3))
+        for q, i in enumerate(keep):
+            p = world[neighbours[i]]
+            d = p - p.mean(axis=0)
+            covs[q] = d.T @ d / len(p)
+        eig = np.linalg.eigvalsh(covs)
+        eig = np.maximum(eig, 1e-12)  # a perfectly flat neighbourhood: floor instead of -inf
+        entropy[w] = float(np.mean(0.5 * np.sum(np.log(2 * np.pi * np.e * eig), axis=1)))
+        plane[w] = float(np.mean(eig[:, 0]))
+        n_query[w] = len(keep)
+    return {"entropy": entropy, "plane_variance": plane, "n_query": n_query}
+
+
+def _log_se3_translation_rotation(T: np.ndarray) -> np.ndarray:
+    """(M, 6) [omega, v] of each 4x4 in ``T`` (gtsam's Pose3 log, tangent order)."""
+    import gtsam
+
+    return np.stack([gtsam.Pose3.Logmap(gtsam.Pose3(t)) for t in T])
+
+
+def relative_pose_agreement(poses: np.ndarray, reference: np.ndarray, information: np.ndarray | None = None,
+                            reference_information: np.ndarray | None = None) -> dict[str, float]:
+    """How consecutive relative poses of two trajectories of the same frames agree.
+
+    ``information`` / ``reference_information``: (K-1, 6, 6) odometry-edge information of each
+    consecutive pair (k, k+1), gtsam order [omega, v]; the difference xi = Log(dT_ref⁻¹ dT) is
+    scored with (Λ⁻¹ + Λ_ref⁻¹)⁻¹. Without information only the metric differences are returned.
+    """
+    poses, reference = np.asarray(poses, np.float64), np.asarray(reference, np.float64)
+    if poses.shape != reference.shape:
+        raise ValueError(f"relative_pose_agreement: shapes {poses.shape} and {reference.shape} differ")
+    if len(poses) < 2:
+        return {"median_translation_difference_m": 0.0, "p95_translation_difference_m": 0.0}
+    rel = np.linalg.inv(poses[:-1]) @ poses[1:]
+    rel_ref = np.linalg.inv(reference[:-1]) @ reference[1:]
+    diff = np.linalg.inv(rel_ref) @ rel
+    trans = np.linalg.norm(diff[:, :3, 3], axis=1)
+    out: dict[str, float] = {"median_translation_difference_m": float(np.median(trans)),
+                             "p95_translation_difference_m": float(np.quantile(trans, 0.95))}
+    if information is not None and reference_information is not None:
+        xi = _log_se3_translation_rotation(diff)
+        d2 = np.full(len(xi), np.nan)
+        for k in range(len(xi)):
+            try:
+                S = np.linalg.inv(information[k]) + np.linalg.inv(reference_information[k])
+                d2[k] = float(xi[k] @ np.linalg.solve(S, xi[k]))
+            except np.linalg.LinAlgError:
+                continue
+        ok = np.isfinite(d2)
+        out["median_mahalanobis2"] = float(np.median(d2[ok])) if ok.any() else float("nan")
+        out["fraction_beyond_chi2_999"] = float(np.mean(d2[ok] > CHI2_6_999)) if ok.any() else float("nan")
+    return out
+
+
+def _odometry_information(rd: Path, n_poses: int) -> np.ndarray | None:
+    """(K-1, 6, 6) information of the odometry edge (k+1, k) of a finished round, or None."""
+    with np.load(rd / "marginals.npz") as z:
+        if "edge_information" not in z.files:
+            return None
+        edges, kind, info = np.array(z["edges"]), np.array(z["edge_kind"]), np.array(z["edge_information"])
+    out = np.full((n_poses - 1, 6, 6), np.nan)
+    for (k, l), kd, H in zip(edges, kind, info):
+        if kd == 0 and k == l + 1 and 0 <= l < n_poses - 1:
+            out[l] = H
+    return None if np.isnan(out).any() else out
+
+
+def _rates(rd: Path, summary: dict[str, Any]) -> dict[str, float]:
+    n_edges = max(int(summary.get("n_odometry_edges", 0)), 1)
+    rates = {"registration_failure_rate": float(summary.get("n_flagged_odometry_edges", 0)) / n_edges}
+    loops = rd / "loops.json"
+    attempts = json.loads(loops.read_text()) if loops.is_file() else []
+    rates["loop_rejection_rate"] = (float(np.mean([not a.get("accepted", False) for a in attempts]))
+                                    if attempts else 0.0)
+    return rates
+
+
+def round_figures(scans: Sequence[np.ndarray], poses: np.ndarray, rd: Path, summary: dict[str, Any],
+                  cfg: AcceptanceConfig) -> dict[str, Any]:
+    """The GT-free figures of one round: map sharpness per window, failure and rejection rates."""
+    centres = window_centres(len(poses), cfg.n_windows, cfg.half_window)
+    sharp = map_sharpness(scans, poses, centres, cfg.half_window, cfg.radius, cfg.min_neighbors,
+                          cfg.max_query_points)
+    return {"centres": centres, **sharp, **_rates(rd, summary),
+            "finite_poses": bool(np.all(np.isfinite(poses)))}
+
+
+def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> dict[str, Any]:
+    """Accept or reject a round from its figures and the reference's (module docstring).
+
+    Returns the verdict: ``accepted``, the ``reasons`` for a rejection and the figures compared.
+    """
+    d = np.asarray(fig["entropy"]) - np.asarray(ref["entropy"])
+    dp = np.asarray(fig["plane_variance"]) - np.asarray(ref["plane_variance"])
+    ok = np.isfinite(d)
+    mean_inc = float(np.mean(d[ok])) if ok.any() else float("inf")
+    window_inc = float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else float("inf")
+    flagged_inc = fig["registration_failure_rate"] - ref["registration_failure_rate"]
+    reasons = []
+    if not fig["finite_poses"]:
+        reasons.append("non-finite poses")
+    if mean_inc > cfg.max_mean_entropy_increase:
+        reasons.append(f"mean map entropy rose by {mean_inc:.4f} > {cfg.max_mean_entropy_increase} nats")
+    if window_inc > cfg.max_window_entropy_increase:
+        reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
+                       f"{cfg.max_window_entropy_increase} nats")
+    if flagged_inc > cfg.max_flagged_rate_increase:
+        reasons.append(f"registration failures rose by {flagged_inc:.4f} > {cfg.max_flagged_rate_increase}")
+    return {
+        "accepted": not reasons,
+        "reasons": reasons,
+        "mean_entropy": float(np.nanmean(fig["entropy"])) if ok.any() else None,
+        "reference_mean_entropy": float(np.nanmean(ref["entropy"])) if np.isfinite(ref["entropy"]).any() else None,
+        "mean_entropy_increase": mean_inc,
+        "window_entropy_increase": window_inc,
+        "max_window_entropy_increase_seen": float(np.max(d[ok])) if ok.any() else None,
+        "mean_plane_variance": float(np.nanmean(fig["plane_variance"])) if ok.any() else None,
+        "mean_plane_variance_change": float(np.nanmean(dp)) if np.isfinite(dp).any() else None,
+        "registration_failure_rate": fig["registration_failure_rate"],
+        "registration_failure_rate_increase": flagged_inc,
+        "loop_rejection_rate": fig["loop_rejection_rate"],
+        "reference_loop_rejection_rate": ref["loop_rejection_rate"],
+        "n_windows": int(ok.sum()),
+    }
+
+
+def _raw_scans(out: Path) -> list[np.ndarray]:
+    from gr_graph.memory import load_memory
+
+    mem = load_memory(Path(out) / "round_0" / "memory")
+    return [np.array(mem.scan(k), np.float64) for k in range(mem.n_scans)]
+
+
+def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[str, Any]],
+                   cfg: AcceptanceConfig, scans: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
+    """The acceptance verdict of round ``r`` against round ``reference`` of the run in ``out``.
+
+    ``summaries`` maps round numbers (str) to their summaries; ``scans`` defaults to round 0's
+    memory (the raw downsampled scans).
+    """
+    from gr_graph.round_output import read_round_poses, round_dir
+
+    scans = _raw_scans(out) if scans is None else scans
+    rd, rd_ref = round_dir(out, r), round_dir(out, reference)
+    poses, ref_poses = read_round_poses(rd), read_round_poses(rd_ref)
+    fig = round_figures(scans, poses, rd, summaries[str(r)], cfg)
+    ref = round_figures(scans, ref_poses, rd_ref, summaries[str(reference)], cfg)
+    verdict = {"reference_round": reference, **decide(fig, ref, cfg)}
+    if len(poses) == len(ref_poses):
+        verdict["relative_pose_agreement"] = relative_pose_agreement(
+            poses, ref_poses, _odometry_information(rd, len(poses)), _odometry_information(rd_ref, len(ref_poses)))
+    verdict["window_entropy"] = [None if not np.isfinite(v) else round(float(v), 5) for v in fig["entropy"]]
+    verdict["reference_window_entropy"] = [None if not np.isfinite(v) else round(float(v), 5)
+                                           for v in ref["entropy"]]
+    verdict["window_centres"] = [int(c) for c in fig["centres"]]
+    verdict["settings"] = cfg.model_dump(mode="json")
+    level = logging.INFO if verdict["accepted"] else logging.WARNING
+    log.log(level, "round %d %s against round %d: mean map entropy %+.4f nats (q%g window %+.4f), "
+            "registration failures %.3f, loop rejections %.3f%s", r,
+            "accepted" if verdict["accepted"] else "REJECTED", reference, verdict["mean_entropy_increase"],
+            cfg.window_quantile, verdict["window_entropy_increase"], verdict["registration_failure_rate"],
+            verdict["loop_rejection_rate"], "" if verdict["accepted"] else ": " + "; ".join(verdict["reasons"]))
+    return verdict
