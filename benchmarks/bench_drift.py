@@ -65,9 +65,13 @@ def export(route: str, root: Path, preset: str, frames: str | None) -> None:
     subprocess.run(cmd, check=True, cwd=REPO)
 
 
-def open_root(root: Path):
+def open_root(root: Path | None, route: str = "generated"):
+    """The exported folder ``root``, or (``root`` None) the kitti-preset route rendered on the fly."""
     from gr_graph.datasets.registry import open_sequence
 
+    if root is None:
+        trajectory = str(KITTI00_GT) if route == "kitti00" else None
+        return open_sequence("00", trajectory=trajectory, synthetic_preset="kitti")
     return open_sequence("00", str(root))
 
 
@@ -80,14 +84,14 @@ class KissVerticalFrontEnd(KissFrontEnd):
         return super().__call__(correct_vertical_angle(points, VERTICAL_DEG))
 
 
-def odometry(route: str, root: Path, systems: tuple[str, ...]) -> dict:
+def odometry(route: str, root: Path | None, systems: tuple[str, ...]) -> dict:
     """KISS-ICP and/or gr_graph odometry at 64/32/16 channels, one reading pass.
 
     ``systems``: ``kiss_icp``, ``gr_graph`` (its front end; the SLAM runs report the same
     odometry), ``vertical`` / ``kiss_vertical`` (gr_graph's / KISS-ICP's front end with the
     vertical-angle correction, 64 channels).
     """
-    seq, desc = open_root(root)
+    seq, desc = open_root(root, route)
     makers = {"gr_graph": GrFrontEnd, "kiss_icp": KissFrontEnd}
     fes = {(name, ch): makers[name]() for ch in CHANNELS for name in systems if name in makers}
     if "vertical" in systems:
@@ -168,6 +172,8 @@ def main() -> None:
     ap.add_argument("--channels", type=int, choices=CHANNELS, default=64)
     ap.add_argument("--systems", default="kiss_icp,gr_graph,vertical",
                     help="odometry: comma-separated front ends (kiss_icp, gr_graph, vertical, kiss_vertical)")
+    ap.add_argument("--render", action="store_true",
+                    help="odometry: render the route on the fly instead of reading --root (no export)")
     ap.add_argument("--tag", default=None, help="odometry: suffix of the results file (a second pass)")
     ap.add_argument("--out", type=Path, default=None, help="slam: run directory (default: ROOT.slam_C)")
     a = ap.parse_args()
@@ -177,7 +183,7 @@ def main() -> None:
     elif a.step == "odometry":
         tag = "" if a.tag is None else f"_{a.tag}"
         atomic_write_json(RESULTS / f"drift_{a.route}_odometry{tag}.json",
-                          odometry(a.route, root, tuple(a.systems.split(","))))
+                          odometry(a.route, None if a.render else root, tuple(a.systems.split(","))))
     elif a.step == "slam":
         out = a.out or Path(f"{root}.slam_{a.channels}")
         atomic_write_json(RESULTS / f"drift_{a.route}_slam_{a.channels}.json", slam(a.route, root, a.channels, out))
