@@ -93,7 +93,13 @@ def odometry(route: str, root: Path | None, systems: tuple[str, ...]) -> dict:
     """
     seq, desc = open_root(root, route)
     makers = {"gr_graph": GrFrontEnd, "kiss_icp": KissFrontEnd}
-    fes = {(name, ch): makers[name]() for ch in CHANNELS for name in systems if name in makers}
+    fes = {}
+    for entry in systems:  # "kiss_icp" (every channel count) or "kiss_icp@64" (one)
+        name, _, only = entry.partition("@")
+        for ch in (CHANNELS if not only else (int(only),)):
+            if name in makers:
+                fes[(name, ch)] = makers[name]()
+    systems = tuple(e.partition("@")[0] for e in systems)
     if "vertical" in systems:
         fes[(f"gr_graph + vertical {VERTICAL_DEG} deg", 64)] = GrFrontEnd(vertical_correction_deg=VERTICAL_DEG)
     if "kiss_vertical" in systems:  # as KISS-ICP's own KITTI loader reads KITTI scans
@@ -171,7 +177,8 @@ def main() -> None:
     ap.add_argument("--frames", default=None, help="export: frame range A:B (default: all)")
     ap.add_argument("--channels", type=int, choices=CHANNELS, default=64)
     ap.add_argument("--systems", default="kiss_icp,gr_graph,vertical",
-                    help="odometry: comma-separated front ends (kiss_icp, gr_graph, vertical, kiss_vertical)")
+                    help="odometry: comma-separated front ends (kiss_icp, gr_graph, vertical, kiss_vertical; "
+                         "NAME@64 runs one channel count only)")
     ap.add_argument("--render", action="store_true",
                     help="odometry: render the route on the fly instead of reading --root (no export)")
     ap.add_argument("--tag", default=None, help="odometry: suffix of the results file (a second pass)")
