@@ -176,6 +176,41 @@ def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarra
     return out
 
 
+
+def read_velodyne_scan(path: str | Path, point_format: str = "xyzi", ring_indexer: RingIndexer | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
+    """One Velodyne ``.bin`` scan as ``(points (N, 3) float64, intensity (N,), ring or None, dropped)``.
+
+    Non-finite points are dropped (counted in ``dropped``, logged with the file name); with a
+    ``ring_indexer`` every point gets its ring, and a frame not indexed by storage order is logged.
+    Shared by the KITTI odometry and raw-drive loaders.
+    """
+    raw = read_velodyne_bin(path, point_format)
+    finite = np.all(np.isfinite(raw), axis=1)
+    dropped = int(len(raw) - finite.sum())
+    if dropped:
+        log.warning("%s: dropped %d non-finite points", path, dropped)
+        raw = raw[finite]
+    points = raw[:, :3].astype(np.float64)
+    ring = None
+    if ring_indexer is not None and len(points):
+        ring, method, problem = ring_indexer(points)
+        if method != "storage_order":
+            log.warning("%s: rings by %s (%s)%s", path, method, problem,
+                        "; approximate: per-point elevation" if method == "elevation" else "")
+    return points, raw[:, 3].copy(), ring, dropped
+
+
+def probe_points(files: list[Path], k: int, point_format: str = "xyzi") -> np.ndarray | None:
+    """Finite points of the k-th of ``PROBE_FRAMES`` frames spread evenly over ``files`` (the ring
+    reference probes of :class:`~gr_graph.datasets.channels.RingIndexer`); None past the last."""
+    n = len(files)
+    if k >= min(PROBE_FRAMES, n):
+        return None
+    raw = read_velodyne_bin(files[(k * n) // min(PROBE_FRAMES, n)], point_format)
+    return raw[np.all(np.isfinite(raw), axis=1)][:, :3].astype(np.float64)
+
+
 class KittiSequence:
     """A KITTI odometry sequence read from disk, one frame at a time.
 
@@ -270,14 +305,7 @@ class KittiSequence:
         return len(self.files)
 
     def _probe_points(self, k: int) -> np.ndarray | None:
-        """Points of the k-th frame spread evenly over the sequence (ring reference probes)."""
-        n = len(self.files)
-        if k >= min(PROBE_FRAMES, n):
-            return None
-        i = (k * n) // min(PROBE_FRAMES, n)
-        raw = read_velodyne_bin(self.files[i], self.point_format)
-        raw = raw[np.all(np.isfinite(raw), axis=1)]
-        return raw[:, :3].astype(np.float64)
+        return probe_points(self.files, k, self.point_format)
 
     @property
     def ring_recovery_counts(self) -> dict[str, int]:
@@ -286,25 +314,14 @@ class KittiSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        raw = read_velodyne_bin(self.files[i], self.point_format)
-        finite = np.all(np.isfinite(raw), axis=1)
-        dropped = int(len(raw) - finite.sum())
-        if dropped:
-            log.warning("%s: dropped %d non-finite points", self.files[i], dropped)
-            raw = raw[finite]
-        points = raw[:, :3].astype(np.float64)
-        ring = None
-        if self.recover_ring_index and len(points):
-            ring, method, problem = self.ring_indexer(points)
-            if method != "storage_order":
-                log.warning("%s: rings by %s (%s)%s", self.files[i], method, problem,
-                            "; approximate: per-point elevation" if method == "elevation" else "")
+        points, intensity, ring, dropped = read_velodyne_scan(
+            self.files[i], self.point_format, self.ring_indexer if self.recover_ring_index else None)
         points = correct_vertical_angle(points, self.vertical_correction_deg)
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),
             points=points,
-            intensity=raw[:, 3].copy(),
+            intensity=intensity,
             ring=ring,
             n_rings=self.n_rings,
             dropped_nonfinite=dropped,

@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
-from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
+from gr_graph.datasets.channels import RingIndexer
 from gr_graph.datasets.folder import natural_key
 from gr_graph.datasets.frame_fields import frame_period
-from gr_graph.datasets.kitti import read_velodyne_bin
+from gr_graph.datasets.kitti import probe_points, read_velodyne_scan
 
 log = logging.getLogger(__name__)
 
@@ -202,28 +202,13 @@ class KittiRawSequence:
         return len(self.files)
 
     def _probe_points(self, k: int) -> np.ndarray | None:
-        n = len(self.files)
-        if k >= min(PROBE_FRAMES, n):
-            return None
-        raw = read_velodyne_bin(self.files[(k * n) // min(PROBE_FRAMES, n)], self.point_format)
-        raw = raw[np.all(np.isfinite(raw), axis=1)]
-        return raw[:, :3].astype(np.float64)
+        return probe_points(self.files, k, self.point_format)
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        raw = read_velodyne_bin(self.files[i], self.point_format)
-        finite = np.all(np.isfinite(raw), axis=1)
-        dropped = int(len(raw) - finite.sum())
-        if dropped:
-            log.warning("%s: dropped %d non-finite points", self.files[i], dropped)
-            raw = raw[finite]
-        points = raw[:, :3].astype(np.float64)
-        ring = None
-        if self.recover_ring_index and len(points):
-            ring, method, problem = self.ring_indexer(points)
-            if method != "storage_order":
-                log.warning("%s: rings by %s (%s)", self.files[i], method, problem)
-        return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=points, intensity=raw[:, 3].copy(),
+        points, intensity, ring, dropped = read_velodyne_scan(
+            self.files[i], self.point_format, self.ring_indexer if self.recover_ring_index else None)
+        return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=points, intensity=intensity,
                           ring=ring, n_rings=self.n_rings, dropped_nonfinite=dropped)
 
     def __iter__(self) -> Iterator[LidarFrame]:
