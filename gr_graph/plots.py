@@ -19,7 +19,7 @@ import numpy as np
 
 from gr_graph.atomic import atomic_savefig
 
-__all__ = ["plot_trajectory", "plot_rounds", "ellipse_axes", "ellipse_scale", "ELLIPSE_SIGMA",
+__all__ = ["plot_trajectory", "plot_rounds", "pyplot", "save_figure", "ellipse_axes", "ellipse_scale", "ELLIPSE_SIGMA",
            "ELLIPSE_TARGET_FRACTION", "MAX_ELLIPSES"]
 
 ELLIPSE_SIGMA = 3.0
@@ -29,13 +29,22 @@ ELLIPSE_TARGET_FRACTION = 0.015
 MAX_ELLIPSES = 60
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend unless one is chosen (imported on first use)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig: Any, path: str | os.PathLike[str], dpi: int = 120) -> Path:
+    """Save ``fig`` atomically to ``path`` (tight bounding box) and close it, also on failure."""
+    try:
+        return atomic_savefig(fig, path, dpi=dpi, bbox_inches="tight")
+    finally:
+        pyplot().close(fig)
 
 
 def ellipse_axes(cov_xy: np.ndarray, n_sigma: float = ELLIPSE_SIGMA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -88,7 +97,7 @@ def plot_trajectory(
     """
     from matplotlib.patches import Ellipse
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 7))
     p = poses[:, :3, 3]
     if gt is not None:
@@ -122,10 +131,7 @@ def plot_trajectory(
     ax.legend(loc="best", fontsize=8)
     if title:
         ax.set_title(title, fontsize=10)
-    try:
-        return atomic_savefig(fig, path, dpi=120, bbox_inches="tight")
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=120)
 
 
 def _round_values(metrics: dict[str, Any], part: str, key: str) -> tuple[list[int], list[float]]:
@@ -142,7 +148,7 @@ def plot_rounds(path: str | os.PathLike[str], metrics: dict[str, Any], title: st
     """RPE (over 300 frames, consecutive pairs, mean) and ATE RMSE per round, optimised and
     odometry-only, from a run's ``metrics.json`` dict; a panel without values (no ground
     truth, or a run shorter than the RPE distance) says so."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     panels = (("rpe300_consecutive_mean", "RPE over 300 frames [m]"), ("ate_rmse", "ATE RMSE [m]"))
     all_rounds = sorted(int(r) for r in metrics["rounds"])
@@ -165,7 +171,4 @@ def plot_rounds(path: str | os.PathLike[str], metrics: dict[str, Any], title: st
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    try:
-        return atomic_savefig(fig, path, dpi=120, bbox_inches="tight")
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=120)

@@ -15,18 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.atomic import atomic_savefig
+from gr_graph.plots import pyplot as _plt
+from gr_graph.plots import save_figure
 
 __all__ = ["plot_rpe_over_rounds", "plot_round_trajectories", "plot_raw_vs_densified"]
-
-
-def _plt() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
@@ -63,10 +55,7 @@ def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle("Trajectory error over learning rounds, mean ± std over seeds (unguarded rounds)", fontsize=10)
-    try:
-        return atomic_savefig(fig, path, dpi=110, bbox_inches="tight")
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_round_trajectories(cell_dir: str | Path, path: str | Path, title: str = "") -> Path | None:
@@ -99,10 +88,7 @@ def plot_round_trajectories(cell_dir: str | Path, path: str | Path, title: str =
     axes[0][0].set_ylabel("y [m]")
     if title:
         fig.suptitle(title, fontsize=10)
-    try:
-        return atomic_savefig(fig, path, dpi=110, bbox_inches="tight")
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_raw_vs_densified(raw_points: np.ndarray, dense_points: np.ndarray, path: str | Path, title: str = "",
@@ -121,7 +107,4 @@ def plot_raw_vs_densified(raw_points: np.ndarray, dense_points: np.ndarray, path
     axes[0].set_ylabel("y [m]")
     if title:
         fig.suptitle(title, fontsize=10)
-    try:
-        return atomic_savefig(fig, path, dpi=110, bbox_inches="tight")
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, dpi=110)
