@@ -82,6 +82,17 @@ def atomic_write_json(path: PathLike, obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
 
 
+def read_json_or_none(path: PathLike) -> Any:
+    """The JSON in ``path``, or None when the file is missing or not valid JSON (e.g. cut short)."""
+    p = Path(path)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError:
+        return None
+
+
 def atomic_save_npz(path: PathLike, **arrays: np.ndarray) -> Path:
     """``np.savez_compressed`` to ``path`` atomically; return the path."""
     with atomic_path(path) as tmp:

@@ -17,9 +17,10 @@ covariances could not be used, so that a regression of the network's numerics sh
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
+
+from gr_graph.atomic import read_json_or_none
 
 __all__ = ["TRAINING_COVARIANCE_SKIPS", "covariance_failures"]
 
@@ -48,18 +49,14 @@ def covariance_failures(densify_stats: dict[str, Any], training_summary: Path | 
         "fraction_frames": (nonfinite + non_pd) / frames if frames else 0.0,
         "training_pairs": None, "training_pairs_skipped": None, "fraction_pairs": None,
     }
-    if training_summary is not None and Path(training_summary).is_file():
-        try:
-            ts = json.loads(Path(training_summary).read_text())
-        except json.JSONDecodeError:
-            ts = None
-        if ts is not None:
-            pairs = int(ts.get("dataset", {}).get("n_edges", 0)) * int(ts.get("epochs_done", 0))
-            skips = ts.get("skip_counts", {})
-            skipped = int(sum(int(skips.get(k, 0)) for k in TRAINING_COVARIANCE_SKIPS))
-            out.update(training_pairs=pairs, training_pairs_skipped=skipped,
-                       training_skips={k: int(skips.get(k, 0)) for k in TRAINING_COVARIANCE_SKIPS},
-                       fraction_pairs=skipped / pairs if pairs else 0.0)
+    ts = None if training_summary is None else read_json_or_none(training_summary)
+    if ts is not None:
+        pairs = int(ts.get("dataset", {}).get("n_edges", 0)) * int(ts.get("epochs_done", 0))
+        skips = ts.get("skip_counts", {})
+        skipped = int(sum(int(skips.get(k, 0)) for k in TRAINING_COVARIANCE_SKIPS))
+        out.update(training_pairs=pairs, training_pairs_skipped=skipped,
+                   training_skips={k: int(skips.get(k, 0)) for k in TRAINING_COVARIANCE_SKIPS},
+                   fraction_pairs=skipped / pairs if pairs else 0.0)
     if edge_noise is not None and edge_noise.get("mode") == "learned":
         out["edges_without_covariances"] = {
             "odometry": int(edge_noise.get("fallbacks", {}).get("no_covariances", 0)),

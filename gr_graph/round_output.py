@@ -46,13 +46,12 @@ marginals needed a fallback).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gr_graph.atomic import atomic_save_npz, atomic_write_json
+from gr_graph.atomic import atomic_save_npz, atomic_write_json, read_json_or_none
 from gr_graph.datasets.base import velo_to_cam_poses
 from gr_graph.frame_loop import SlamResult
 from gr_graph.pose_graph import position_covariance_world
@@ -162,13 +161,7 @@ def write_round_summary(rd: Path, summary: dict[str, Any]) -> None:
 
 def read_round_summary(rd: Path) -> dict[str, Any] | None:
     """The summary of a finished round, or None (no ``round.json``, or an unreadable one)."""
-    p = rd / "round.json"
-    if not p.is_file():
-        return None
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError:
-        return None
+    return read_json_or_none(rd / "round.json")
 
 
 def read_round_poses(rd: Path) -> np.ndarray:

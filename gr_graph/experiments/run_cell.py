@@ -28,7 +28,6 @@ in ``cell.json["reuse"]``). Training is deterministic given the seed, so both gi
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import time
@@ -38,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.atomic import atomic_write_json
+from gr_graph.atomic import atomic_write_json, read_json_or_none
 from gr_graph.experiments.cells import Cell
 
 log = logging.getLogger(__name__)
@@ -61,18 +60,9 @@ def cell_dir(root: str | Path, cell: Cell) -> Path:
     return Path(root) / cell.table / cell.key
 
 
-def _read_json(p: Path) -> dict[str, Any] | None:
-    if not p.is_file():
-        return None
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError:
-        return None
-
-
 def read_cell_result(root: str | Path, cell: Cell) -> dict[str, Any] | None:
     """The cell's ``cell.json`` if it is finished with the current definition, else None."""
-    d = _read_json(cell_dir(root, cell) / CELL_JSON)
+    d = read_json_or_none(cell_dir(root, cell) / CELL_JSON)
     if d is None or d.get("fingerprint") != cell.fingerprint():
         return None
     return d
@@ -87,7 +77,7 @@ def _start(root: Path, cell: Cell) -> Path:
     """Create the cell's folder; delete it first if it holds another definition."""
     d = cell_dir(root, cell)
     fp = cell.fingerprint()
-    stored = [_read_json(d / n) for n in (DEFINITION_JSON, CELL_JSON)]
+    stored = [read_json_or_none(d / n) for n in (DEFINITION_JSON, CELL_JSON)]
     if any(s is not None and s.get("fingerprint") != fp for s in stored):
         log.warning("%s/%s: the stored results were made with another definition; recomputing from scratch",
                     cell.table, cell.key)
@@ -136,7 +126,7 @@ def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
     if (slam / "round_0" / "round.json").is_file():
         return {"source": cell.source, "what": what, "note": "already in place"}
     src = Path(root) / cell.source / "slam"
-    if _read_json(Path(root) / cell.source / CELL_JSON) is None or not (src / "round_0" / "memory").is_dir():
+    if read_json_or_none(Path(root) / cell.source / CELL_JSON) is None or not (src / "round_0" / "memory").is_dir():
         log.info("%s: source %s not finished (or pruned): computing round 0 itself", cell.key, cell.source)
         return {"source": cell.source, "what": None, "note": "source not available: everything computed here"}
     slam.mkdir(parents=True, exist_ok=True)
@@ -162,7 +152,7 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
                               "provenance": metrics.get("provenance"), "reuse": reuse}
     if cell.params.get("kiss_icp"):
         kp = d / "kiss_icp.json"
-        kiss = _read_json(kp)
+        kiss = read_json_or_none(kp)
         if kiss is None:
             from gr_graph.experiments.kiss_baseline import kiss_icp_metrics
 
@@ -177,7 +167,7 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
 def _source_round(src_slam: Path, r: int) -> tuple[int, str | None]:
     """The round of the source run to use for round ``r``: ``r`` itself, or the last finished
     round before it when the run converged earlier (noted)."""
-    metrics = _read_json(src_slam / "metrics.json") or {}
+    metrics = read_json_or_none(src_slam / "metrics.json") or {}
     rounds = sorted(int(k) for k in metrics.get("rounds", {}))
     if r in rounds:
         return r, None
@@ -195,7 +185,7 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
 
     assert cell.source is not None
     src = Path(root) / cell.source
-    if _read_json(src / CELL_JSON) is None:
+    if read_json_or_none(src / CELL_JSON) is None:
         table, key = cell.source.split("/")
         raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished: run "
                                   f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
