@@ -165,6 +165,19 @@ class NoiseModel:
             raise ValueError(f"need 0 <= min_range < max_range, got {self.min_range}, {self.max_range}")
 
 
+def _scan_draws(rng: np.random.Generator, beams: BeamModel) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The draws every scan starts with, in a fixed order over the sensor's full beam grid
+    (independent of ``n_rings`` and of the hits): azimuth phase, range noise, drop-out and
+    intensity noise. The clean renderer and the renderer with effects share them, so a frame's
+    clean draws are the same whichever renders it."""
+    n_all = beams.n_beams * beams.n_azimuth
+    phase = rng.uniform(0.0, 2.0 * np.pi / beams.n_azimuth)
+    range_noise = rng.standard_normal(n_all, dtype=np.float32)
+    u_drop = rng.random(n_all, dtype=np.float32)
+    u_int = rng.standard_normal(n_all, dtype=np.float32)
+    return phase, range_noise, u_drop, u_int
+
+
 def render_scan(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarray,
                 beams: BeamModel, noise: NoiseModel, rng: np.random.Generator,
                 nthreads: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -189,12 +202,7 @@ def render_scan(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndarr
     import open3d as o3d
 
     n_az = beams.n_azimuth
-    n_all = beams.n_beams * n_az
-    # fixed draw order over the sensor's full beam grid (independent of n_rings and of the hits)
-    phase = rng.uniform(0.0, 2.0 * np.pi / n_az)
-    range_noise = rng.standard_normal(n_all, dtype=np.float32)
-    u_drop = rng.random(n_all, dtype=np.float32)
-    u_int = rng.standard_normal(n_all, dtype=np.float32)
+    phase, range_noise, u_drop, u_int = _scan_draws(rng, beams)
 
     d = beams.directions(phase)
     sel = None
@@ -289,11 +297,8 @@ def render_frame(scene, albedo: np.ndarray, material: np.ndarray, T_w_s: np.ndar
 
     n_az = beams.n_azimuth
     n_all = beams.n_beams * n_az
-    # the original draws first, in the original order, then the effects' draws
-    phase = rng.uniform(0.0, 2.0 * np.pi / n_az)
-    range_noise = rng.standard_normal(n_all, dtype=np.float32)
-    u_drop = rng.random(n_all, dtype=np.float32)
-    u_int = rng.standard_normal(n_all, dtype=np.float32)
+    # the clean renderer's draws first, in its order, then the effects' draws
+    phase, range_noise, u_drop, u_int = _scan_draws(rng, beams)
     u_mix = rng.random(n_all, dtype=np.float32)
     motion: SweepMotion | None = None
     if effects.motion.enabled:
