@@ -46,12 +46,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from bench_slam import kiss_icp, open_seq  # noqa: E402
 
 from gr_graph.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from gr_graph.config import GraphConfig, OdometryConfig, PreprocessConfig, load_config  # noqa: E402
 from gr_graph.datasets.base import velo_to_cam_poses  # noqa: E402
 from gr_graph.datasets.channels import subsample_channels  # noqa: E402
 from gr_graph.datasets.distortion import MotionDistortedSequence  # noqa: E402
+from gr_graph.datasets.registry import parse_frames  # noqa: E402
 from gr_graph.frame_loop import FrameDeskewer  # noqa: E402
 from gr_graph.odometry import VgicpOdometry  # noqa: E402
 from gr_graph.preprocess import preprocess_scan  # noqa: E402
@@ -91,23 +95,6 @@ class Cached:
 
     def __iter__(self):
         return iter(self.frames)
-
-
-def open_synthetic(frames: tuple[int, int]):
-    from gr_graph.datasets.registry import open_sequence
-
-    return open_sequence("00", frames=frames)
-
-
-def kiss_icp(deskew: bool):
-    """KISS-ICP 1.3.0 with its default config, 1 thread, deskewing as asked."""
-    from kiss_icp.config import load_config as kiss_config
-    from kiss_icp.kiss_icp import KissICP
-
-    cfg = kiss_config(None)
-    cfg.data.deskew = deskew
-    cfg.registration.max_num_threads = 1
-    return KissICP(cfg)
 
 
 class GrFrontEnd:
@@ -175,7 +162,7 @@ def bench_accuracy(stretches: list[tuple[int, int]]) -> dict:
                                  "output": {"progress": False}})
     rows = []
     for a, b in stretches:
-        seq, desc = open_synthetic((a, b))
+        seq, desc = open_seq((a, b))
         clean = Cached(seq)
         gt = clean.gt_poses
         speed = float(np.mean(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1) / np.diff(clean.timestamps)))
@@ -205,7 +192,7 @@ def bench_accuracy(stretches: list[tuple[int, int]]) -> dict:
 
 
 def bench_throughput(frames: tuple[int, int]) -> dict:
-    seq, desc = open_synthetic(frames)
+    seq, desc = open_seq(frames)
     raw = Cached(MotionDistortedSequence(Cached(seq), SCAN_PERIOD))
     out = {"source": desc + ", raw variant (MotionDistortedSequence, 0.1 s sweeps)", "n_frames": len(raw), "rows": []}
     for ch in CHANNELS:
@@ -323,11 +310,6 @@ def write_markdown() -> Path:
     return out
 
 
-def parse(text: str) -> tuple[int, int]:
-    a, b = text.split(":")
-    return int(a), int(b)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("section", choices=("accuracy", "throughput", "vertical", "report"))
@@ -337,10 +319,10 @@ def main() -> None:
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     if a.section == "accuracy":
-        d = bench_accuracy([parse(s) for s in a.stretches.split(",")])
+        d = bench_accuracy([parse_frames(s) for s in a.stretches.split(",")])
         d["stretches"] = a.stretches
     elif a.section == "throughput":
-        d = bench_throughput(parse(a.frames))
+        d = bench_throughput(parse_frames(a.frames))
         d["frames"] = a.frames
     elif a.section == "vertical":
         d = bench_vertical(Path(a.kitti))

@@ -41,19 +41,20 @@ sys.path.insert(0, str(REPO))
 from gr_graph.config import GraphConfig, OdometryConfig, PreprocessConfig  # noqa: E402
 from gr_graph.datasets.base import velo_to_cam_poses  # noqa: E402
 from gr_graph.datasets.channels import subsample_channels  # noqa: E402
+from gr_graph.datasets.registry import parse_frames  # noqa: E402
 from gr_graph.odometry import VgicpOdometry  # noqa: E402
 from gr_graph.preprocess import preprocess_scan  # noqa: E402
 
 CHANNELS = (64, 32, 16)
 
 
-def kiss_icp():
-    """KISS-ICP 1.3.0 with its default config; deskew off (no per-point timestamps), 1 thread."""
+def kiss_icp(deskew: bool = False):
+    """KISS-ICP 1.3.0 with its default config, 1 thread; deskew off by default (no per-point timestamps)."""
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
     cfg = load_config(None)
-    cfg.data.deskew = False
+    cfg.data.deskew = deskew
     cfg.registration.max_num_threads = 1
     return KissICP(cfg)
 
@@ -93,11 +94,6 @@ def open_seq(frames: tuple[int, int]):
     from gr_graph.datasets.registry import open_sequence
 
     return open_sequence("00", frames=frames)
-
-
-def parse(text: str) -> tuple[int, int]:
-    a, b = text.split(":")
-    return int(a), int(b)
 
 
 def machine() -> str:
@@ -305,13 +301,13 @@ def main() -> None:
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     if a.section == "throughput":
-        fr = parse(a.frames or "1000:1200")
+        fr = parse_frames(a.frames or "1000:1200")
         d = bench_throughput(fr)
     elif a.section == "rpe":
-        fr = parse(a.frames or "0:1500")
+        fr = parse_frames(a.frames or "0:1500")
         d = bench_rpe(fr)
     elif a.section == "full":
-        fr = parse(a.frames) if a.frames else None
+        fr = parse_frames(a.frames) if a.frames else None
         d = bench_full(fr, Path(a.out))
     elif a.section == "ingest":
         ingest_run(Path(a.out), a.command, a.label)
