@@ -41,6 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gr_graph.datasets.synthetic.meshes import MATERIAL, car_mesh, pedestrian_mesh
+from gr_graph.datasets.synthetic.town import resample_path_with_arc_length
 
 log = logging.getLogger(__name__)
 
@@ -81,15 +82,6 @@ class ActorsConfig:
             raise ValueError(f"actor counts must be >= 0, got {self}")
         if self.time_step <= 0:
             raise ValueError(f"time_step must be > 0, got {self.time_step}")
-
-
-def _resample(positions: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Polyline resampled every ``step`` m of xy arc length; also the arc length of each input point."""
-    seg = np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1)
-    s_in = np.concatenate([[0.0], np.cumsum(seg)])
-    keep = np.concatenate([[True], seg > 1e-9])
-    q = np.arange(0.0, s_in[-1] + 1e-9, step)
-    return np.stack([np.interp(q, s_in[keep], positions[keep, k]) for k in range(3)], axis=1), s_in
 
 
 def _rects_overlap(c1: np.ndarray, yaw1: np.ndarray, h1: np.ndarray,
@@ -188,7 +180,7 @@ class Actors:
                              f"{positions.shape}")
         self.seed = int(seed)
         self.times = times
-        self.line, self.s_ego_frames = _resample(positions, 0.5)
+        self.line, self.s_ego_frames = resample_path_with_arc_length(positions, 0.5)
         self.step = 0.5
         xy = self.line[:, :2]
         w = 4

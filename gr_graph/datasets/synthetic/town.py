@@ -265,12 +265,17 @@ class Town:
 
 def resample_path(positions: np.ndarray, step: float) -> np.ndarray:
     """Resample a polyline ``(K, 3)`` by arc length (xy) every ``step`` metres."""
+    return resample_path_with_arc_length(positions, step)[0]
+
+
+def resample_path_with_arc_length(positions: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`resample_path`, and the xy arc length ``(K,)`` of each input point along the polyline."""
     seg = np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s_in = np.concatenate([[0.0], np.cumsum(seg)])
     keep = np.concatenate([[True], seg > 1e-9])  # drop stationary duplicates
-    s, positions = s[keep], positions[keep]
+    s, kept = s_in[keep], positions[keep]
     q = np.arange(0.0, s[-1] + 1e-9, step)
-    return np.stack([np.interp(q, s, positions[:, k]) for k in range(3)], axis=1)
+    return np.stack([np.interp(q, s, kept[:, k]) for k in range(3)], axis=1), s_in
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
