@@ -63,27 +63,28 @@ def synthetic_statistics(effects: SensorEffects, frames: np.ndarray, n_rings: in
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS} | {"frames": len(rows)}
 
 
-class _Pairs:
-    """Frames ``(i, i + 1)`` for ``i`` in ``frames`` of a sequence, as one contiguous sequence
-    (so the exporter can write them and ``python -m gr_graph.datasets.realism`` reads pairs)."""
+class FramePairs:
+    """Frames ``(i, i + 1)`` for ``i`` in ``starts`` of a sequence, as one contiguous sequence (so the
+    exporter can write them and ``python -m gr_graph.datasets.realism`` reads pairs). Timestamps and
+    poses are the selected frames'; every other attribute is the sequence's."""
 
-    def __init__(self, seq: SyntheticSequence, frames: np.ndarray):
-        self.seq = seq
-        self.idx = np.stack([frames, frames + 1], axis=1).ravel()
-        self.name, self.seed, self.n_rings = seq.name, seq.seed, seq.n_rings
-        self.timestamps = seq.timestamps[self.idx]
-        self.gt_poses = seq.gt_poses[self.idx]
-        self.T_cam_velo = seq.T_cam_velo
-        self.preset, self.effects = seq.preset, seq.effects
+    def __init__(self, seq: SyntheticSequence, starts: np.ndarray):
+        self._seq = seq
+        self._idx = np.stack([np.asarray(starts), np.asarray(starts) + 1], axis=1).ravel()
+        self.timestamps = seq.timestamps[self._idx]
+        self.gt_poses = seq.gt_poses[self._idx]
+
+    def __getattr__(self, name: str):
+        return getattr(self._seq, name)
 
     def __len__(self) -> int:
-        return len(self.idx)
+        return len(self._idx)
 
     def __getitem__(self, k: int):
-        return self.seq[int(self.idx[k])]
+        return self._seq[int(self._idx[k])]
 
     def __repr__(self) -> str:
-        return f"pairs of {self.seq!r}"
+        return f"FramePairs({self._seq!r}, frames {self._idx[::2].tolist()} and their successors)"
 
 
 def configurations() -> list[tuple[str, SensorEffects]]:
@@ -122,7 +123,7 @@ def main() -> None:
 
         seq = SyntheticSequence(seed=0, nthreads=1, preset=args.preset, world=world_of(args.world, args.preset))
         frames = np.unique(np.round(np.linspace(0, len(seq) - 2, args.frames)).astype(int))
-        write_kitti_layout(_Pairs(seq, frames), args.export, overwrite=True)
+        write_kitti_layout(FramePairs(seq, frames), args.export, overwrite=True)
         return
     load0 = os.getloadavg()
     n_route = len(SyntheticSequence(seed=0))

@@ -32,34 +32,14 @@ from gr_graph.datasets.synthetic.actors import ActorsConfig
 from gr_graph.datasets.synthetic.town import TownConfig
 from gr_graph.datasets.synthetic.writer import write_kitti_layout
 
+from bench_realism import FramePairs  # noqa: E402 (benchmarks/ is on sys.path when run as a script)
+
 RESULTS = Path(__file__).resolve().parent / "results" / "realism_world.md"
 TOWN_EFFECTS = ("porous_vegetation", "facade_details", "fences_hedges", "street_signs", "curved_cars",
                 "sidewalk_parking", "detached_houses", "garden_vegetation", "terrain_roughness")
 EFFECTS = TOWN_EFFECTS + ("actors",)
 STATS = ("thickness_cm", "a90", "a99", "points_per_frame", "median_range_m", "frac_beyond_40m",
          "vgicp_inlier_rmse_cm")
-
-
-class FramePairs:
-    """A view of a sequence holding only the frames ``indices`` (for the KITTI writer)."""
-
-    def __init__(self, seq: SyntheticSequence, indices: np.ndarray):
-        self._seq, self._idx = seq, np.asarray(indices)
-        self.timestamps = seq.timestamps[self._idx]
-        self.gt_poses = seq.gt_poses[self._idx]
-        self.T_cam_velo = seq.T_cam_velo
-        self.path = seq.path
-        self.name, self.seed, self.n_rings = seq.name, seq.seed, seq.n_rings
-        self.town_seed, self.route_seed, self.trajectory = seq.town_seed, seq.route_seed, None
-
-    def __len__(self) -> int:
-        return len(self._idx)
-
-    def __getitem__(self, k: int):
-        return self._seq[int(self._idx[k])]
-
-    def __repr__(self) -> str:
-        return f"FramePairs({self._seq!r}, frames {self._idx[::2].tolist()} and their successors)"
 
 
 def variant_configs() -> dict[str, tuple[TownConfig, ActorsConfig | None]]:
@@ -89,16 +69,15 @@ def main(argv: list[str] | None = None) -> int:
         variants = {k: variants[k] for k in args.variants.split(",")}
     n = len(SyntheticSequence(seed=0))
     starts = np.unique(np.round(np.linspace(0, n - 2, args.pairs)).astype(int))
-    indices = np.stack([starts, starts + 1], 1).ravel()
     folders, timings = {}, {}
     for name, (tc, ac) in variants.items():
         folder = args.work / name.replace("+", "on_").replace("-", "off_").replace(" ", "_")
         seq = SyntheticSequence(seed=0, town_config=tc, actors=ac, preset="clean")
         t0 = time.perf_counter()
-        write_kitti_layout(FramePairs(seq, indices), folder, overwrite=True, progress=False)
+        write_kitti_layout(FramePairs(seq, starts), folder, overwrite=True, progress=False)
         timings[name] = time.perf_counter() - t0
         folders[name] = folder
-        print(f"{name}: {len(indices)} frames in {timings[name]:.0f} s", flush=True)
+        print(f"{name}: {2 * len(starts)} frames in {timings[name]:.0f} s", flush=True)
     out_json = args.work / "realism.json"
     env = dict(os.environ, PYTHONPATH=str(args.realism_checkout.resolve()))
     cmd = [sys.executable, "-m", "gr_graph.datasets.realism", str(args.real.resolve()),
