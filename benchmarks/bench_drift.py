@@ -99,14 +99,14 @@ def odometry(route: str, root: Path | None, systems: tuple[str, ...]) -> dict:
         for ch in (CHANNELS if not only else (int(only),)):
             if name in makers:
                 fes[(name, ch)] = makers[name]()
-    systems = tuple(e.partition("@")[0] for e in systems)
-    if "vertical" in systems:
+    names = tuple(e.partition("@")[0] for e in systems)
+    if "vertical" in names:
         fes[(f"gr_graph + vertical {VERTICAL_DEG} deg", 64)] = GrFrontEnd(vertical_correction_deg=VERTICAL_DEG)
-    if "kiss_vertical" in systems:  # as KISS-ICP's own KITTI loader reads KITTI scans
+    if "kiss_vertical" in names:  # as KISS-ICP's own KITTI loader reads KITTI scans
         fes[(f"kiss_icp + vertical {VERTICAL_DEG} deg", 64)] = KissVerticalFrontEnd()
     t0 = time.perf_counter()
     res = run_front_ends(seq, fes, desc=f"drift {route}")
-    return {"route": route, "source": desc, "n_frames": len(seq), "systems": ",".join(systems),
+    return {"route": route, "source": desc, "n_frames": len(seq), "systems": ",".join(systems), "render": root is None,
             "wall_s": time.perf_counter() - t0, **res}
 
 
@@ -153,7 +153,8 @@ def write_markdown() -> Path:
             continue
         lines += [f"## {what}", ""]
         for odo in passes:
-            lines += [f"Odometry pass: `python benchmarks/bench_drift.py odometry --route {route} --root DIR "
+            where = "--render" if odo.get("render") else "--root DIR"
+            lines += [f"Odometry pass: `python benchmarks/bench_drift.py odometry --route {route} {where} "
                       f"--systems {odo.get('systems', 'kiss_icp,gr_graph,vertical')}` — {odo['source']}; "
                       f"{odo['n_frames']} frames, {odo['wall_s'] / 60:.0f} min.", ""]
         lines += [header, "|---|---|---|---|---|---|---|---|"]
