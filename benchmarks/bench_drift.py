@@ -16,6 +16,9 @@ Steps (each stores its JSON, so they can run separately and be resumed)::
     # 3. the SLAM command itself (loop closures + pose graph), one run per channel count
     python benchmarks/bench_drift.py slam     --route generated --root /tmp/drift/generated --channels 64
     python benchmarks/bench_drift.py report
+    # or without an export: the route rendered on the fly (slower per pass, no 9 GB on disk)
+    python benchmarks/bench_drift.py odometry --route kitti00 --render --systems kiss_icp@32,kiss_icp@16 --tag ch32_16
+    python benchmarks/bench_drift.py slam     --route kitti00 --render --channels 32
 
 Channel counts 32 and 16 keep every 2nd / 4th ring of the 64-ring scans (ring recovery of
 the KITTI loader, as for real KITTI). KISS-ICP runs with its default configuration, deskew
@@ -110,9 +113,13 @@ def odometry(route: str, root: Path | None, systems: tuple[str, ...]) -> dict:
             "wall_s": time.perf_counter() - t0, **res}
 
 
-def slam(route: str, root: Path, channels: int, out: Path) -> dict:
-    """``python -m gr_graph.slam`` on the exported folder; its metrics.json round 0."""
-    cmd = [sys.executable, "-m", "gr_graph.slam", "--seq", "00", "--data-root", str(root),
+def slam(route: str, root: Path | None, channels: int, out: Path) -> dict:
+    """``python -m gr_graph.slam`` on the exported folder (``root`` None: rendered on the fly); round 0."""
+    if root is None:  # no export: the command renders the kitti preset along the route itself
+        where = ["--trajectory", str(KITTI00_GT)] if route == "kitti00" else []
+    else:
+        where = ["--data-root", str(root)]
+    cmd = [sys.executable, "-m", "gr_graph.slam", "--seq", "00", *where,
            "--channels", str(channels), "--out", str(out), "--no-progress"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=REPO)
@@ -181,7 +188,7 @@ def main() -> None:
                     help="odometry: comma-separated front ends (kiss_icp, gr_graph, vertical, kiss_vertical; "
                          "NAME@64 runs one channel count only)")
     ap.add_argument("--render", action="store_true",
-                    help="odometry: render the route on the fly instead of reading --root (no export)")
+                    help="odometry, slam: render the route on the fly instead of reading --root (no export)")
     ap.add_argument("--tag", default=None, help="odometry: suffix of the results file (a second pass)")
     ap.add_argument("--out", type=Path, default=None, help="slam: run directory (default: ROOT.slam_C)")
     a = ap.parse_args()
@@ -194,7 +201,8 @@ def main() -> None:
                           odometry(a.route, None if a.render else root, tuple(a.systems.split(","))))
     elif a.step == "slam":
         out = a.out or Path(f"{root}.slam_{a.channels}")
-        atomic_write_json(RESULTS / f"drift_{a.route}_slam_{a.channels}.json", slam(a.route, root, a.channels, out))
+        atomic_write_json(RESULTS / f"drift_{a.route}_slam_{a.channels}.json",
+                          slam(a.route, None if a.render else root, a.channels, out))
     print(write_markdown())
 
 
