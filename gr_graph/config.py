@@ -231,6 +231,14 @@ class TrainingConfig(_Section):
     seed: int = Field(0, description="seeds training (weights, sampling) and densification (per frame: (seed, index))")
     epochs: int = Field(3, ge=0, description="training epochs per round (the paper's I)")
     warm_start: bool = Field(True, description="rounds >= 2 start from the previous round's model.pt")
+    weights: str | None = Field(
+        None, description="round 1 starts from these weights: 'pretrained' (the model shipped with gr_graph, "
+        "gr_graph.pretrained) or the path of a model.pt; None: from random weights"
+    )
+    fine_tune: bool = Field(
+        True, description="false (gr-slam --densify): the learning round uses `weights` as they are, without "
+        "training (one round; no memory needed)"
+    )
     edge_noise: Literal["registration", "learned"] = Field(
         "learned", description="rounds >= 1, odometry edges: 'learned' = pose-likelihood Hessian H(C) of the network's "
         "covariances (Lambda_i = (2 C_qi)^-1); 'registration' = the VGICP information of round 0"
@@ -268,6 +276,16 @@ class TrainingConfig(_Section):
     trainer: TrainOptions = Field(
         default_factory=TrainOptions, description="trainer hyper-parameters, e.g. {lr: 1e-3, net: {n_points: 1024}}"
     )
+
+    @model_validator(mode="after")
+    def _weights_without_training(self) -> TrainingConfig:
+        if not self.fine_tune:
+            if self.weights is None:
+                raise ValueError("training.fine_tune false (--densify) needs training.weights (--weights pretrained|PATH)")
+            if self.rounds > 1:
+                raise ValueError(f"training.fine_tune false (--densify) runs one learning round (rounds: {self.rounds}); "
+                                 "without training every further round would densify the same scans alike")
+        return self
 
     @field_validator("trainer", mode="before")
     @classmethod

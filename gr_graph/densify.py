@@ -97,11 +97,12 @@ def covariances_valid(C: np.ndarray) -> bool:
 
 
 def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
-    """A function ``points -> C`` from a path, a CovarianceNet or a callable."""
+    """A function ``points -> C`` from a path (or ``"pretrained"``), a CovarianceNet or a callable."""
     if isinstance(checkpoint, (str, os.PathLike)):
+        from gr_graph.pretrained import resolve_weights
         from training.trainer import load_model
 
-        checkpoint = load_model(checkpoint, device)  # load once, not per frame
+        checkpoint = load_model(resolve_weights(checkpoint), device)  # load once, not per frame
     from training.network import CovarianceNet
 
     if isinstance(checkpoint, CovarianceNet):
@@ -395,7 +396,7 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
                              keep_predictions)
 
 
-def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | None = None,
+def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity: np.ndarray | None = None,
                   tau_ani: float | None = None, samples_per_point: int | None = None,
                   keep_original: bool | None = None, seed: int = 0, device: str = "cpu",
                   preprocess: PreprocessConfig | None = None) -> DensifiedPoints:
@@ -410,7 +411,7 @@ def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | N
     Example::
 
         from gr_graph.densify import densify_cloud
-        dense = densify_cloud(points, weights="runs/slam/round_1/training/model.pt")
+        dense = densify_cloud(points)   # the shipped weights; or weights="runs/slam/round_1/training/model.pt"
         dense.points, dense.covariances   # (M, 3) and (M, 3, 3)
 
     Parameters
@@ -418,8 +419,9 @@ def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | N
     points : (N, 3) or (N, >=4) array
         The cloud in its sensor frame (a 4th column is taken as intensity when ``intensity``
         is not given). Non-finite rows are dropped.
-    weights : path, CovarianceNet or callable
-        ``model.pt`` written by ``python -m training.train`` or by a ``gr_graph.slam
+    weights : "pretrained", path, CovarianceNet or callable
+        ``"pretrained"`` (default: the model shipped with gr_graph, :mod:`gr_graph.pretrained`),
+        or a ``model.pt`` written by ``python -m training.train`` or by a ``gr_graph.slam
         --rounds`` run (``round_<r>/training/model.pt``); checked on load
         (:func:`training.trainer.load_model`).
     intensity : (N,) array, optional
@@ -451,8 +453,8 @@ def densify_cloud(points: np.ndarray, weights: Any, *, intensity: np.ndarray | N
         If the network's covariances are non-finite or not positive definite.
     """
     if weights is None:
-        raise ValueError("densify_cloud: weights is required (a model.pt from `python -m training.train` or from "
-                         "a gr_graph.slam --rounds run: round_<r>/training/model.pt)")
+        raise ValueError("densify_cloud: weights is required ('pretrained', or a model.pt from `python -m "
+                         "training.train` or from a gr_graph.slam --rounds run: round_<r>/training/model.pt)")
     x = np.asarray(points)
     if x.ndim != 2 or x.shape[1] < 3:
         raise ValueError(f"densify_cloud: points must be (N, 3) or (N, >=4), got {x.shape}")

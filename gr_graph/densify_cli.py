@@ -22,6 +22,7 @@ from gr_graph.cli_common import add_device, add_log_level, add_point_format, add
 from gr_graph.config import PreprocessConfig, TrainingConfig
 
 EXAMPLES = (
+    "gr-densify scan.pcd dense.ply",
     "python -m gr_graph.densify_cli scan.pcd dense.ply --weights runs/slam/round_1/training/model.pt",
     "python -m gr_graph.densify_cli 000000.bin dense.pcd --weights model.pt --tau-ani 0.8 --samples 8 "
     "--covariances dense_cov.npy",
@@ -40,9 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
                     EXAMPLES)
     p.add_argument("input", metavar="IN", help="input cloud: .bin (KITTI float32), .pcd, .ply or .npy")
     p.add_argument("output", metavar="OUT", help="output cloud, format from the extension: .ply, .pcd, .bin or .npy")
-    p.add_argument("--weights", required=True, metavar="PATH",
-                   help="model.pt written by `python -m training.train` or by a gr_graph.slam --rounds run "
-                        "(round_<r>/training/model.pt)")
+    p.add_argument("--weights", default="pretrained", metavar="pretrained|PATH",
+                   help="'pretrained' (the model shipped with gr_graph; see the README's model card) or a model.pt "
+                        "written by `gr-train` or by a gr-slam --rounds run (round_<r>/training/model.pt) "
+                        "(default: pretrained)")
     p.add_argument("--tau-ani", type=float, default=None, metavar="A",
                    help=f"anisotropy threshold: keep points with 1 - l_min/l_max > A (default: {t.tau_ani})")
     p.add_argument("--samples", type=int, default=None, metavar="M",

@@ -90,7 +90,40 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
                                                  "training": {"rounds", "convergence_delta", "acceptance",
                                                               "stop_on_reject"}})
+        if cfg.training.weights is not None:  # the results depend on the file, not on its name
+            from gr_graph.pretrained import weights_sha256
+
+            d["weights_sha256"] = weights_sha256(cfg.training.weights)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def check_learning_config(cfg: SlamConfig) -> None:
+    """Fail fast (before round 0) when a learning round could not run: no memory to train
+    on, an invalid trainer configuration, or ``training.weights`` missing, broken or made
+    for another network configuration.
+
+    Raises
+    ------
+    ValueError, FileNotFoundError, training.trainer.TrainingError
+        With a message naming the option or the weights file.
+    """
+    tc = cfg.training
+    if tc.fine_tune and not cfg.output.write_memory:
+        raise ValueError("learning rounds train on the memory of the previous round: output.write_memory must be true")
+    # the trainer's run configuration is built (and validated) here, before round 0, not after it
+    train_cfg = tc.trainer_config(cfg.device, False)
+    if tc.weights is not None and tc.covariances == "network":
+        from gr_graph.pretrained import resolve_weights
+        from training.trainer import load_model  # imports torch: only when weights are given
+
+        path = resolve_weights(tc.weights)
+        net = load_model(path).config.to_dict()
+        if tc.fine_tune and net != train_cfg.net.to_dict():
+            raise ValueError(f"--weights {tc.weights} ({path}): its network configuration {net} differs from "
+                             f"training.trainer.net {train_cfg.net.to_dict()}; fine-tuning needs the same network "
+                             "(set training.trainer.net to the checkpoint's, or use --densify)")
+        log.info("learning round 1 %s the weights %s", "starts from" if tc.fine_tune else "uses, without training,",
+                 path)
 
 
 class SlamPipeline:
@@ -182,11 +215,8 @@ class SlamPipeline:
             write_kitti_poses(self.out / "gt_poses_kitti.txt", velo_to_cam_poses(self.gt, self.sequence.T_cam_velo))
 
     def check_learning_config(self) -> None:
-        """Fail fast (before round 0) when a learning round could not run."""
-        if not self.cfg.output.write_memory:
-            raise ValueError("learning rounds train on the memory of the previous round: output.write_memory must be true")
-        # the trainer's run configuration is built (and validated) here, before round 0, not after it
-        self.cfg.training.trainer_config(self.cfg.device, False)
+        """Fail fast (before round 0) when a learning round could not run (:func:`check_learning_config`)."""
+        check_learning_config(self.cfg)
 
     def finished_round(self, r: int) -> dict[str, Any] | None:
         """The summary of round ``r`` if it is finished with the current configuration (resume)."""
@@ -293,8 +323,9 @@ class SlamPipeline:
         """Algorithm 3, one iteration, up to the SLAM call: train f_θ on the memory of round
         r−1 (Algorithm 1), then densify every scan with it (Algorithm 2, lines 3-9).
 
-        Training goes to ``round_<r>/training`` (``model.pt``, ``checkpoint.pt``, log); rounds
-        r ≥ 2 start from round r−1's ``model.pt`` (``training.warm_start``). An existing
+        Training goes to ``round_<r>/training`` (``model.pt``, ``checkpoint.pt``, log); round 1
+        starts from ``training.weights`` when given (with ``training.fine_tune`` false it uses
+        them without training), rounds r ≥ 2 from round r−1's ``model.pt`` (``training.warm_start``). An existing
         checkpoint is resumed only if ``resume_training`` (round r−1 was not recomputed in
         this run); a checkpoint of another configuration restarts training.
         """
@@ -308,6 +339,14 @@ class SlamPipeline:
             return densified_sequence(self.sequence, pca, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
                                       keep_predictions=max(16, self.cfg.data.prefetch + 8))
         init = None
+        if r == 1 and tc.weights is not None:
+            from gr_graph.pretrained import resolve_weights
+
+            init = resolve_weights(tc.weights)
+            if not tc.fine_tune:  # --densify: the given weights as they are
+                return densified_sequence(self.sequence, init, tc, device=self.cfg.device,
+                                          preprocess=self.cfg.preprocess,
+                                          keep_predictions=max(16, self.cfg.data.prefetch + 8))
         if r >= 2 and tc.warm_start:
             init = self.round_dir(r - 1) / "training" / "model.pt"
             if not init.is_file():

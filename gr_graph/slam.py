@@ -97,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "motion distortion) (default: kitti)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
+    p.add_argument("--weights", default=None, metavar="pretrained|PATH",
+                   help="learning round 1 starts from these weights: 'pretrained' (shipped with gr_graph, see the "
+                        "README's model card) or a model.pt; implies --rounds 1 unless --rounds or --config sets "
+                        "rounds (default: random initial weights)")
+    p.add_argument("--densify", action="store_true",
+                   help="with --weights: one learning round that densifies with the weights as they are, without "
+                        "training (no memory needed)")
     add_out(p, f"output directory (default: {d.output.out_dir})")
     add_seed(p, f"seed of the synthetic data and of the learning rounds: sets seed and training.seed "
                 f"(default: {d.seed})", default=None)
@@ -147,6 +154,12 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         if args.rounds < 0:
             raise ValueError("--rounds must be >= 0")
         o["training"]["rounds"] = args.rounds
+    if args.weights is not None:
+        o["training"]["weights"] = args.weights
+    if args.densify:
+        if args.weights is None:
+            raise ValueError("--densify needs --weights pretrained|PATH")
+        o["training"]["fine_tune"] = False
     if args.out is not None:
         o["output"]["out_dir"] = args.out
     if args.device is not None:
@@ -169,13 +182,33 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     return {k: v for k, v in o.items() if v != {}}
 
 
+def full_method_hint(argv: list[str]) -> str:
+    """The one line printed after a run without learning rounds: the same command with the
+    learning round (from the shipped weights when this installation has them)."""
+    import shlex
+
+    from gr_graph.pretrained import PRETRAINED_WEIGHTS
+
+    extra = ["--rounds", "1"] + (["--weights", "pretrained"] if PRETRAINED_WEIGHTS.is_file() else [])
+    keep = [a for a in argv if a != "--viz"]
+    return ("this was round 0 (SLAM on the raw scans); the full method adds a learning round (the finished round 0 "
+            "in the same --out is reused): " + " ".join(["python", "-m", "gr_graph.slam", *map(shlex.quote, keep),
+                                                          *extra]))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level)
     try:
         cfg = load_config(args.config, overrides_from_args(args))
-    except (ValueError, FileNotFoundError) as exc:
+        if cfg.training.weights is not None and cfg.training.rounds == 0 and args.rounds is None:
+            cfg.training.rounds = 1  # weights are for a learning round
+        if cfg.training.rounds > 0 and not args.dump_config:
+            from gr_graph.pipeline import check_learning_config
+
+            check_learning_config(cfg)  # before the data are opened: a bad --weights fails at once
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:  # TrainingError is a RuntimeError
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.dump_config:
@@ -202,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         s = final["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})
     print(json.dumps(brief))
+    if cfg.training.rounds == 0:
+        print(full_method_hint(sys.argv[1:] if argv is None else argv), file=sys.stderr)
     if args.viz:
         from gr_graph.map_export import map_path
         from gr_graph.round_output import round_dir

@@ -35,7 +35,7 @@ from training.network import NetConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SkipSample", "PairSample", "PairDataset"]
+__all__ = ["SkipSample", "PairSample", "PairDataset", "ConcatPairDataset"]
 
 
 class SkipSample(Exception):
@@ -143,3 +143,50 @@ class PairDataset:
         """Counts for logs."""
         kinds = np.asarray(self.memory.edge_kind)
         return {"n_edges": len(self), "n_odometry": int((kinds == 0).sum()), "n_loop": int((kinds == 1).sum())}
+
+
+class ConcatPairDataset:
+    """The edges of several memories as one dataset (training on several sequences, sensors or
+    channel counts, e.g. the shipped weights of :mod:`training.pretrain`).
+
+    Edge ``e`` of the whole is edge ``e - offset[m]`` of memory ``m`` (memories in the given
+    order). Memory ``m`` samples with seed ``(seed, m)`` folded into one integer, so equal local
+    edge numbers of different memories draw different subsets.
+
+    Parameters
+    ----------
+    datasets : sequence of PairDataset
+        One per memory, in order.
+    """
+
+    def __init__(self, datasets: list[PairDataset]):
+        if not datasets:
+            raise ValueError("ConcatPairDataset needs at least one memory")
+        self.datasets = list(datasets)
+        self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def locate(self, e: int) -> tuple[int, int]:
+        """``(memory index, local edge)`` of global edge ``e``."""
+        if not 0 <= e < len(self):
+            raise IndexError(f"edge {e} out of range 0..{len(self) - 1}")
+        m = int(np.searchsorted(self.offsets, e, side="right") - 1)
+        return m, int(e - self.offsets[m])
+
+    def sample(self, e: int, epoch: int = 0) -> PairSample:
+        """Sample of global edge ``e`` (its ``edge`` field is the global number)."""
+        m, local = self.locate(int(e))
+        try:
+            s = self.datasets[m].sample(local, epoch)
+        except SkipSample as exc:
+            raise SkipSample(exc.reason, f"memory {m}: {exc}") from exc
+        s.edge = int(e)
+        return s
+
+    def describe(self) -> dict[str, Any]:
+        """Summed counts, and each memory's."""
+        parts = [d.describe() for d in self.datasets]
+        total = {k: sum(p[k] for p in parts) for k in parts[0]}
+        return {**total, "n_memories": len(parts), "memories": parts}

@@ -2,7 +2,7 @@
 
 CLI::
 
-    python -m training.train --memory DIR [--epochs N] [--out DIR] [--device cpu|cuda] [--seed S]
+    python -m training.train --memory DIR [DIR ...] [--epochs N] [--out DIR] [--device cpu|cuda] [--seed S]
                              [--config cfg.yaml] [--no-resume]
 
 Library (used by ``gr_graph.slam`` between reciprocal rounds)::
@@ -21,6 +21,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 from gr_graph.cli_common import (
@@ -44,7 +45,7 @@ __all__ = ["train_from_memory", "main"]
 
 
 def train_from_memory(
-    memory_dir: str | os.PathLike[str],
+    memory_dir: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     out_dir: str | os.PathLike[str],
     config: TrainConfig | dict[str, Any] | None = None,
     resume: bool = True,
@@ -53,8 +54,9 @@ def train_from_memory(
 
     Parameters
     ----------
-    memory_dir : path
-        A memory written by ``gr_graph.memory.Memory.save`` (e.g. by ``gr_graph.slam``).
+    memory_dir : path or sequence of paths
+        A memory written by ``gr_graph.memory.Memory.save`` (e.g. by ``gr_graph.slam``), or
+        several: their edges are trained on together (several sequences, sensors, channel counts).
     out_dir : path
         Output folder: ``model.pt`` (load with ``training.trainer.load_model`` or pass it to
         ``training.predict.predict_covariances``), ``checkpoint.pt``, ``train_log.jsonl``,
@@ -76,15 +78,22 @@ def train_from_memory(
         On an incompatible checkpoint or too many unusable pairs.
     """
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_dict(config)
-    memory = load_memory(memory_dir)
-    log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
-    return Trainer(memory, out_dir, cfg).fit(resume=resume)
+    dirs = [memory_dir] if isinstance(memory_dir, (str, os.PathLike)) else list(memory_dir)
+    if not dirs:
+        raise ValueError("train_from_memory: no memory given")
+    memories = []
+    for d in dirs:
+        memory = load_memory(d)
+        log.info("training on %s: %d scans, %d edges", d, memory.n_scans, memory.n_edges)
+        memories.append(memory)
+    return Trainer(memories if len(memories) > 1 else memories[0], out_dir, cfg).fit(resume=resume)
 
 
 EXAMPLES = (
     "python -m training.train --memory runs/slam/round_0/memory --out runs/train --epochs 2",
     "python -m training.train --memory runs/slam/round_0/memory --out runs/train --config train.yaml --device cuda",
     "python -m training.train --memory runs/slam/round_0/memory --out runs/train --seed 1 --threads 1 --no-progress",
+    "python -m training.train --memory runs/a/round_0/memory runs/b/round_0/memory --out runs/train_ab",
 )
 
 
@@ -92,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m training.train``; options left out keep ``--config``'s value."""
     d = TrainConfig()
     ap = make_parser("python -m training.train", __doc__.split("\n\n")[0] + " Options override --config.", EXAMPLES)
-    ap.add_argument("--memory", required=True, metavar="DIR", help="memory directory (written by gr_graph.slam)")
+    ap.add_argument("--memory", required=True, nargs="+", metavar="DIR",
+                    help="memory directory (written by gr_graph.slam); several: trained on together")
     add_out(ap, "output directory (default: <memory>/../training)")
     add_config(ap, "YAML/JSON file with TrainConfig keys (an unknown key is an error)")
     ap.add_argument("--epochs", type=int, default=None, metavar="N", help=f"epochs (default: {d.epochs})")
@@ -119,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides[key] = val
     if args.no_progress:
         overrides["progress"] = False
-    out = Path(args.out) if args.out else Path(args.memory).resolve().parent / "training"
+    out = Path(args.out) if args.out else Path(args.memory[0]).resolve().parent / "training"
     try:
         cfg = load_train_config(args.config, overrides)
         path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)

@@ -40,7 +40,7 @@ import math
 import os
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +51,7 @@ from gr_graph.atomic import atomic_path, atomic_write_text
 from gr_graph.memory import Memory
 from gr_graph.provenance import provenance
 from training.config import NetConfig, TrainConfig, TrainConfigError, TrainOptions
-from training.dataset import PairDataset, PairSample, SkipSample
+from training.dataset import ConcatPairDataset, PairDataset, PairSample, SkipSample
 from training.losses import LossError, corr_nll, default_gamma, pose_nll
 from training.network import CovarianceNet, neighborhoods_to_torch
 from training.pose_layer import PoseLayerError, solve_pose
@@ -156,12 +156,13 @@ def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str =
 
 
 class Trainer:
-    """Runs Algorithm 1 over a memory; see the module docstring.
+    """Runs Algorithm 1 over a memory (or several); see the module docstring.
 
     Parameters
     ----------
-    memory : Memory
-        The memory to train from.
+    memory : Memory or sequence of Memory
+        The memory to train from; several memories are trained on as one set of edges
+        (:class:`training.dataset.ConcatPairDataset`).
     out_dir : path
         Where checkpoints, the log and the final model go.
     config : TrainConfig
@@ -169,8 +170,11 @@ class Trainer:
         Process rank and count for data-parallel runs (a process group must exist).
     """
 
-    def __init__(self, memory: Memory, out_dir: str | os.PathLike[str], config: TrainConfig, rank: int = 0, world_size: int = 1):
-        self.memory = memory
+    def __init__(self, memory: Memory | Sequence[Memory], out_dir: str | os.PathLike[str], config: TrainConfig,
+                 rank: int = 0, world_size: int = 1):
+        memories = list(memory) if isinstance(memory, (list, tuple)) else [memory]
+        self.memory = memories[0]
+        self.memories = memories
         self.out_dir = Path(out_dir)
         self.config = config
         self.rank = rank
@@ -183,7 +187,13 @@ class Trainer:
             os.environ["CUBLAS_WORKSPACE_CONFIG"] = ":4096:8"
             log.info("CUBLAS_WORKSPACE_CONFIG=:4096:8 set for deterministic cuBLAS")
         self.device = torch.device(config.device)
-        self.dataset = PairDataset(memory, config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
+        if len(memories) == 1:
+            self.dataset: PairDataset | ConcatPairDataset = PairDataset(
+                memories[0], config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
+        else:  # memory m samples with its own seed (see ConcatPairDataset)
+            self.dataset = ConcatPairDataset([
+                PairDataset(m, config.net, config.max_corr, config.min_corr, config.seed * 1_000_003 + i,
+                            config.augment_yaw) for i, m in enumerate(memories)])
         torch.manual_seed(config.seed)
         self.model = CovarianceNet(config.net).to(self.device)
         if config.init_checkpoint:

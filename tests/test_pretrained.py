@@ -1,0 +1,192 @@
+"""The shipped weights (``--weights pretrained``): resolution, model card, one densification;
+``gr-slam --weights PATH [--densify]``; training on several memories at once."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gr_graph.config import SlamConfig, TrainingConfig
+from gr_graph.densify import densify_cloud
+from gr_graph.memory import load_memory
+from gr_graph.pipeline import check_learning_config, round_fingerprint
+from gr_graph.pretrained import PRETRAINED_CARD, PRETRAINED_WEIGHTS, model_card, resolve_weights
+from gr_graph.slam import full_method_hint
+from gr_graph.slam import main as slam_main
+from training.dataset import ConcatPairDataset, PairDataset, SkipSample
+from training.network import CovarianceNet, NetConfig
+from training.toy_scenes import make_memory, pose_xy_yaw, street_scene
+from training.train import train_from_memory
+from training.trainer import CHECKPOINT_FORMAT, TrainConfig, load_model, save_atomic
+
+torch.set_num_threads(1)
+SMALL_NET = {"n_points": 512, "k0": 8, "k1": 8, "k2": 8, "c0": 16, "c1": 32, "c2": 32}
+
+
+def street_cloud(seed: int = 0) -> np.ndarray:
+    """Ground, two walls and clutter around the origin."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-15, 15, (8000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > 4.0]
+    ground = np.column_stack([xy, -1.73 + rng.normal(0, 0.01, len(xy))])
+    wall = np.column_stack([rng.uniform(-15, 15, 3000), np.full(3000, 9.0), rng.uniform(-1.7, 4, 3000)])
+    clutter = rng.uniform([-10, -10, 0], [10, 10, 3], (500, 3))
+    return np.vstack([ground, wall, wall * [1, -1, 1], clutter])
+
+
+# ---------------------------------------------------------------- the shipped weights
+def test_shipped_weights_load_and_densify_one_cloud() -> None:
+    path = resolve_weights("pretrained")
+    assert path == PRETRAINED_WEIGHTS and path.stat().st_size < 5_000_000  # "a few MB at most"
+    model = load_model(path)
+    card = model_card()
+    assert card["net"] == model.config.to_dict()  # the card describes this checkpoint
+    assert card["epochs"] >= 1 and len(card["training_data"]["windows"]) >= 3
+    sensors = {w["sensor"] for w in card["training_data"]["windows"]}
+    assert {"hdl64e", "vlp16", "os1-64"} <= sensors
+    pts = street_cloud()
+    dense = densify_cloud(pts)  # default weights: the shipped ones
+    C = dense.covariances
+    assert dense.fallback is None and len(dense.points) > 0
+    assert np.isfinite(dense.points).all() and np.isfinite(C).all()
+    assert (np.linalg.eigvalsh(C)[:, 0] > 0).all()
+    # a trained model: the wall's covariances are thin across the wall (y) and wide along it
+    on_wall = np.abs(np.abs(dense.points[:, 1]) - 9.0) < 0.3
+    assert on_wall.sum() > 50
+    Cw = C[on_wall]
+    assert np.median(Cw[:, 1, 1]) < 0.5 * np.median(Cw[:, 0, 0]), (np.median(Cw[:, 1, 1]), np.median(Cw[:, 0, 0]))
+
+
+def test_model_card_has_the_evaluation_on_held_out_seeds() -> None:
+    card = json.loads(PRETRAINED_CARD.read_text())
+    ev = card["evaluation"]
+    assert ev is not None
+    train_seeds = {w["seed"] for w in card["training_data"]["windows"]}
+    eval_seeds = {w["seed"] for w in ev["windows"]}
+    assert not train_seeds & eval_seeds and len(eval_seeds) >= 3
+    for per_channel in ev["summary"].values():
+        assert per_channel["n_seeds"] >= 3
+        assert np.isfinite(per_channel["rpe300_all_pairs_mean"]["relative_change"]).all()
+
+
+def test_weights_that_are_missing_or_broken_are_named(tmp_path: Path, capsys) -> None:
+    with pytest.raises(FileNotFoundError, match="nothere.pt"):
+        resolve_weights(tmp_path / "nothere.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not a checkpoint")
+    assert slam_main(["--weights", str(junk), "--frames", "0:5", "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert "junk.pt" in capsys.readouterr().err
+    assert slam_main(["--densify", "--frames", "0:5", "--out", str(tmp_path / "run")]) == 2
+    assert "--densify needs --weights" in capsys.readouterr().err
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_densify_runs_one_round_and_fine_tuning_needs_the_same_network(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="one learning round"):
+        TrainingConfig(weights="pretrained", fine_tune=False, rounds=2)
+    with pytest.raises(ValueError, match="needs training.weights"):
+        TrainingConfig(fine_tune=False, rounds=1)
+    torch.manual_seed(0)
+    net = CovarianceNet(NetConfig(**{**SMALL_NET, "c1": 16}))
+    path = tmp_path / "other_net.pt"
+    save_atomic({"format_version": CHECKPOINT_FORMAT, "model_state": net.state_dict(),
+                 "net_config": net.config.to_dict()}, path)
+    cfg = SlamConfig.model_validate({"training": {"rounds": 1, "weights": str(path),
+                                                  "trainer": {"net": SMALL_NET}}})
+    with pytest.raises(ValueError, match="differs from training.trainer.net"):
+        check_learning_config(cfg)
+    cfg.training.fine_tune = False  # using them as they are needs no matching trainer network
+    check_learning_config(cfg)
+
+
+def test_round_fingerprint_follows_the_weights_file(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    torch.manual_seed(0)
+    net = CovarianceNet(NetConfig(**SMALL_NET))
+    save_atomic({"format_version": CHECKPOINT_FORMAT, "model_state": net.state_dict(),
+                 "net_config": net.config.to_dict()}, path)
+    cfg = SlamConfig.model_validate({"training": {"rounds": 1, "weights": str(path), "fine_tune": False}})
+    before = round_fingerprint(cfg, 1), round_fingerprint(cfg, 0)
+    torch.manual_seed(1)
+    net2 = CovarianceNet(NetConfig(**SMALL_NET))
+    save_atomic({"format_version": CHECKPOINT_FORMAT, "model_state": net2.state_dict(),
+                 "net_config": net2.config.to_dict()}, path)
+    assert round_fingerprint(cfg, 1) != before[0]  # same name, other weights: round 1 is redone
+    assert round_fingerprint(cfg, 0) == before[1]  # round 0 does not depend on them
+
+
+def test_the_hint_after_round_0_is_the_same_command_with_a_learning_round() -> None:
+    hint = full_method_hint(["--seq", "00", "--out", "runs/x", "--viz"])
+    cmd = hint.split(": ", 1)[1]
+    assert cmd.startswith("python -m gr_graph.slam --seq 00 --out runs/x --rounds 1")
+    assert "--viz" not in cmd
+    assert ("--weights pretrained" in cmd) == PRETRAINED_WEIGHTS.is_file()
+
+
+# ---------------------------------------------------------------- --weights PATH --densify in a run
+@pytest.mark.slow
+def test_densify_with_given_weights_skips_training(learning_run, tmp_path: Path) -> None:
+    run, argv = learning_run
+    weights = run / "round_1" / "training" / "model.pt"
+    out = tmp_path / "densify_run"
+    args = list(argv)
+    args[args.index("--out") + 1] = str(out)
+    args += ["--weights", str(weights), "--densify"]
+    assert slam_main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["rounds"]) == {"0", "1"}
+    r1 = m["rounds"]["1"]
+    assert not (out / "round_1" / "training").exists()  # no training
+    assert r1["densify"]["frames"] == m["n_frames"] and "accepted" in r1
+    # the same weights on the same scans densify alike: as many points as the trained run's round 1
+    ref = json.loads((run / "metrics.json").read_text())["rounds"]["1"]
+    assert r1["densify"] == ref["densify"]
+
+
+# ---------------------------------------------------------------- training on several memories
+def _memory(seed: int, n_scans: int = 3):
+    scene = street_scene(seed=seed)
+    poses = [pose_xy_yaw(1.0 * k, 0.2 * np.sin(k), 1.73, 0.02 * k) for k in range(n_scans)]
+    mem, _ = make_memory(scene, poses, [(k, k + 1) for k in range(n_scans - 1)], seed=seed, n_corr=600,
+                         n_azimuth=360)
+    return mem
+
+
+def test_concat_dataset_maps_global_edges_to_their_memory(tmp_path: Path) -> None:
+    mems = [_memory(1, 3), _memory(2, 4)]
+    parts = [PairDataset(m, NetConfig(**SMALL_NET), max_corr=300, seed=s) for s, m in enumerate(mems)]
+    ds = ConcatPairDataset(parts)
+    assert len(ds) == 2 + 3
+    assert [ds.locate(e) for e in range(5)] == [(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)]
+    s = ds.sample(3, epoch=1)
+    ref = parts[1].sample(1, epoch=1)
+    assert s.edge == 3 and (s.k, s.l) == (ref.k, ref.l)
+    np.testing.assert_array_equal(s.q_points, ref.q_points)
+    assert ds.describe()["n_edges"] == 5 and ds.describe()["n_memories"] == 2
+    with pytest.raises(IndexError):
+        ds.sample(5)
+    with pytest.raises(ValueError):
+        ConcatPairDataset([])
+    parts[0].min_corr = 10_000  # every pair of memory 0 too small: the skip names the memory
+    with pytest.raises(SkipSample, match="memory 0"):
+        ds.sample(0)
+
+
+def test_train_from_several_memories(tmp_path: Path) -> None:
+    dirs = []
+    for s in (1, 2):
+        d = tmp_path / f"mem{s}"
+        _memory(s).save(d)
+        dirs.append(d)
+    cfg = TrainConfig.from_dict(dict(epochs=1, lr=3e-3, max_corr=300, seed=0, progress=False, net=SMALL_NET))
+    model = train_from_memory(dirs, tmp_path / "train", cfg)
+    summary = json.loads((tmp_path / "train" / "summary.json").read_text())
+    n = sum(load_memory(d).n_edges for d in dirs)
+    assert summary["dataset"]["n_edges"] == n and summary["dataset"]["n_memories"] == 2
+    log = [json.loads(x) for x in (tmp_path / "train" / "train_log.jsonl").read_text().splitlines()]
+    assert sorted(r["edge"] for r in log) == list(range(n))  # every edge of both memories, once
+    assert load_model(model).config.to_dict() == NetConfig(**SMALL_NET).to_dict()

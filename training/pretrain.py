@@ -1,0 +1,251 @@
+"""Build the weights shipped with gr_graph (``--weights pretrained``) and their model card.
+
+Steps (each resumable: finished SLAM runs and training checkpoints are reused)::
+
+    python -m training.pretrain memories --root runs/pretrain      # round 0 on the training windows
+    python -m training.pretrain train    --root runs/pretrain      # one network on all their memories
+    python -m training.pretrain evaluate --root runs/pretrain      # held-out seeds: round 0 vs the weights
+    python -m training.pretrain install  --root runs/pretrain      # gr_graph/data/pretrained.{pt,json}
+    python -m training.pretrain all      --root runs/pretrain --jobs 2
+
+The training windows are windows of the default synthetic world (the ``kitti`` preset) with
+their own town and route seeds, sensors and channel counts (:data:`TRAIN_WINDOWS`); each is a
+``gr_graph.slam`` round-0 run whose memory the trainer reads (:func:`training.train.train_from_memory`
+on all memories at once). The evaluation runs, on world seeds never used in training
+(:data:`EVAL_WINDOWS`), round 0 and one learning round that densifies with the weights as
+they are (``gr-slam --weights ... --densify``): what a user gets without training. Its table
+goes into ``pretrained.json`` (the model card) and ``benchmarks/results/pretrained.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gr_graph.atomic import atomic_write_json, atomic_write_text, read_json_or_none
+from gr_graph.cli_common import add_log_level, make_parser, setup_logging
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Window", "TRAIN_WINDOWS", "EVAL_WINDOWS", "main"]
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS_MD = REPO / "benchmarks" / "results" / "pretrained.md"
+
+
+@dataclass(frozen=True)
+class Window:
+    """One ``gr_graph.slam`` run on the synthetic world: seeds, sensor, channels, frames."""
+
+    name: str
+    seed: int  # town seed (and training seed of a learning round)
+    route_seed: int
+    sensor: str
+    channels: int | None  # None: every beam of the sensor
+    frames: str
+
+    def args(self) -> list[str]:
+        a = ["--seq", "00", "--seed", str(self.seed), "--route-seed", str(self.route_seed), "--sensor", self.sensor,
+             "--frames", self.frames, "--synthetic-preset", "kitti"]
+        return a + (["--channels", str(self.channels)] if self.channels else [])
+
+
+#: Where the shipped weights learn: five worlds, three sensors, 64/32/16 HDL-64E channels.
+TRAIN_WINDOWS = (
+    Window("s1_hdl64e_64", 1, 1, "hdl64e", 64, "0:250"),
+    Window("s2_hdl64e_32", 2, 2, "hdl64e", 32, "0:250"),
+    Window("s3_hdl64e_16", 3, 3, "hdl64e", 16, "0:250"),
+    Window("s4_vlp16", 4, 4, "vlp16", None, "0:250"),
+    Window("s5_os1_64", 5, 5, "os1-64", None, "0:250"),
+)
+#: Held-out worlds (seeds never used in training) for the model card's figures.
+EVAL_WINDOWS = tuple(Window(f"s{s}_hdl64e_{c}", s, s, "hdl64e", c, "0:400") for s in (11, 12, 13) for c in (64, 16))
+EPOCHS = 3
+TRAIN_SEED = 0
+METRICS = ("rpe300_all_pairs_mean", "rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")
+
+
+def _slam(out: Path, window: Window, extra: list[str]) -> dict[str, Any]:
+    """``python -m gr_graph.slam`` on ``window`` into ``out`` (resumes); its metrics.json."""
+    cmd = [sys.executable, "-m", "gr_graph.slam", *window.args(), "--out", str(out), "--no-progress", *extra]
+    log.info("%s", " ".join(cmd[1:]))
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out.with_suffix(".log"), "a") as fh:
+        subprocess.run(cmd, check=True, cwd=REPO, stdout=fh, stderr=subprocess.STDOUT)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _parallel(jobs: int, fn, items) -> list[Any]:
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        return list(pool.map(fn, items))
+
+
+def memories(root: Path, jobs: int = 1) -> list[Path]:
+    """Round 0 on every training window; the memory folders."""
+    _parallel(jobs, lambda w: _slam(root / "windows" / w.name, w, ["--rounds", "0"]), TRAIN_WINDOWS)
+    return [root / "windows" / w.name / "round_0" / "memory" for w in TRAIN_WINDOWS]
+
+
+def train(root: Path, epochs: int = EPOCHS, seed: int = TRAIN_SEED) -> Path:
+    """One network trained on every training window's memory; ``root/training/model.pt``."""
+    from gr_graph.config import TrainingConfig
+    from training.train import train_from_memory
+
+    mems = [root / "windows" / w.name / "round_0" / "memory" for w in TRAIN_WINDOWS]
+    missing = [str(m) for m in mems if not m.is_dir()]
+    if missing:
+        raise FileNotFoundError(f"run `python -m training.pretrain memories --root {root}` first: missing {missing}")
+    cfg = TrainingConfig(epochs=epochs, seed=seed).trainer_config("cpu", progress=True)
+    return train_from_memory(mems, root / "training", cfg)
+
+
+def _figures(metrics: dict[str, Any], r: int) -> dict[str, Any]:
+    s = metrics["rounds"].get(str(r))
+    if s is None:
+        return {}
+    out = {k: s.get("slam", {}).get(k) for k in METRICS}
+    out["accepted"] = s.get("accepted")
+    out["mean_points"] = s.get("mean_points")
+    if "acceptance" in s:
+        out["mean_entropy"] = s["acceptance"].get("mean_entropy")
+        out["reference_mean_entropy"] = s["acceptance"].get("reference_mean_entropy")
+    if "covariance_failures" in s:
+        out["covariance_failures"] = s["covariance_failures"]
+    return out
+
+
+def evaluate(root: Path, weights: Path | None = None, jobs: int = 1) -> dict[str, Any]:
+    """Round 0 and the weights without training (``--densify``) on the held-out windows."""
+    weights = weights or root / "training" / "model.pt"
+    if not weights.is_file():
+        raise FileNotFoundError(f"{weights}: train first (`python -m training.pretrain train --root {root}`)")
+
+    def one(w: Window) -> dict[str, Any]:
+        m = _slam(root / "eval" / w.name, w, ["--rounds", "1", "--weights", str(weights), "--densify"])
+        return {"window": asdict(w), "round0": _figures(m, 0), "pretrained": _figures(m, 1),
+                "final_round": m.get("final_round")}
+
+    rows = _parallel(jobs, one, EVAL_WINDOWS)
+    res = {"weights": str(weights), "rows": rows, "summary": summarize(rows)}
+    atomic_write_json(root / "evaluation.json", res)
+    return res
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per channel count: mean ± std over seeds of round 0, the weights, and the relative change."""
+    out: dict[str, Any] = {}
+    for ch in sorted({r["window"]["channels"] for r in rows}, reverse=True):
+        sel = [r for r in rows if r["window"]["channels"] == ch]
+        d: dict[str, Any] = {"n_seeds": len(sel), "accepted": sum(bool(r["pretrained"].get("accepted")) for r in sel)}
+        for k in METRICS:
+            a = np.array([r["round0"].get(k) for r in sel], float)
+            b = np.array([r["pretrained"].get(k) for r in sel], float)
+            rel = (b - a) / a
+            d[k] = {"round0": [float(np.mean(a)), float(np.std(a))], "pretrained": [float(np.mean(b)), float(np.std(b))],
+                    "relative_change": [float(np.mean(rel)), float(np.std(rel))],
+                    "better_in": int(np.sum(b < a))}
+        out[str(ch)] = d
+    return out
+
+
+def card(root: Path) -> dict[str, Any]:
+    """The model card: data, sensors, channels, epochs, seeds, evaluation (``pretrained.json``)."""
+    tsum = json.loads((root / "training" / "summary.json").read_text())
+    ev = read_json_or_none(root / "evaluation.json")
+    return {
+        "name": "gr_graph pretrained covariance network",
+        "format": "training checkpoint (training.trainer.CHECKPOINT_FORMAT), loaded by training.trainer.load_model",
+        "built_by": "python -m training.pretrain all --root runs/pretrain",
+        "training_data": {"world": "gr_graph synthetic world, 'kitti' preset (residential town, moving actors, "
+                                   "KITTI-like sensor errors)",
+                          "windows": [asdict(w) for w in TRAIN_WINDOWS],
+                          "memories": "round 0 (SLAM on raw scans) of each window: odometry and loop edges",
+                          "edges": tsum["dataset"]},
+        "epochs": tsum["epochs_done"], "training_seed": tsum["config"]["seed"],
+        "net": tsum["config"]["net"], "skip_counts": tsum["skip_counts"],
+        "training_runtime_s": tsum["runtime_s"]["total"], "provenance": tsum["provenance"],
+        "evaluation": None if ev is None else {
+            "what": "held-out world seeds (never in training): round 0 against one learning round that densifies "
+                    "with these weights without training (gr-slam --weights pretrained --densify), "
+                    "mean ± std over seeds; relative_change < 0 is better",
+            "windows": [asdict(w) for w in EVAL_WINDOWS], "summary": ev["summary"]},
+    }
+
+
+def write_markdown(root: Path, card_doc: dict[str, Any]) -> Path:
+    """``benchmarks/results/pretrained.md``: the model card's evaluation as a table."""
+    lines = ["# The shipped weights (`--weights pretrained`): model card figures", "",
+             f"Built by `{card_doc['built_by']}`; trained {card_doc['epochs']} epochs (seed "
+             f"{card_doc['training_seed']}) on {card_doc['training_data']['edges']['n_edges']} edges of "
+             f"{len(TRAIN_WINDOWS)} windows: " + ", ".join(
+                 f"{w.sensor}{'' if w.channels is None else f' {w.channels} ch'} (seed {w.seed}, frames {w.frames})"
+                 for w in TRAIN_WINDOWS) + ".", ""]
+    ev = card_doc.get("evaluation")
+    if ev:
+        lines += [ev["what"] + ".", "",
+                  "| channels | seeds | metric | round 0 | pretrained, no training | relative change | better in | "
+                  "accepted |", "|---|---|---|---|---|---|---|---|"]
+        for ch, d in ev["summary"].items():
+            for k in METRICS:
+                m = d[k]
+                lines.append(f"| {ch} | {d['n_seeds']} | {k} | {m['round0'][0]:.3f} ± {m['round0'][1]:.3f} | "
+                             f"{m['pretrained'][0]:.3f} ± {m['pretrained'][1]:.3f} | "
+                             f"{100 * m['relative_change'][0]:+.1f} ± {100 * m['relative_change'][1]:.1f} % | "
+                             f"{m['better_in']}/{d['n_seeds']} | {d['accepted']}/{d['n_seeds']} |")
+        lines.append("")
+    atomic_write_text(RESULTS_MD, "\n".join(lines) + "\n")
+    return RESULTS_MD
+
+
+def install(root: Path) -> Path:
+    """Copy ``root/training/model.pt`` and the card into ``gr_graph/data/`` (what ships)."""
+    from gr_graph.pretrained import PRETRAINED_CARD, PRETRAINED_WEIGHTS
+    from training.trainer import load_model
+
+    model = root / "training" / "model.pt"
+    load_model(model)  # refuse to ship a file that does not load
+    PRETRAINED_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
+    tmp = PRETRAINED_WEIGHTS.with_suffix(".tmp")
+    shutil.copyfile(model, tmp)
+    tmp.replace(PRETRAINED_WEIGHTS)
+    doc = card(root)
+    atomic_write_json(PRETRAINED_CARD, doc)
+    write_markdown(root, doc)
+    return PRETRAINED_WEIGHTS
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = make_parser("python -m training.pretrain", __doc__.split("\n\n")[0],
+                     ("python -m training.pretrain all --root runs/pretrain --jobs 2",))
+    ap.add_argument("step", choices=("memories", "train", "evaluate", "install", "all"))
+    ap.add_argument("--root", type=Path, default=Path("runs/pretrain"), help="working folder (default: runs/pretrain)")
+    ap.add_argument("--jobs", type=int, default=1, help="SLAM runs in parallel (default: 1)")
+    ap.add_argument("--epochs", type=int, default=EPOCHS, help=f"training epochs (default: {EPOCHS})")
+    add_log_level(ap)
+    a = ap.parse_args(argv)
+    setup_logging(a.log_level)
+    t0 = time.perf_counter()
+    if a.step in ("memories", "all"):
+        memories(a.root, a.jobs)
+    if a.step in ("train", "all"):
+        print(train(a.root, a.epochs))
+    if a.step in ("evaluate", "all"):
+        print(json.dumps(evaluate(a.root, jobs=a.jobs)["summary"], indent=1))
+    if a.step in ("install", "all"):
+        print(install(a.root))
+    log.info("done in %.1f min", (time.perf_counter() - t0) / 60)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
