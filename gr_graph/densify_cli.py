@@ -22,7 +22,7 @@ from gr_graph.cli_common import add_device, add_log_level, add_point_format, add
 from gr_graph.config import PreprocessConfig, TrainingConfig
 
 EXAMPLES = (
-    "gr-densify scan.pcd dense.ply",
+    "python -m gr_graph.densify_cli scan.pcd dense.ply",
     "python -m gr_graph.densify_cli scan.pcd dense.ply --weights runs/slam/round_1/training/model.pt",
     "python -m gr_graph.densify_cli 000000.bin dense.pcd --weights model.pt --tau-ani 0.8 --samples 8 "
     "--covariances dense_cov.npy",

@@ -89,11 +89,13 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     else:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
                                                  "training": {"rounds", "convergence_delta", "acceptance",
-                                                              "stop_on_reject"}})
-        if cfg.training.weights is not None:  # the results depend on the file, not on its name
+                                                              "stop_on_reject", "weights", "fine_tune"}})
+        tc = cfg.training
+        if tc.weights is not None and tc.covariances == "network":  # the file's content, not its name
             from gr_graph.pretrained import weights_sha256
 
-            d["weights_sha256"] = weights_sha256(cfg.training.weights)
+            d["weights_sha256"] = weights_sha256(tc.weights)
+            d["fine_tune"] = tc.fine_tune
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -108,8 +110,9 @@ def check_learning_config(cfg: SlamConfig) -> None:
         With a message naming the option or the weights file.
     """
     tc = cfg.training
-    if tc.fine_tune and not cfg.output.write_memory:
-        raise ValueError("learning rounds train on the memory of the previous round: output.write_memory must be true")
+    if (tc.fine_tune or tc.acceptance.enabled) and not cfg.output.write_memory:
+        raise ValueError("learning rounds train on the memory of the previous round, and the acceptance test reads "
+                         "round 0's scans from it: output.write_memory must be true")
     # the trainer's run configuration is built (and validated) here, before round 0, not after it
     train_cfg = tc.trainer_config(cfg.device, False)
     if tc.weights is not None and tc.covariances == "network":
@@ -395,7 +398,9 @@ class SlamPipeline:
             summary["densify"] = densified.stats()
             summary["edge_noise"] = registration_edge_noise_summary() if edge_noise is None else edge_noise.summary()
             en = summary["edge_noise"]
-            summary["covariance_failures"] = covariance_failures(summary["densify"], rd / "training" / "summary.json", en)
+            trained = r > 1 or cfg.training.fine_tune or cfg.training.weights is None  # else no training this round
+            summary["covariance_failures"] = covariance_failures(
+                summary["densify"], rd / "training" / "summary.json" if trained else None, en)
             log.info("round %d: %d odometry edges with learned information H(C) (%d floored), %d fallbacks %s",
                      r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:

@@ -99,11 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"learning rounds after round 0 (default: {d.training.rounds})")
     p.add_argument("--weights", default=None, metavar="pretrained|PATH",
                    help="learning round 1 starts from these weights: 'pretrained' (shipped with gr_graph, see the "
-                        "README's model card) or a model.pt; implies --rounds 1 unless --rounds or --config sets "
-                        "rounds (default: random initial weights)")
+                        "README's model card) or a model.pt; a configuration with 0 rounds gets 1 "
+                        "(default: random initial weights)")
     p.add_argument("--densify", action="store_true",
-                   help="with --weights: one learning round that densifies with the weights as they are, without "
-                        "training (no memory needed)")
+                   help="with --weights: exactly one learning round, which densifies with the weights as they "
+                        "are, without training")
     add_out(p, f"output directory (default: {d.output.out_dir})")
     add_seed(p, f"seed of the synthetic data and of the learning rounds: sets seed and training.seed "
                 f"(default: {d.seed})", default=None)
@@ -155,11 +155,16 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
             raise ValueError("--rounds must be >= 0")
         o["training"]["rounds"] = args.rounds
     if args.weights is not None:
+        if args.rounds == 0:
+            raise ValueError("--weights is for a learning round: it cannot go with --rounds 0")
         o["training"]["weights"] = args.weights
     if args.densify:
         if args.weights is None:
             raise ValueError("--densify needs --weights pretrained|PATH")
         o["training"]["fine_tune"] = False
+        if args.rounds not in (None, 1):
+            raise ValueError(f"--densify runs exactly one learning round (--rounds {args.rounds} given)")
+        o["training"]["rounds"] = 1
     if args.out is not None:
         o["output"]["out_dir"] = args.out
     if args.device is not None:
@@ -190,7 +195,17 @@ def full_method_hint(argv: list[str]) -> str:
     from gr_graph.pretrained import PRETRAINED_WEIGHTS
 
     extra = ["--rounds", "1"] + (["--weights", "pretrained"] if PRETRAINED_WEIGHTS.is_file() else [])
-    keep = [a for a in argv if a != "--viz"]
+    with_value = ("--rounds", "--weights")  # replaced by extra
+    drop = ("--viz", "--densify", "--no-resume", "--no-memory")  # the hint reuses round 0 and its memory
+    keep: list[str] = []
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in with_value:
+            skip = True
+        elif a not in drop and not a.startswith(tuple(f"{w}=" for w in with_value)):
+            keep.append(a)
     return ("this was round 0 (SLAM on the raw scans); the full method adds a learning round (the finished round 0 "
             "in the same --out is reused): " + " ".join(["python", "-m", "gr_graph.slam", *map(shlex.quote, keep),
                                                           *extra]))

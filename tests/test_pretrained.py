@@ -68,6 +68,7 @@ def test_model_card_has_the_evaluation_on_held_out_seeds() -> None:
     train_seeds = {w["seed"] for w in card["training_data"]["windows"]}
     eval_seeds = {w["seed"] for w in ev["windows"]}
     assert not train_seeds & eval_seeds and len(eval_seeds) >= 3
+    assert ev["summary"]
     for per_channel in ev["summary"].values():
         assert per_channel["n_seeds"] >= 3
         assert np.isfinite(per_channel["rpe300_all_pairs_mean"]["relative_change"]).all()
@@ -82,6 +83,12 @@ def test_weights_that_are_missing_or_broken_are_named(tmp_path: Path, capsys) ->
     assert "junk.pt" in capsys.readouterr().err
     assert slam_main(["--densify", "--frames", "0:5", "--out", str(tmp_path / "run")]) == 2
     assert "--densify needs --weights" in capsys.readouterr().err
+    assert slam_main(["--weights", str(junk), "--rounds", "0", "--out", str(tmp_path / "run")]) == 2
+    assert "cannot go with --rounds 0" in capsys.readouterr().err
+    assert slam_main(["--weights", str(junk), "--densify", "--rounds", "2", "--out", str(tmp_path / "run")]) == 2
+    assert "exactly one learning round" in capsys.readouterr().err
+    assert slam_main(["--weights", str(junk), "--densify", "--no-memory", "--out", str(tmp_path / "run")]) == 2
+    assert "write_memory" in capsys.readouterr().err
     assert not (tmp_path / "run" / "metrics.json").exists()
 
 
@@ -120,11 +127,20 @@ def test_round_fingerprint_follows_the_weights_file(tmp_path: Path) -> None:
 
 
 def test_the_hint_after_round_0_is_the_same_command_with_a_learning_round() -> None:
-    hint = full_method_hint(["--seq", "00", "--out", "runs/x", "--viz"])
+    hint = full_method_hint(["my bag/", "--seq", "00", "--out", "runs/x", "--viz", "--rounds", "0", "--no-resume",
+                             "--no-memory", "--weights=old.pt"])
     cmd = hint.split(": ", 1)[1]
-    assert cmd.startswith("python -m gr_graph.slam --seq 00 --out runs/x --rounds 1")
-    assert "--viz" not in cmd
+    assert cmd.startswith("python -m gr_graph.slam 'my bag/' --seq 00 --out runs/x --rounds 1")
+    for gone in ("--viz", "--rounds 0", "--no-resume", "--no-memory", "old.pt"):
+        assert gone not in cmd
+    assert cmd.count("--rounds") == 1
     assert ("--weights pretrained" in cmd) == PRETRAINED_WEIGHTS.is_file()
+    import shlex
+
+    from gr_graph.slam import build_parser
+
+    args = build_parser().parse_args(shlex.split(cmd)[3:])  # the hint parses as a command
+    assert args.rounds == 1 and args.out == "runs/x"
 
 
 # ---------------------------------------------------------------- --weights PATH --densify in a run
@@ -158,8 +174,10 @@ def _memory(seed: int, n_scans: int = 3):
 
 def test_concat_dataset_maps_global_edges_to_their_memory(tmp_path: Path) -> None:
     mems = [_memory(1, 3), _memory(2, 4)]
-    parts = [PairDataset(m, NetConfig(**SMALL_NET), max_corr=300, seed=s) for s, m in enumerate(mems)]
-    ds = ConcatPairDataset(parts)
+    ds = ConcatPairDataset(mems, NetConfig(**SMALL_NET), max_corr=300, seed=5)
+    parts = [PairDataset(m, NetConfig(**SMALL_NET), max_corr=300, seed=ConcatPairDataset.memory_seed(5, i))
+             for i, m in enumerate(mems)]
+    assert len({ConcatPairDataset.memory_seed(5, i) for i in range(2)}) == 2
     assert len(ds) == 2 + 3
     assert [ds.locate(e) for e in range(5)] == [(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)]
     s = ds.sample(3, epoch=1)
@@ -170,8 +188,8 @@ def test_concat_dataset_maps_global_edges_to_their_memory(tmp_path: Path) -> Non
     with pytest.raises(IndexError):
         ds.sample(5)
     with pytest.raises(ValueError):
-        ConcatPairDataset([])
-    parts[0].min_corr = 10_000  # every pair of memory 0 too small: the skip names the memory
+        ConcatPairDataset([], NetConfig(**SMALL_NET))
+    ds.datasets[0].min_corr = 10_000  # every pair of memory 0 too small: the skip names the memory
     with pytest.raises(SkipSample, match="memory 0"):
         ds.sample(0)
 
@@ -190,3 +208,15 @@ def test_train_from_several_memories(tmp_path: Path) -> None:
     log = [json.loads(x) for x in (tmp_path / "train" / "train_log.jsonl").read_text().splitlines()]
     assert sorted(r["edge"] for r in log) == list(range(n))  # every edge of both memories, once
     assert load_model(model).config.to_dict() == NetConfig(**SMALL_NET).to_dict()
+    # the finished checkpoint is not resumed for other training data (one memory instead of two)
+    with pytest.raises(RuntimeError, match="other training data"):
+        train_from_memory(dirs[:1], tmp_path / "train", cfg)
+
+
+def test_resume_key_follows_the_starting_weights(tmp_path: Path) -> None:
+    path = tmp_path / "init.pt"
+    path.write_bytes(b"one")
+    cfg = TrainConfig.from_dict(dict(init_checkpoint=str(path), net=SMALL_NET))
+    before = cfg.resume_key()
+    path.write_bytes(b"two")  # same path, other weights: a finished fine-tuning is not resumed
+    assert cfg.resume_key() != before

@@ -17,6 +17,7 @@ lists the valid ones (:func:`gr_graph.config_errors.describe_validation_error`).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from collections.abc import Mapping
@@ -148,6 +149,9 @@ class TrainConfig(TrainOptions):
         d = self.to_dict()
         for k in ("epochs", "progress", "device", "num_threads", "checkpoint_every", "max_skip_fraction"):
             d.pop(k)
+        if d.get("init_checkpoint"):  # the starting weights' content, not only their path
+            p = Path(d["init_checkpoint"])
+            d["init_checkpoint_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
         return d
 
 

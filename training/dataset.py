@@ -150,20 +150,29 @@ class ConcatPairDataset:
     channel counts, e.g. the shipped weights of :mod:`training.pretrain`).
 
     Edge ``e`` of the whole is edge ``e - offset[m]`` of memory ``m`` (memories in the given
-    order). Memory ``m`` samples with seed ``(seed, m)`` folded into one integer, so equal local
-    edge numbers of different memories draw different subsets.
+    order). Memory ``m`` samples with its own seed (:meth:`memory_seed`), so equal local edge
+    numbers of different memories draw different subsets.
 
     Parameters
     ----------
-    datasets : sequence of PairDataset
-        One per memory, in order.
+    memories : sequence of Memory
+        At least one, in order.
+    net_config, max_corr, min_corr, seed, augment_yaw
+        As for :class:`PairDataset`.
     """
 
-    def __init__(self, datasets: list[PairDataset]):
-        if not datasets:
+    def __init__(self, memories: list[Memory], net_config: NetConfig, max_corr: int = 1024, min_corr: int = 16,
+                 seed: int = 0, augment_yaw: bool = False):
+        if not memories:
             raise ValueError("ConcatPairDataset needs at least one memory")
-        self.datasets = list(datasets)
+        self.datasets = [PairDataset(m, net_config, max_corr, min_corr, self.memory_seed(seed, i), augment_yaw)
+                         for i, m in enumerate(memories)]
         self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
+
+    @staticmethod
+    def memory_seed(seed: int, m: int) -> int:
+        """The sampling seed of memory ``m`` given the run's ``seed`` (one integer, distinct per memory)."""
+        return int(seed) * 1_000_003 + int(m)
 
     def __len__(self) -> int:
         return int(self.offsets[-1])

@@ -70,7 +70,7 @@ TRAIN_WINDOWS = (
 )
 #: Held-out worlds (seeds never used in training) for the model card's figures.
 EVAL_WINDOWS = tuple(Window(f"s{s}_hdl64e_{c}", s, s, "hdl64e", c, "0:400") for s in (11, 12, 13) for c in (64, 16))
-EPOCHS = 3
+EPOCHS = 2
 TRAIN_SEED = 0
 METRICS = ("rpe300_all_pairs_mean", "rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")
 
@@ -233,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=EPOCHS, help=f"training epochs (default: {EPOCHS})")
     add_log_level(ap)
     a = ap.parse_args(argv)
+    a.root = a.root.resolve()  # the SLAM runs work in the repository: every path they get is absolute
     setup_logging(a.log_level)
     t0 = time.perf_counter()
     if a.step in ("memories", "all"):

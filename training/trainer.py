@@ -173,6 +173,8 @@ class Trainer:
     def __init__(self, memory: Memory | Sequence[Memory], out_dir: str | os.PathLike[str], config: TrainConfig,
                  rank: int = 0, world_size: int = 1):
         memories = list(memory) if isinstance(memory, (list, tuple)) else [memory]
+        if not memories:
+            raise TrainingError("no memory to train on")
         self.memory = memories[0]
         self.memories = memories
         self.out_dir = Path(out_dir)
@@ -190,10 +192,9 @@ class Trainer:
         if len(memories) == 1:
             self.dataset: PairDataset | ConcatPairDataset = PairDataset(
                 memories[0], config.net, config.max_corr, config.min_corr, config.seed, config.augment_yaw)
-        else:  # memory m samples with its own seed (see ConcatPairDataset)
-            self.dataset = ConcatPairDataset([
-                PairDataset(m, config.net, config.max_corr, config.min_corr, config.seed * 1_000_003 + i,
-                            config.augment_yaw) for i, m in enumerate(memories)])
+        else:
+            self.dataset = ConcatPairDataset(memories, config.net, config.max_corr, config.min_corr, config.seed,
+                                             config.augment_yaw)
         torch.manual_seed(config.seed)
         self.model = CovarianceNet(config.net).to(self.device)
         if config.init_checkpoint:
@@ -273,6 +274,7 @@ class Trainer:
             "net_config": self.config.net.to_dict(),
             "train_config": self.config.to_dict(),
             "resume_key": self.config.resume_key(),
+            "dataset": self.dataset.describe(),
             "epoch": self.epoch,
             "step": self.step,
             "world_size": self.world_size,
@@ -293,6 +295,10 @@ class Trainer:
         if not path.is_file():
             return False
         st = torch.load(path, map_location=self.device, weights_only=False)
+        if st.get("dataset", self.dataset.describe()) != self.dataset.describe():
+            raise TrainingError(f"{path}: checkpoint was written with a different configuration (other training "
+                                f"data: {st['dataset']}, now "
+                                f"{self.dataset.describe()}); use another --out directory or delete the checkpoint")
         if st.get("resume_key") != self.config.resume_key() or st.get("world_size") != self.world_size:
             raise TrainingError(
                 f"{path}: checkpoint was written with a different configuration or world size; "
