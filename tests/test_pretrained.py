@@ -220,3 +220,18 @@ def test_resume_key_follows_the_starting_weights(tmp_path: Path) -> None:
     before = cfg.resume_key()
     path.write_bytes(b"two")  # same path, other weights: a finished fine-tuning is not resumed
     assert cfg.resume_key() != before
+
+
+def test_pretrain_summary_is_mean_and_spread_over_seeds() -> None:
+    from training.pretrain import EVAL_WINDOWS, TRAIN_WINDOWS, per_count_windows, summarize
+
+    assert not {w.seed for w in TRAIN_WINDOWS} & {w.seed for w in EVAL_WINDOWS}  # held out
+    assert [w.seed for w in per_count_windows(16)] == [w.seed for w in TRAIN_WINDOWS]
+    rows = [{"window": {"channels": 16}, "round0": {"ate_rmse": a}, "pretrained": {"ate_rmse": b, "accepted": b < a}}
+            for a, b in ((1.0, 0.5), (2.0, 3.0), (4.0, 2.0))]
+    s = summarize(rows)["16"]
+    assert s["n_seeds"] == 3 and s["accepted"] == 2
+    ate = s["ate_rmse"]
+    np.testing.assert_allclose(ate["round0"], [7 / 3, np.std([1.0, 2.0, 4.0])])
+    np.testing.assert_allclose(ate["relative_change"], [np.mean([-0.5, 0.5, -0.5]), np.std([-0.5, 0.5, -0.5])])
+    assert ate["better_in"] == 2

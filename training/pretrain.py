@@ -5,6 +5,7 @@ Steps (each resumable: finished SLAM runs and training checkpoints are reused)::
     python -m training.pretrain memories --root runs/pretrain      # round 0 on the training windows
     python -m training.pretrain train    --root runs/pretrain      # one network on all their memories
     python -m training.pretrain evaluate --root runs/pretrain      # held-out seeds: round 0 vs the weights
+    python -m training.pretrain per-count --root runs/pretrain     # ablation: one model vs one per count (16)
     python -m training.pretrain install  --root runs/pretrain      # gr_graph/data/pretrained.{pt,json}
     python -m training.pretrain all      --root runs/pretrain --jobs 2
 
@@ -158,6 +159,50 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def per_count_windows(channels: int) -> tuple[Window, ...]:
+    """The training windows' worlds and frames, all seen by the HDL-64E at ``channels`` channels."""
+    return tuple(Window(f"s{w.seed}_hdl64e_{channels}_only", w.seed, w.route_seed, "hdl64e", channels, w.frames)
+                 for w in TRAIN_WINDOWS)
+
+
+def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 1) -> dict[str, Any]:
+    """Ablation: one model for all channel counts (the shipped one) against a model trained only
+    on ``channels``-channel scans of the same worlds and frames (same number of edges and epochs),
+    both used without training on the held-out windows at that channel count. Round 0 of each
+    held-out run is reused from :func:`evaluate` (copied), so only round 1 differs."""
+    from gr_graph.config import TrainingConfig
+    from training.train import train_from_memory
+
+    wins = per_count_windows(channels)
+    _parallel(jobs, lambda w: _slam(root / "windows" / w.name, w, ["--rounds", "0"]), wins)
+    cfg = TrainingConfig(epochs=epochs, seed=TRAIN_SEED).trainer_config("cpu", progress=True)
+    weights = train_from_memory([root / "windows" / w.name / "round_0" / "memory" for w in wins],
+                                root / f"training_{channels}_only", cfg)
+    evals = [w for w in EVAL_WINDOWS if w.channels == channels]
+
+    def one(w: Window) -> dict[str, Any]:
+        src, dst = root / "eval" / w.name, root / f"eval_{channels}_only" / w.name
+        if not (dst / "round_0" / "round.json").is_file():
+            if not (src / "round_0" / "round.json").is_file():
+                raise FileNotFoundError(f"{src}: run `python -m training.pretrain evaluate` first")
+            shutil.copytree(src / "round_0", dst / "round_0", dirs_exist_ok=True)
+        m = _slam(dst, w, ["--rounds", "1", "--weights", str(weights), "--densify"])
+        shared = json.loads((src / "metrics.json").read_text())
+        return {"window": asdict(w), "round0": _figures(m, 0), "per_count": _figures(m, 1),
+                "all_counts": _figures(shared, 1)}
+
+    rows = _parallel(jobs, one, evals)
+    summary: dict[str, Any] = {"channels": channels, "n_seeds": len(rows)}
+    for k in METRICS:
+        a = np.array([r["all_counts"].get(k) for r in rows], float)
+        b = np.array([r["per_count"].get(k) for r in rows], float)
+        summary[k] = {"all_counts": [float(np.mean(a)), float(np.std(a))],
+                      "per_count": [float(np.mean(b)), float(np.std(b))], "per_count_better_in": int(np.sum(b < a))}
+    res = {"weights_per_count": str(weights), "rows": rows, "summary": summary}
+    atomic_write_json(root / f"per_count_{channels}.json", res)
+    return res
+
+
 def card(root: Path) -> dict[str, Any]:
     """The model card: data, sensors, channels, epochs, seeds, evaluation (``pretrained.json``)."""
     tsum = json.loads((root / "training" / "summary.json").read_text())
@@ -174,6 +219,7 @@ def card(root: Path) -> dict[str, Any]:
         "epochs": tsum["epochs_done"], "training_seed": tsum["config"]["seed"],
         "net": tsum["config"]["net"], "skip_counts": tsum["skip_counts"],
         "training_runtime_s": tsum["runtime_s"]["total"], "provenance": tsum["provenance"],
+        "one_model_for_all_channel_counts": read_json_or_none(root / "per_count_16.json"),
         "evaluation": None if ev is None else {
             "what": "held-out world seeds (never in training): round 0 against one learning round that densifies "
                     "with these weights without training (gr-slam --weights pretrained --densify), "
@@ -227,7 +273,8 @@ def install(root: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = make_parser("python -m training.pretrain", __doc__.split("\n\n")[0],
                      ("python -m training.pretrain all --root runs/pretrain --jobs 2",))
-    ap.add_argument("step", choices=("memories", "train", "evaluate", "install", "all"))
+    ap.add_argument("step", choices=("memories", "train", "evaluate", "per-count", "install", "all"))
+    ap.add_argument("--channels", type=int, default=16, help="per-count: the channel count of the ablation")
     ap.add_argument("--root", type=Path, default=Path("runs/pretrain"), help="working folder (default: runs/pretrain)")
     ap.add_argument("--jobs", type=int, default=1, help="SLAM runs in parallel (default: 1)")
     ap.add_argument("--epochs", type=int, default=EPOCHS, help=f"training epochs (default: {EPOCHS})")
@@ -242,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
         print(train(a.root, a.epochs))
     if a.step in ("evaluate", "all"):
         print(json.dumps(evaluate(a.root, jobs=a.jobs)["summary"], indent=1))
+    if a.step in ("per-count", "all"):
+        print(json.dumps(per_count(a.root, a.channels, a.epochs, a.jobs)["summary"], indent=1))
     if a.step in ("install", "all"):
         print(install(a.root))
     log.info("done in %.1f min", (time.perf_counter() - t0) / 60)
