@@ -163,6 +163,31 @@ def test_densify_with_given_weights_skips_training(learning_run, tmp_path: Path)
     assert r1["densify"] == ref["densify"]
 
 
+@pytest.mark.slow
+def test_weights_start_the_learning_round(learning_run, tmp_path: Path) -> None:
+    run, argv = learning_run
+    weights = run / "round_1" / "training" / "model.pt"
+    out = tmp_path / "finetune_run"
+    args = list(argv)
+    args[args.index("--out") + 1] = str(out)
+    args += ["--weights", str(weights)]
+    assert slam_main(args) == 0
+    summary = json.loads((out / "round_1" / "training" / "summary.json").read_text())
+    assert summary["config"]["init_checkpoint"] == str(weights)
+    start = load_model(weights).state_dict()
+    tuned = load_model(out / "round_1" / "training" / "model.pt").state_dict()
+    assert any(not torch.equal(start[k], tuned[k]) for k in start)  # trained further, from those weights
+    # the first training step starts from the given weights: its loss is the trained model's, far
+    # below the first loss of the run that started from random weights
+    def first_loss(d: Path) -> tuple[int, float]:
+        recs = [json.loads(x) for x in (d / "round_1" / "training" / "train_log.jsonl").read_text().splitlines()]
+        rec = next(r for r in recs if "loss" in r)
+        return rec["edge"], rec["loss"]
+
+    (edge, loss), (edge_scratch, loss_scratch) = first_loss(out), first_loss(run)
+    assert edge == edge_scratch and loss < loss_scratch, (loss, loss_scratch)  # same seed: same first pair
+
+
 # ---------------------------------------------------------------- training on several memories
 def _memory(seed: int, n_scans: int = 3):
     scene = street_scene(seed=seed)
