@@ -144,15 +144,21 @@ def test_the_hint_after_round_0_is_the_same_command_with_a_learning_round() -> N
 
 
 # ---------------------------------------------------------------- --weights PATH --densify in a run
-@pytest.mark.slow
-def test_densify_with_given_weights_skips_training(learning_run, tmp_path: Path) -> None:
+def _rerun_with_weights(learning_run, out: Path, *extra: str) -> tuple[Path, Path]:
+    """The short learning run's command into ``out`` with ``--weights`` (its round-1 model) and
+    ``extra``; returns (the original run dir, the weights)."""
     run, argv = learning_run
     weights = run / "round_1" / "training" / "model.pt"
-    out = tmp_path / "densify_run"
     args = list(argv)
     args[args.index("--out") + 1] = str(out)
-    args += ["--weights", str(weights), "--densify"]
-    assert slam_main(args) == 0
+    assert slam_main([*args, "--weights", str(weights), *extra]) == 0
+    return run, weights
+
+
+@pytest.mark.slow
+def test_densify_with_given_weights_skips_training(learning_run, tmp_path: Path) -> None:
+    out = tmp_path / "densify_run"
+    run, _ = _rerun_with_weights(learning_run, out, "--densify")
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["rounds"]) == {"0", "1"}
     r1 = m["rounds"]["1"]
@@ -165,13 +171,8 @@ def test_densify_with_given_weights_skips_training(learning_run, tmp_path: Path)
 
 @pytest.mark.slow
 def test_weights_start_the_learning_round(learning_run, tmp_path: Path) -> None:
-    run, argv = learning_run
-    weights = run / "round_1" / "training" / "model.pt"
     out = tmp_path / "finetune_run"
-    args = list(argv)
-    args[args.index("--out") + 1] = str(out)
-    args += ["--weights", str(weights)]
-    assert slam_main(args) == 0
+    run, weights = _rerun_with_weights(learning_run, out)
     summary = json.loads((out / "round_1" / "training" / "summary.json").read_text())
     assert summary["config"]["init_checkpoint"] == str(weights)
     start = load_model(weights).state_dict()
