@@ -249,6 +249,19 @@ def write_markdown(root: Path, card_doc: dict[str, Any]) -> Path:
                              f"{100 * m['relative_change'][0]:+.1f} ± {100 * m['relative_change'][1]:.1f} % | "
                              f"{m['better_in']}/{d['n_seeds']} | {d['accepted']}/{d['n_seeds']} |")
         lines.append("")
+    pc = card_doc.get("one_model_for_all_channel_counts")
+    if pc:
+        sm = pc["summary"]
+        lines += [f"One model for all channel counts (the shipped one) against one trained only on "
+                  f"{sm['channels']}-channel scans of the same worlds and frames (same edges, epochs and seed), both "
+                  f"used without training on the held-out {sm['channels']}-channel windows (`python -m training.pretrain "
+                  f"per-count --channels {sm['channels']}`), mean ± std over {sm['n_seeds']} seeds:", "",
+                  "| metric | all channel counts | per count | per count better in |", "|---|---|---|---|"]
+        for k in METRICS:
+            m = sm[k]
+            lines.append(f"| {k} | {m['all_counts'][0]:.3f} ± {m['all_counts'][1]:.3f} | "
+                         f"{m['per_count'][0]:.3f} ± {m['per_count'][1]:.3f} | {m['per_count_better_in']}/{sm['n_seeds']} |")
+        lines.append("")
     atomic_write_text(RESULTS_MD, "\n".join(lines) + "\n")
     return RESULTS_MD
 
