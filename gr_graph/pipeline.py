@@ -125,8 +125,6 @@ def check_learning_config(cfg: SlamConfig) -> None:
             raise ValueError(f"--weights {tc.weights} ({path}): its network configuration {net} differs from "
                              f"training.trainer.net {train_cfg.net.to_dict()}; fine-tuning needs the same network "
                              "(set training.trainer.net to the checkpoint's, or use --densify)")
-        log.info("learning round 1 %s the weights %s", "starts from" if tc.fine_tune else "uses, without training,",
-                 path)
 
 
 class SlamPipeline:
@@ -346,6 +344,7 @@ class SlamPipeline:
             from gr_graph.pretrained import resolve_weights
 
             init = resolve_weights(tc.weights)
+            log.info("round 1 %s the weights %s", "starts from" if tc.fine_tune else "uses, without training,", init)
             if not tc.fine_tune:  # --densify: the given weights as they are
                 return densified_sequence(self.sequence, init, tc, device=self.cfg.device,
                                           preprocess=self.cfg.preprocess,

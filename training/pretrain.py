@@ -91,23 +91,36 @@ def _parallel(jobs: int, fn, items) -> list[Any]:
         return list(pool.map(fn, items))
 
 
-def memories(root: Path, jobs: int = 1) -> list[Path]:
-    """Round 0 on every training window; the memory folders."""
-    _parallel(jobs, lambda w: _slam(root / "windows" / w.name, w, ["--rounds", "0"]), TRAIN_WINDOWS)
-    return [root / "windows" / w.name / "round_0" / "memory" for w in TRAIN_WINDOWS]
+def _memory_dir(root: Path, window: Window) -> Path:
+    return root / "windows" / window.name / "round_0" / "memory"
 
 
-def train(root: Path, epochs: int = EPOCHS, seed: int = TRAIN_SEED) -> Path:
-    """One network trained on every training window's memory; ``root/training/model.pt``."""
+def memories(root: Path, jobs: int = 1, windows: tuple[Window, ...] = TRAIN_WINDOWS) -> list[Path]:
+    """Round 0 on every window (default: the training windows); the memory folders."""
+    _parallel(jobs, lambda w: _slam(root / "windows" / w.name, w, ["--rounds", "0"]), windows)
+    return [_memory_dir(root, w) for w in windows]
+
+
+def _train_on(root: Path, windows: tuple[Window, ...], out: Path, epochs: int, seed: int = TRAIN_SEED) -> Path:
+    """One network (the trainer's defaults) on the round-0 memories of ``windows``; ``out/model.pt``."""
     from gr_graph.config import TrainingConfig
     from training.train import train_from_memory
 
-    mems = [root / "windows" / w.name / "round_0" / "memory" for w in TRAIN_WINDOWS]
+    mems = [_memory_dir(root, w) for w in windows]
     missing = [str(m) for m in mems if not m.is_dir()]
     if missing:
         raise FileNotFoundError(f"run `python -m training.pretrain memories --root {root}` first: missing {missing}")
     cfg = TrainingConfig(epochs=epochs, seed=seed).trainer_config("cpu", progress=True)
-    return train_from_memory(mems, root / "training", cfg)
+    return train_from_memory(mems, out, cfg)
+
+
+def train(root: Path, epochs: int = EPOCHS, seed: int = TRAIN_SEED) -> Path:
+    """One network trained on every training window's memory; ``root/training/model.pt``."""
+    return _train_on(root, TRAIN_WINDOWS, root / "training", epochs, seed)
+
+
+def _mean_std(x: np.ndarray) -> list[float]:
+    return [float(np.mean(x)), float(np.std(x))]
 
 
 def _figures(metrics: dict[str, Any], r: int) -> dict[str, Any]:
@@ -152,8 +165,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
             a = np.array([r["round0"].get(k) for r in sel], float)
             b = np.array([r["pretrained"].get(k) for r in sel], float)
             rel = (b - a) / a
-            d[k] = {"round0": [float(np.mean(a)), float(np.std(a))], "pretrained": [float(np.mean(b)), float(np.std(b))],
-                    "relative_change": [float(np.mean(rel)), float(np.std(rel))],
+            d[k] = {"round0": _mean_std(a), "pretrained": _mean_std(b), "relative_change": _mean_std(rel),
                     "better_in": int(np.sum(b < a))}
         out[str(ch)] = d
     return out
@@ -170,14 +182,9 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
     on ``channels``-channel scans of the same worlds and frames (same number of edges and epochs),
     both used without training on the held-out windows at that channel count. Round 0 of each
     held-out run is reused from :func:`evaluate` (copied), so only round 1 differs."""
-    from gr_graph.config import TrainingConfig
-    from training.train import train_from_memory
-
     wins = per_count_windows(channels)
-    _parallel(jobs, lambda w: _slam(root / "windows" / w.name, w, ["--rounds", "0"]), wins)
-    cfg = TrainingConfig(epochs=epochs, seed=TRAIN_SEED).trainer_config("cpu", progress=True)
-    weights = train_from_memory([root / "windows" / w.name / "round_0" / "memory" for w in wins],
-                                root / f"training_{channels}_only", cfg)
+    memories(root, jobs, wins)
+    weights = _train_on(root, wins, root / f"training_{channels}_only", epochs)
     evals = [w for w in EVAL_WINDOWS if w.channels == channels]
 
     def one(w: Window) -> dict[str, Any]:
@@ -196,8 +203,7 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
     for k in METRICS:
         a = np.array([r["all_counts"].get(k) for r in rows], float)
         b = np.array([r["per_count"].get(k) for r in rows], float)
-        summary[k] = {"all_counts": [float(np.mean(a)), float(np.std(a))],
-                      "per_count": [float(np.mean(b)), float(np.std(b))], "per_count_better_in": int(np.sum(b < a))}
+        summary[k] = {"all_counts": _mean_std(a), "per_count": _mean_std(b), "per_count_better_in": int(np.sum(b < a))}
     res = {"weights_per_count": str(weights), "rows": rows, "summary": summary}
     atomic_write_json(root / f"per_count_{channels}.json", res)
     return res

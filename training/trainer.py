@@ -176,7 +176,6 @@ class Trainer:
         if not memories:
             raise TrainingError("no memory to train on")
         self.memory = memories[0]
-        self.memories = memories
         self.out_dir = Path(out_dir)
         self.config = config
         self.rank = rank
