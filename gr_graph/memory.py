@@ -28,6 +28,8 @@ import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -219,7 +221,9 @@ class Memory:
             if c[:, 0].min() < 0 or c[:, 0].max() >= sizes[k] or c[:, 1].min() < 0 or c[:, 1].max() >= sizes[l]:
                 raise MemoryFormatError(f"edge {e} ({k}, {l}): correspondence index out of range")
         for name in ("points", "poses", "edge_T", "edge_H"):
-            if not np.all(np.isfinite(getattr(self, name))):
+            arr = getattr(self, name)
+            step = 1 << 18  # rows per check: no full-size temporary for a large memory-mapped array
+            if not all(np.isfinite(arr[i:i + step]).all() for i in range(0, len(arr), step)):
                 raise MemoryFormatError(f"{name}: non-finite values")
 
     # ------------------------------------------------------------------ I/O
@@ -230,34 +234,89 @@ class Memory:
         into place; an existing memory is only removed after the new one is complete.
         """
         self.validate()
-        target = Path(directory)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
-        try:
-            tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
+        with _atomic_directory(directory) as tmp:
             for name in _ARRAYS:
                 np.save(tmp / f"{name}.npy", np.ascontiguousarray(getattr(self, name)))
-            meta = {
-                "format": FORMAT_NAME,
-                "version": FORMAT_VERSION,
-                "n_scans": self.n_scans,
-                "n_edges": self.n_edges,
-                "n_points": int(len(self.points)),
-                "n_correspondences": int(len(self.corr)),
-                "info": self.info,
-            }
-            (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
-            old = None
-            if target.exists():
-                old = target.with_name(f".{target.name}.old-{os.getpid()}")
-                os.replace(target, old)
-            os.replace(tmp, target)
-            if old is not None:
-                shutil.rmtree(old, ignore_errors=True)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return target
+            _write_meta(tmp, self.n_scans, self.n_edges, len(self.points), len(self.corr), self.info)
+        return Path(directory)
+
+
+@contextmanager
+def _atomic_directory(directory: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary sibling of ``directory`` to fill; on success rename it into place (an
+    existing directory is removed only after the new one is complete), on failure delete it."""
+    target = Path(directory)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
+        yield tmp
+        old = None
+        if target.exists():
+            old = target.with_name(f".{target.name}.old-{os.getpid()}")
+            os.replace(target, old)
+        os.replace(tmp, target)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_meta(directory: Path, n_scans: int, n_edges: int, n_points: int, n_corr: int,
+                info: dict[str, Any]) -> None:
+    meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "n_scans": int(n_scans), "n_edges": int(n_edges),
+            "n_points": int(n_points), "n_correspondences": int(n_corr), "info": info}
+    (directory / "meta.json").write_text(json.dumps(meta, indent=2))
+
+
+def _write_concatenated(path: Path, parts: Sequence[np.ndarray], dtype: Any, width: int) -> np.ndarray:
+    """Write ``parts`` (each ``(n_i, width)``) one after another into the ``.npy`` file ``path``
+    without concatenating them in RAM; return the offsets ``(len(parts) + 1,)`` int64."""
+    sizes = [len(p) for p in parts]
+    offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=(int(offsets[-1]), width))
+    for i, p in enumerate(parts):
+        if sizes[i]:
+            out[offsets[i]:offsets[i + 1]] = np.asarray(p).reshape(-1, width)
+    out.flush()
+    del out
+    return offsets
+
+
+def save_memory_from_scans(
+    directory: str | os.PathLike[str],
+    scans: Sequence[np.ndarray],
+    poses: np.ndarray,
+    edges: list[tuple[int, int]],
+    edge_kind: list[int],
+    edge_T: list[np.ndarray],
+    edge_H: list[np.ndarray],
+    corr: Sequence[np.ndarray],
+    info: dict[str, Any] | None = None,
+) -> "Memory":
+    """Write a memory from per-scan and per-edge lists, streaming, atomically; read it back.
+
+    Same arguments and result as ``Memory.from_scans(...).save(directory)``, but the points and
+    correspondences go straight from the lists into memory-mapped ``.npy`` files: no
+    concatenated copy of them is ever held in RAM (for a full KITTI sequence at 64 channels
+    that copy is about 1 GB). The written memory is validated before it is renamed into place
+    and returned memory-mapped (:func:`load_memory`).
+    """
+    with _atomic_directory(directory) as tmp:
+        scan_offsets = _write_concatenated(tmp / "points.npy", scans, np.float32, 3)
+        corr_offsets = _write_concatenated(tmp / "corr.npy", corr, np.int32, 2)
+        small = {"scan_offsets": scan_offsets, "poses": np.asarray(poses, np.float64).reshape(-1, 4, 4),
+                 "edges": np.asarray(edges, np.int64).reshape(-1, 2),
+                 "edge_kind": np.asarray(edge_kind, np.uint8).reshape(-1),
+                 "edge_T": np.asarray(edge_T, np.float64).reshape(-1, 4, 4),
+                 "edge_H": np.asarray(edge_H, np.float64).reshape(-1, 6, 6), "corr_offsets": corr_offsets}
+        for name, arr in small.items():
+            np.save(tmp / f"{name}.npy", arr)
+        _write_meta(tmp, len(scans), len(small["edges"]), int(scan_offsets[-1]), int(corr_offsets[-1]),
+                    dict(info or {}))
+        mem = load_memory(tmp)  # validates the files before they replace anything
+    return mem  # its maps stay valid after the rename (POSIX)
 
 
 def load_memory(directory: str | os.PathLike[str], mmap: bool = True) -> Memory:

@@ -16,6 +16,9 @@ caller adds (round, channels, source...).
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,7 +27,7 @@ from tqdm import tqdm
 from gr_graph.config import SlamConfig
 from gr_graph.correspondences import nearest_correspondences, target_tree
 from gr_graph.frame_loop import SlamResult
-from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory
+from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory, save_memory_from_scans
 
 __all__ = ["EDGE_H_DESCRIPTION", "build_memory"]
 
@@ -33,7 +36,7 @@ EDGE_H_DESCRIPTION = ("registration Hessian (small_gicp, unscaled); flagged edge
 
 
 def build_memory(result: SlamResult, cfg: SlamConfig, info: dict[str, Any] | None = None,
-                 scans: list[np.ndarray] | None = None) -> Memory:
+                 scans: Sequence[np.ndarray] | None = None, directory: str | Path | None = None) -> Memory:
     """The memory of a SLAM run (see the module docstring).
 
     Parameters
@@ -47,6 +50,11 @@ def build_memory(result: SlamResult, cfg: SlamConfig, info: dict[str, Any] | Non
     scans : list of (N_k, 3) arrays, optional
         The scans to store (default: ``result.scans``); learning rounds store round 0's raw
         downsampled scans. Correspondences are searched among these.
+    directory : path, optional
+        Write the memory there (atomically) while assembling it, with no concatenated copy of
+        the points and correspondences in RAM, and return it memory-mapped
+        (:func:`gr_graph.memory.save_memory_from_scans`). Without it the memory is assembled in
+        RAM (:meth:`Memory.from_scans`).
     """
     scans = result.scans if scans is None else scans
     if len(scans) != len(result.poses):
@@ -67,7 +75,8 @@ def build_memory(result: SlamResult, cfg: SlamConfig, info: dict[str, Any] | Non
             Ts[e] = T
             corr[e] = nearest_correspondences(scans[edge.source], tree, T, cfg.odometry.corr_max_distance, threads)
     H = [edge.H_raw if edge.ok else edge.information for edge in result.edges]
-    return Memory.from_scans(
+    assemble = Memory.from_scans if directory is None else partial(save_memory_from_scans, directory)
+    return assemble(
         scans=scans,
         poses=poses,
         edges=[(e.source, e.target) for e in result.edges],

@@ -435,11 +435,11 @@ class SlamPipeline:
             raw = load_memory(self.round_dir(0) / "memory")
             if raw.n_scans != len(res.scans):
                 raise RuntimeError(f"round {r}: round 0 memory has {raw.n_scans} scans, this round {len(res.scans)}")
-            scans = [np.array(raw.scan(k)) for k in range(raw.n_scans)]
+            scans = [raw.scan(k) for k in range(raw.n_scans)]  # memory-mapped views, no copy in RAM
             del raw
         info = {"round": r, "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
                 "source": self.source_description, "edge_H": EDGE_H_DESCRIPTION}
-        build_memory(res, self.cfg, info=info, scans=scans).save(self.round_dir(r) / "memory")
+        build_memory(res, self.cfg, info=info, scans=scans, directory=self.round_dir(r) / "memory")
 
     def _anchored_gt(self) -> np.ndarray | None:
         gt = self.sequence.gt_poses

@@ -8,11 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gr_graph.memory import EDGE_LOOP, EDGE_ODOMETRY, Memory, MemoryFormatError, load_memory
+from gr_graph.memory import (
+    EDGE_LOOP,
+    EDGE_ODOMETRY,
+    Memory,
+    MemoryFormatError,
+    load_memory,
+    save_memory_from_scans,
+)
 
 
-def _memory(rng: np.random.Generator, n_scans: int = 4) -> Memory:
-    scans = [rng.normal(size=(int(rng.integers(50, 80)), 3)) for _ in range(n_scans)]
+def _memory_parts(rng: np.random.Generator, n_scans: int = 4, n_points: tuple[int, int] = (50, 80)) -> dict:
+    scans = [rng.normal(size=(int(rng.integers(*n_points)), 3)).astype(np.float32) for _ in range(n_scans)]
     poses = np.tile(np.eye(4), (n_scans, 1, 1))
     poses[:, 0, 3] = np.arange(n_scans)
     edges = [(k, k + 1) for k in range(n_scans - 1)] + [(n_scans - 1, 0)]
@@ -23,7 +30,12 @@ def _memory(rng: np.random.Generator, n_scans: int = 4) -> Memory:
         np.stack([rng.integers(0, len(scans[k]), 30), rng.integers(0, len(scans[l]), 30)], 1)
         for k, l in edges
     ]
-    return Memory.from_scans(scans, poses, edges, kinds, edge_T, edge_H, corr, info={"round": 0})
+    return {"scans": scans, "poses": poses, "edges": edges, "edge_kind": kinds, "edge_T": edge_T,
+            "edge_H": edge_H, "corr": corr, "info": {"round": 0}}
+
+
+def _memory(rng: np.random.Generator, n_scans: int = 4) -> Memory:
+    return Memory.from_scans(**_memory_parts(rng, n_scans))
 
 
 def test_round_trip_memory_mapped(tmp_path: Path) -> None:
@@ -93,3 +105,45 @@ def test_saved_memory_has_usual_permissions(tmp_path: Path) -> None:
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "m").stat().st_mode) == 0o755
+
+
+def test_streaming_write_gives_the_same_files(tmp_path: Path) -> None:
+    parts = _memory_parts(np.random.default_rng(6), 5)
+    parts["corr"][1] = np.zeros((0, 2), np.int64)  # an edge without correspondences
+    Memory.from_scans(**parts).save(tmp_path / "a")
+    mem = save_memory_from_scans(tmp_path / "b", **parts)
+    assert isinstance(mem.points, np.memmap) and mem.n_scans == 5 and mem.info == {"round": 0}
+    for f in sorted((tmp_path / "a").iterdir()):
+        assert (tmp_path / "b" / f.name).read_bytes() == f.read_bytes(), f.name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]  # no temporary leftovers
+
+
+def test_streaming_write_holds_no_concatenated_copy(tmp_path: Path) -> None:
+    """tracemalloc sees numpy's allocations: assembling in RAM needs a second copy of every
+    point and correspondence, the streaming writer (memory-mapped files) does not."""
+    import tracemalloc
+
+    parts = _memory_parts(np.random.default_rng(7), 40, (20_000, 20_001))
+    parts["corr"] = [np.stack([np.arange(20_000), np.arange(20_000)], 1).astype(np.int32) for _ in parts["edges"]]
+    payload = sum(s.nbytes for s in parts["scans"]) + sum(c.nbytes for c in parts["corr"])
+    peaks = {}
+    for name, write in (("ram", lambda d: Memory.from_scans(**parts).save(d)),
+                        ("stream", lambda d: save_memory_from_scans(d, **parts))):
+        tracemalloc.start()
+        write(tmp_path / name)
+        peaks[name] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    assert peaks["ram"] > payload  # the control: the in-RAM assembly holds the concatenation
+    assert peaks["stream"] < 0.1 * payload, peaks
+    np.testing.assert_array_equal(load_memory(tmp_path / "stream").points, load_memory(tmp_path / "ram").points)
+
+
+def test_failed_streaming_write_keeps_previous(tmp_path: Path) -> None:
+    rng = np.random.default_rng(8)
+    save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 3))
+    bad = _memory_parts(rng, 4)
+    bad["corr"][0][0, 0] = 10_000
+    with pytest.raises(MemoryFormatError, match="correspondence index out of range"):
+        save_memory_from_scans(tmp_path / "m", **bad)
+    assert load_memory(tmp_path / "m").n_scans == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]
