@@ -12,6 +12,7 @@ import pytest
 
 from gr_graph.config import PreprocessConfig, TrainingConfig, load_config
 from gr_graph.experiments import aggregate as agg
+from gr_graph.experiments import report
 from gr_graph.experiments import run_cell as rc
 from gr_graph.experiments.cells import (
     ABLATION_WINDOW,
@@ -314,6 +315,33 @@ def test_ablation_differences_and_the_consistency_rule():
     assert d["consistent"]  # all positive and the mean gap exceeds the spread
     assert not s["untrained"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]["consistent"]  # signs disagree
     assert s["default"]["steps"]["1-step"]["diff_rpe300_consecutive_mean"]["values"] == [0.0, 0.0, 0.0]
+
+
+def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path, monkeypatch):
+    # seed 0 helps in both rounds; seed 1's round 1 is worse and rejected, its round 2 better and accepted
+    rpe = {0: [0.40, 0.30, 0.20], 1: [0.40, 0.60, 0.35]}
+    acc = {0: [True, True], 1: [False, True]}
+    res = []
+    for seed in rpe:
+        r = _t1_result(seed, rpe[seed], acc[seed], group="default")
+        r["what"] = "default method, 16 channels"
+        res.append(r)
+    s = agg.ablation_summary(res)["default"]
+    red1 = s["steps"]["1-step"]["reduction_rpe300_consecutive_mean"]
+    assert red1["values"] == pytest.approx([25.0, -50.0])
+    g = s["steps"]["2-step guarded"]
+    assert [p["round"] for p in g["per_seed"]] == [2, 0]  # seed 1 stops at round 0: round 1 was rejected
+    assert g["reduction_rpe300_consecutive_mean"]["values"] == pytest.approx([50.0, 0.0])
+    assert s["acceptance_2x2"] == {"accepted_better": 3, "accepted_worse": 0, "rejected_better": 0,
+                                   "rejected_worse": 1}
+    monkeypatch.setattr(report, "_figures", lambda *a, **k: {})
+    cells = [c for c in cells_for("ablations", "paper") if c.group == "default" and c.seed in (0, 1)]
+    monkeypatch.setattr(report, "read_cell_result", lambda root, c: res[c.seed])
+    md = report.write_report("ablations", tmp_path, BUDGETS["paper"], cells, "cmd").read_text()
+    assert "| round 0 (all) | raw | 0.440 ± 0.000 | 0.400 ± 0.000 | 0.200 ± 0.000 | n/a | | |" in md
+    assert "| default | 1-step | -12.5 ± 53.0 % |" in md
+    assert "| default | 2-step guarded | 25.0 ± 35.4 % |" in md
+    assert "3 / 0 | 0 / 1 |" in md
 
 
 # ----------------------------------------------------------------------------- the new options

@@ -178,9 +178,11 @@ def table2_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default") -> dict[str, Any]:
-    """Per ablation and step (1-step, 2-step): metric mean +- std over seeds and the per-seed
-    difference to the ``baseline`` cell of the same seed (mean +- std, and whether all seeds
-    agree in sign with ``|mean| > std``: the rule for changing a default)."""
+    """Per ablation and step (raw, 1-step, 2-step, 2-step guarded): metric mean +- std over seeds,
+    the per-seed reduction against the cell's own round 0 (what the learning rounds bring), the
+    per-seed difference to the ``baseline`` cell of the same seed (mean +- std, and whether all
+    seeds agree in sign with ``|mean| > std``: the rule for changing a default) and the 2x2
+    acceptance count of the ablation's learning rounds."""
     by: dict[str, dict[int, dict[str, Any]]] = {}
     for c in results:
         by.setdefault(c["definition"]["group"], {})[c["definition"]["seed"]] = c
@@ -188,12 +190,15 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
     base = by.get(baseline, {})
     for name, cells in by.items():
         steps: dict[str, Any] = {}
-        for step in ("raw", "1-step", "2-step"):
+        for step in ("raw", "1-step", "2-step", "2-step guarded"):
             per_seed = []
             for seed, c in sorted(cells.items()):
                 r, note = select_round(c["rounds"], step)
                 fig = c["rounds"][str(r)]["slam"] if r is not None else {}
-                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig}
+                raw = c["rounds"].get("0", {}).get("slam", {})
+                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig,
+                                       **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k))
+                                          for k in METRIC_KEYS}}
                 b = base.get(seed)
                 if b is not None:
                     rb, _ = select_round(b["rounds"], step)
@@ -203,7 +208,9 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                                             else fig[k] - bfig[k])
                 per_seed.append(row)
             entry: dict[str, Any] = {"per_seed": per_seed, **{k: mean_std(p.get(k) for p in per_seed)
-                                                              for k in METRIC_KEYS}}
+                                                              for k in METRIC_KEYS},
+                                     **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
+                                        for k in METRIC_KEYS}}
             for k in METRIC_KEYS:
                 diff = mean_std(p.get(f"diff_{k}") for p in per_seed)
                 vals = diff["values"]
@@ -212,5 +219,6 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                 entry[f"diff_{k}"] = diff
             steps[step] = entry
         out[name] = {"what": next(iter(cells.values()))["what"].split(",")[0], "seeds": sorted(cells),
-                     "steps": steps, "reuse": {s: c.get("reuse") for s, c in sorted(cells.items())}}
+                     "steps": steps, "reuse": {s: c.get("reuse") for s, c in sorted(cells.items())},
+                     "acceptance_2x2": acceptance_counts(list(cells.values()))}
     return out
