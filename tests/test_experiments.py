@@ -35,7 +35,7 @@ def test_cells_have_unique_keys_and_paired_seeds(table, budget):
     assert len({c.key for c in cells}) == len(cells)
     assert len({c.fingerprint() for c in cells}) == len(cells)
     for c in cells:
-        assert c.table == table and c.est_cpu_minutes > 0
+        assert c.table == table and c.est_minutes > 0
         if c.kind == "slam":
             cfg = load_config(None, c.overrides)  # a valid configuration
             assert cfg.seed == cfg.training.seed == c.seed  # world seed i with training seed i
@@ -111,8 +111,8 @@ def test_list_prints_index_key_estimate(capsys, tmp_path):
     cells = cells_for("table1", "paper")
     for i, c in enumerate(cells):
         line = next(ln for ln in out.splitlines() if ln.split()[:2] == [str(i), c.key])
-        assert f"{c.est_cpu_minutes:.1f}" in line and c.what in line
-    assert f"{len(cells)} cells, estimated {sum(c.est_cpu_minutes for c in cells):.0f} CPU minutes" in out
+        assert f"{c.est_minutes:.1f}" in line and c.what in line
+    assert f"{len(cells)} cells, estimated {sum(c.est_minutes for c in cells):.0f} minutes" in out
 
 
 def test_bad_cell_index_is_an_error(capsys, tmp_path):

@@ -4,7 +4,7 @@ One resumable command per table; each cell is its own resumable run in
 ``ROOT/<table>/<cell-key>/`` that can also be launched alone, so a cluster scheduler can
 spread the cells over machines::
 
-    python -m gr_graph.experiments table1 --list                 # index, key, what, estimated CPU minutes
+    python -m gr_graph.experiments table1 --list                 # index, key, what, estimated minutes on 2 cores
     python -m gr_graph.experiments table1 --root runs/exp        # every unfinished cell in order, then the report
     python -m gr_graph.experiments table1 --root runs/exp --cell 3   # one cell (index or key)
     python -m gr_graph.experiments table1 --root runs/exp --report --publish   # report only -> benchmarks/results

@@ -41,13 +41,15 @@ PAPER_REDUCTIONS = {16: {1: 35.6, 2: 49.5}, 32: {1: 39.1, 2: 47.8}, 64: {1: 4.9,
 PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "best_step": 96.0},
                       64: {"raw": 97.0, "best_step": 98.0}}
 
-# CPU seconds per frame, measured on the full 16-channel 2-round run (issue 10): round 0 166 s,
-# training 799 s for 3 epochs, densified-frame wait 319 s, SLAM < 120 s per learning round, for
-# 4,541 frames. Other channel counts scaled by their points per scan (rough).
-_S_ROUND0 = 166 / 4541
-_S_EPOCH = 799 / 3 / 4541
-_S_DENSIFY = 319 / 4541
-_S_SLAM = 120 / 4541
+# Wall seconds per frame on the 2-core reference machine (no other load), 16 channels, `kitti`
+# preset, measured on the ablation cells (frames 0:600, 2026-12-02): round 0 (rendering, SLAM,
+# memory) 85 s; one training epoch 133 s (605 edges); a learning round's densification 176 s
+# (rendering again + the network on every frame) and SLAM 22 s. 32/64 channels scaled by their
+# points per scan (rough, not measured).
+_S_ROUND0 = 0.15
+_S_EPOCH = 0.22
+_S_DENSIFY = 0.29
+_S_SLAM = 0.04
 _S_KISS = 0.03  # rendering again + KISS-ICP, per frame
 _CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
 _S_PAIR = 3.0  # two scans (densified) + KISS-Matcher + FPFH/RANSAC per pair
@@ -109,12 +111,12 @@ class Cell:
     overrides: dict[str, Any] = field(default_factory=dict)
     source: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
-    est_cpu_minutes: float = 0.0
+    est_minutes: float = 0.0  # wall minutes on 2 cores, rough (constants above)
 
     def definition(self) -> dict[str, Any]:
         """Everything that determines the cell's result (JSON-serialisable; no estimate)."""
         d = asdict(self)
-        d.pop("est_cpu_minutes")
+        d.pop("est_minutes")
         d["frames"] = list(self.frames)
         return d
 
@@ -124,7 +126,7 @@ class Cell:
 
 
 def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, kiss_icp: bool) -> float:
-    """Rough CPU minutes of a SLAM cell (constants above)."""
+    """Rough wall minutes of a SLAM cell on 2 cores (constants above)."""
     f = _CHANNEL_FACTOR[channels]
     s = frames * f * (_S_ROUND0 + rounds * (epochs * _S_EPOCH + _S_DENSIFY + _S_SLAM))
     if kiss_icp:
@@ -133,7 +135,7 @@ def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, 
 
 
 def estimate_registration_minutes(n_pairs: int, channels: int) -> float:
-    """Rough CPU minutes of a Table II cell."""
+    """Rough wall minutes of a Table II cell on 2 cores (unmeasured guess: 3 s a pair)."""
     return round(n_pairs * _S_PAIR * _CHANNEL_FACTOR[channels] / 60.0, 1)
 
 
@@ -167,17 +169,17 @@ def table1_cells(budget: Budget) -> list[Cell]:
             cells.append(Cell("table1", f"{ch}ch-s{s}", f"{ch} channels, frames {w[0]}:{w[1]}, 2 rounds, seed {s}",
                               "slam", s, ch, w, f"{ch}ch", _slam_overrides(budget, s, ch, w, 2),
                               params={"kiss_icp": True, "rounds": 2},
-                              est_cpu_minutes=estimate_slam_minutes(w[1] - w[0], ch, 2, budget.epochs, True)))
+                              est_minutes=estimate_slam_minutes(w[1] - w[0], ch, 2, budget.epochs, True)))
     s = budget.seeds[0]
     cells.append(Cell("table1", f"64ch-s{s}", f"64 channels, frames {w[0]}:{w[1]}, 1 round, seed {s}", "slam", s, 64,
                       w, "64ch", _slam_overrides(budget, s, 64, w, 1), params={"kiss_icp": True, "rounds": 1},
-                      est_cpu_minutes=estimate_slam_minutes(w[1] - w[0], 64, 1, budget.epochs, True)))
+                      est_minutes=estimate_slam_minutes(w[1] - w[0], 64, 1, budget.epochs, True)))
     if budget.full is not None:
         f = budget.full
         cells.append(Cell("table1", f"full-16ch-s{s}", f"headline: 16 channels, frames {f[0]}:{f[1]}, 2 rounds, "
                           f"seed {s}", "slam", s, 16, f, "full-16ch", _slam_overrides(budget, s, 16, f, 2),
                           params={"kiss_icp": True, "rounds": 2},
-                          est_cpu_minutes=estimate_slam_minutes(f[1] - f[0], 16, 2, budget.epochs, True)))
+                          est_minutes=estimate_slam_minutes(f[1] - f[0], 16, 2, budget.epochs, True)))
     return cells
 
 
@@ -195,7 +197,7 @@ def table2_cells(budget: Budget) -> list[Cell]:
                               src.channels, src.frames, f"{src.channels}ch", source=f"table1/{src.key}",
                               params={"round": r, "n_pairs": budget.n_pairs, "max_distance": 10.0,
                                       "solvers": ["kiss_matcher", "fpfh_ransac"]},
-                              est_cpu_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
+                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
     return cells
 
 
@@ -208,15 +210,16 @@ def ablation_cells(budget: Budget) -> list[Cell]:
         for name, (what, training, reuse) in ABLATIONS.items():
             rounds = 2
             epochs = 0 if training.get("covariances") == "pca" or training.get("epochs") == 0 else budget.epochs
-            trained_rounds = rounds if reuse != "round1_training" else rounds - 1
-            est = estimate_slam_minutes(w[1] - w[0], 16, trained_rounds, epochs, False)
+            est = estimate_slam_minutes(w[1] - w[0], 16, rounds, epochs, False)
             if reuse is not None:
                 est -= estimate_slam_minutes(w[1] - w[0], 16, 0, 0, False)  # round 0 reused
+            if reuse == "round1_training":
+                est -= (w[1] - w[0]) * epochs * _S_EPOCH / 60.0  # round 1's training reused
             cells.append(Cell("ablations", f"{name}-s{s}", f"{what}, 16 channels, frames {w[0]}:{w[1]}, seed {s}",
                               "slam", s, 16, w, name, _slam_overrides(budget, s, 16, w, rounds, training),
                               source=None if reuse is None else f"ablations/default-s{s}",
                               params={"kiss_icp": False, "rounds": rounds, "reuse": reuse},
-                              est_cpu_minutes=round(max(est, 0.1), 1)))
+                              est_minutes=round(max(est, 0.1), 1)))
     return cells
 
 

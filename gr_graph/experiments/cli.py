@@ -44,7 +44,7 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
                     help="results root; cells go to DIR/<table>/<key> (default: runs/experiments[-<budget>])")
     ap.add_argument("--budget", choices=tuple(BUDGETS), default="paper",
                     help="paper: the issue's protocol; smoke: tiny sizes to test the machinery")
-    ap.add_argument("--list", action="store_true", help="print the cells (index, key, estimated CPU minutes, what)")
+    ap.add_argument("--list", action="store_true", help="print the cells (index, key, estimated wall minutes on 2 cores, what)")
     ap.add_argument("--cell", default=None, metavar="K", help="run only cell K (index or key)")
     ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")
     ap.add_argument("--publish", action="store_true",
@@ -55,13 +55,13 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
 
 
 def list_cells(cells: list[Cell], root: Path | None = None) -> str:
-    """One line per cell: index, key, estimated CPU minutes, done/-, what; then the total."""
-    rows = [f"{'#':>3}  {'key':<24} {'est. CPU min':>12}  {'done':<4}  what"]
+    """One line per cell: index, key, estimated wall minutes (2 cores), done/-, what; then the total."""
+    rows = [f"{'#':>3}  {'key':<24} {'est. min':>12}  {'done':<4}  what"]
     for i, c in enumerate(cells):
         done = "yes" if root is not None and is_done(root, c) else "-"
-        rows.append(f"{i:>3}  {c.key:<24} {c.est_cpu_minutes:>12.1f}  {done:<4}  {c.what}")
-    total = sum(c.est_cpu_minutes for c in cells)
-    rows.append(f"{len(cells)} cells, estimated {total:.0f} CPU minutes ({total / 60:.1f} h)")
+        rows.append(f"{i:>3}  {c.key:<24} {c.est_minutes:>12.1f}  {done:<4}  {c.what}")
+    total = sum(c.est_minutes for c in cells)
+    rows.append(f"{len(cells)} cells, estimated {total:.0f} minutes ({total / 60:.1f} h) on 2 cores")
     return "\n".join(rows)
 
 

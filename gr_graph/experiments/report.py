@@ -2,7 +2,7 @@
 ``benchmarks/results/<table>.md`` with its figures in ``benchmarks/results/figures/``).
 
 Every report states the exact command, the seeds, the budget (cells, frames, seeds, estimated
-and measured CPU time), the machine, which cells are missing, and the conventions of
+and measured time), the machine, which cells are missing, and the conventions of
 :mod:`gr_graph.experiments.aggregate`.
 """
 
@@ -32,8 +32,8 @@ def machine_line() -> str:
 
 
 def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[str]:
-    """The budget paragraph: cells, frames, seeds, estimated and measured CPU time."""
-    est = sum(c.est_cpu_minutes for c in cells)
+    """The budget paragraph: cells, frames, seeds, estimated and measured time."""
+    est = sum(c.est_minutes for c in cells)
     done = [results[c.key] for c in cells if c.key in results]
     cpu = sum(d.get("cpu_s", 0.0) for d in done) / 60.0
     wall = sum(d.get("wall_s", 0.0) for d in done) / 60.0
@@ -42,8 +42,9 @@ def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[st
              f"seeds {', '.join(map(str, budget.seeds))} (world seed i paired with training seed i), "
              f"{budget.epochs} training epochs per round"
              + (f", {budget.n_pairs} pairs per registration cell" if table == "table2" else ""),
-             f"- estimated CPU time of all cells: {est:.0f} min ({est / 60:.1f} h; rough, from the issue's "
-             f"measured full run); measured on the finished cells: CPU {cpu:.1f} min, wall {wall:.1f} min"]
+             f"- estimated time of all cells: {est:.0f} min ({est / 60:.1f} h) on 2 cores (rough: per-frame "
+             f"costs measured on the 16-channel ablation cells); measured on the finished cells: CPU {cpu:.1f} min, "
+             f"wall {wall:.1f} min"]
     missing = [f"{i} `{c.key}`" for i, c in enumerate(cells) if c.key not in results]
     if missing:
         lines.append(f"- **missing cells** (not finished): {', '.join(missing)}")
@@ -255,7 +256,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     fig_lines = list(figs.items())
     doc = {"table": table, "command": command, "budget": budget.name, "seeds": list(budget.seeds),
            "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
-                                                        "est_cpu_minutes": c.est_cpu_minutes}
+                                                        "est_minutes": c.est_minutes}
                                                 for i, c in enumerate(cells)},
            "summary": summary, "figures": {k: str(v) for k, v in figs.items()}}
     fig_md = ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""] if fig_lines else []

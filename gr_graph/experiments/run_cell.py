@@ -229,7 +229,7 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
            "definition": cell.definition(), "device": device, "command": command,
            "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-           "est_cpu_minutes": cell.est_cpu_minutes, **result}
+           "est_minutes": cell.est_minutes, **result}
     atomic_write_json(d / CELL_JSON, doc)
     return doc
 
