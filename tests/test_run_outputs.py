@@ -178,3 +178,22 @@ def test_learning_run_outputs_and_slam_viz(learning_run, monkeypatch, capsys) ->
     assert main([*argv, "--viz"]) == 0
     err = capsys.readouterr().err
     assert "--viz: no display" in err and str(map_path(run_dir / "round_1")) in err
+
+
+def test_voxel_map_merge_memory_stays_near_the_map() -> None:
+    """Merging a batch into a large map must not copy the map several times over: the peak
+    (tracemalloc sees numpy's buffers) stays under 2.5x the map's own arrays plus a bounded
+    cost per buffered point, however large the map has grown."""
+    import tracemalloc
+
+    rng = np.random.default_rng(1)
+    vmap = VoxelMap(1.0, flush_points=20_000)
+    tracemalloc.start()
+    for i in range(60):  # 60 x 20,000 points, nearly all in new voxels: the map grows to ~1.2 M voxels
+        vmap.add(rng.uniform(-1000, 1000, (20_000, 3)) + [0.0, 0.0, 4000.0 * (i % 2)])
+    n_voxels = len(vmap)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    map_bytes = n_voxels * (8 + 24 + 8)  # key, sum, count per voxel
+    assert n_voxels > 1_000_000
+    assert peak < 2.5 * map_bytes + 200 * 20_000, (peak, map_bytes)
