@@ -48,7 +48,7 @@ import numpy as np
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.config import SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
-from gr_graph.datasets.base import LidarSequence, velo_to_cam_poses
+from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_cam_poses
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
@@ -134,7 +134,9 @@ class SlamPipeline:
     ----------
     cfg : SlamConfig
     sequence : LidarSequence, optional
-        Use this sequence instead of opening ``cfg.data`` (tests, notebooks).
+        Use this sequence instead of opening ``cfg.data`` (tests, notebooks). A sequence the
+        pipeline opens itself has its render cache (the synthetic town, about 2 GB) freed once
+        each round has read its frames; a given sequence is left as it is.
     source_description : str, optional
         One line saying where the data come from (logged and stored in metrics.json).
 
@@ -145,6 +147,7 @@ class SlamPipeline:
                  source_description: str | None = None) -> None:
         self.cfg = cfg
         self.out = Path(cfg.output.out_dir)
+        self.owns_sequence = sequence is None  # opened here: its render cache is freed after each round
         if sequence is None:
             from gr_graph.datasets.registry import open_configured_sequence
 
@@ -378,6 +381,8 @@ class SlamPipeline:
         edge_noise = self.edge_noise(densified)
         res = run_slam(self.sequence if densified is None else densified, self.slam_config(r),
                        desc=f" round {r}", edge_noise=edge_noise)
+        if self.owns_sequence and release_render_cache(self.sequence):  # outputs and training read no frames
+            log.info("round %d: every frame read; the synthetic town is freed (rebuilt if frames are read again)", r)
         mean_points = float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0
         T_cv = np.asarray(self.sequence.T_cam_velo, np.float64)
         timer = StageTimer()

@@ -131,6 +131,33 @@ def test_synthetic_fallback_without_kitti_root(tmp_path, monkeypatch, caplog):
     assert np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) < 0.1  # common camera frame
 
 
+def test_pipeline_frees_the_town_of_the_sequence_it_opened(tmp_path, caplog):
+    from loader_support import write_short_trajectory
+
+    from gr_graph.datasets.synthetic import SyntheticSequence
+    from gr_graph.datasets.synthetic import sequence as synthetic_sequence
+    from gr_graph.pipeline import SlamPipeline
+
+    traj = write_short_trajectory(tmp_path / "t.tum", 8)
+    data = {"dataset": "synthetic", "trajectory": str(traj), "channels": 16, "synthetic_preset": "clean"}
+
+    def config(out: str):
+        return load_config(overrides={"data": data, "output": {"out_dir": str(tmp_path / out), "progress": False,
+                                                               "write_memory": False}})
+
+    given = SyntheticSequence(preset="clean", n_rings=16, trajectory=traj)
+    key = synthetic_sequence._scene_key(given.town_seed, given.path, given.town_config)
+    with caplog.at_level("INFO", logger="gr_graph.pipeline"):
+        SlamPipeline(config("own")).run()
+    assert key not in synthetic_sequence._CACHE  # opened by the pipeline: freed after the round
+    assert any("synthetic town is freed" in r.getMessage() for r in caplog.records)
+    SlamPipeline(config("given"), given).run()
+    assert key in synthetic_sequence._CACHE  # the caller's sequence keeps its town
+    own = read_kitti_poses(tmp_path / "own" / "poses_kitti.txt")
+    np.testing.assert_array_equal(own, read_kitti_poses(tmp_path / "given" / "poses_kitti.txt"))
+    given.release_cache()
+
+
 # ----------------------------------------------------------------------------- revisit run
 
 

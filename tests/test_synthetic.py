@@ -388,3 +388,25 @@ def test_kitti_loader_recovers_the_rendered_rings(tmp_path, seq):
     f = kitti.KittiSequence(out, seq="00")[0]
     assert f.ring is not None
     np.testing.assert_array_equal(f.ring, seq[30].ring)
+
+
+def test_release_cache_frees_the_town_and_frames_come_back_identical(tmp_path):
+    from loader_support import write_short_trajectory
+
+    from gr_graph.datasets.base import release_render_cache
+    from gr_graph.datasets.registry import SequenceView
+    from gr_graph.datasets.synthetic import sequence as synthetic_sequence
+
+    s = SyntheticSequence(preset="clean", n_rings=16, nthreads=1,
+                          trajectory=write_short_trajectory(tmp_path / "t.tum", 6))
+    before = s[3]
+    key = synthetic_sequence._scene_key(s.town_seed, s.path, s.town_config)
+    assert key in synthetic_sequence._CACHE
+    assert release_render_cache(SequenceView(s, 1, 5))  # found through the view's parent
+    assert key not in synthetic_sequence._CACHE
+    assert not release_render_cache(s)  # nothing left to free
+    assert not release_render_cache(object())  # a sequence without a render cache
+    again = s[3]  # rebuilt on demand, the same frame
+    assert key in synthetic_sequence._CACHE
+    np.testing.assert_array_equal(again.points, before.points)
+    np.testing.assert_array_equal(again.intensity, before.intensity)

@@ -140,6 +140,21 @@ def inherit_sweep_attributes(view: Any, parent: Any) -> None:
         view.sensor = parent.sensor
 
 
+def release_render_cache(sequence: Any) -> bool:
+    """Free what ``sequence`` (or the sequence it is a view of, through ``parent``) keeps in
+    memory to make frames, e.g. the synthetic town and its ray-casting scene: the optional
+    method ``release_cache()``. Frames read later are made again, identical. Returns whether
+    anything was freed."""
+    seen: set[int] = set()
+    while sequence is not None and id(sequence) not in seen:
+        seen.add(id(sequence))
+        release = getattr(sequence, "release_cache", None)
+        if callable(release):
+            return bool(release())
+        sequence = getattr(sequence, "parent", None)
+    return False
+
+
 def check_index(index: int, length: int, name: str) -> int:
     """Normalise a (possibly negative) frame index, raising ``IndexError`` when out of range."""
     i = int(index)

@@ -81,11 +81,16 @@ _CACHE_SIZE = 2
 _LOCK = threading.Lock()
 
 
+def _scene_key(town_seed: int, path: SensorPath, town_config: TownConfig | None) -> tuple:
+    """The cache key of the town of ``town_seed`` around ``path``."""
+    return (int(town_seed), path.key(), town_config or TownConfig())
+
+
 def get_town_and_scene(town_seed: int, path: SensorPath,
                        town_config: TownConfig | None = None) -> tuple[Town, object]:
     """The town of ``town_seed`` around ``path`` and its RaycastingScene (cached, built once)."""
-    town_config = town_config or TownConfig()
-    key = (int(town_seed), path.key(), town_config)
+    key = _scene_key(town_seed, path, town_config)
+    town_config = key[2]
     with _LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
@@ -231,6 +236,14 @@ class SyntheticSequence:
     @property
     def n_rings(self) -> int:
         return self.beams.n_rings
+
+    def release_cache(self) -> bool:
+        """Drop this sequence's town and ray-casting scene from the cache (about 2 GB on the
+        default route), e.g. once a SLAM round has read every frame. The next frame read
+        rebuilds them, identical (they are seeded). Returns whether anything was dropped."""
+        key = _scene_key(self.town_seed, self.path, self.town_config)
+        with _LOCK:
+            return _CACHE.pop(key, None) is not None
 
     @property
     def town(self) -> Town:
