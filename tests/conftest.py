@@ -9,7 +9,10 @@ The tests never write into the user's home: ``HOME`` (and with it evo's settings
 also for the subprocesses the tests start.
 
 The short synthetic SLAM runs that several test modules read are made once per session
-(fixtures ``revisit_run`` and ``learning_run``).
+(fixtures ``revisit_run`` and ``learning_run``). The synthetic towns stay cached for the whole
+session: a pipeline frees the town of a sequence it opened after each round (about 2 GB on
+the full route), and the tests run dozens of pipelines on the same few towns, each rebuild
+20-30 s; that release is tested by the tests marked ``frees_render_cache``.
 """
 
 from __future__ import annotations
@@ -36,6 +39,23 @@ def pytest_configure(config: pytest.Config) -> None:
 def pytest_unconfigure(config: pytest.Config) -> None:
     os.environ["HOME"] = str(REAL_HOME)
     _PRIVATE_HOME.cleanup()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _keep_synthetic_towns():
+    """Pipelines keep their synthetic town in the cache during the tests (module docstring)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("gr_graph.pipeline.release_render_cache", lambda sequence: False)
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _free_towns_where_tested(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tests marked ``frees_render_cache`` run the pipeline's real release."""
+    if request.node.get_closest_marker("frees_render_cache") is not None:
+        from gr_graph.datasets.base import release_render_cache
+
+        monkeypatch.setattr("gr_graph.pipeline.release_render_cache", release_render_cache)
 
 
 def _require(path: Path) -> Path:

@@ -131,6 +131,7 @@ def test_synthetic_fallback_without_kitti_root(tmp_path, monkeypatch, caplog):
     assert np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) < 0.1  # common camera frame
 
 
+@pytest.mark.frees_render_cache
 def test_pipeline_frees_the_town_of_the_sequence_it_opened(tmp_path, caplog):
     from loader_support import write_short_trajectory
 
