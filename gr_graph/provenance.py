@@ -61,6 +61,30 @@ def thread_count() -> int | None:
     return int(torch.get_num_threads()) if torch is not None else None
 
 
+def cpu_description() -> dict[str, str | None]:
+    """The CPU model (``/proc/cpuinfo``'s ``model name``, else :func:`platform.processor`) and
+    the instruction set torch's CPU kernels use (``torch.backends.cpu.get_cpu_capability()``,
+    e.g. ``AVX2`` or ``AVX512``; None when torch is not loaded). Float results of training can
+    differ between kernel sets, so a result names both."""
+    model = None
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    model = line.split(":", 1)[1].strip() or None
+                    break
+    except OSError:
+        pass
+    torch = sys.modules.get("torch")
+    capability = None
+    if torch is not None:
+        try:
+            capability = str(torch.backends.cpu.get_cpu_capability())
+        except (AttributeError, RuntimeError):
+            capability = None
+    return {"model": model or platform.processor() or platform.machine() or None, "torch_capability": capability}
+
+
 def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
                num_threads: int | None = None) -> dict[str, Any]:
     """Everything needed to trace and repeat a result.
@@ -79,7 +103,8 @@ def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
     dict
         ``git`` (commit, dirty), ``packages`` (name -> version), ``python``, ``platform``,
         ``seeds``, ``num_threads``, ``torch_threads`` (None when torch is not loaded),
-        ``cpu_count``, ``device`` and the thread-related environment variables that were set.
+        ``cpu_count``, ``cpu`` (:func:`cpu_description`), ``device`` and the thread-related
+        environment variables that were set.
     """
     env_keys = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "CUBLAS_WORKSPACE_CONFIG")
     return {
@@ -91,6 +116,7 @@ def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
         "num_threads": num_threads if num_threads is not None else thread_count(),
         "torch_threads": thread_count(),
         "cpu_count": os.cpu_count(),
+        "cpu": cpu_description(),
         "device": device,
         "environment": {k: os.environ[k] for k in env_keys if k in os.environ},
     }

@@ -299,6 +299,27 @@ def test_metrics_record_provenance(revisit_run):
     assert {"gtsam", "small_gicp", "scipy"} <= set(prov["packages"])
     assert prov["seeds"] == {"world": 0, "training": 0}
     assert prov["device"] == "cpu" and prov["num_threads"] >= 1 and prov["cpu_count"] >= 1
+    assert prov["cpu"]["model"] and prov["cpu"]["torch_capability"]  # learning rounds differ between kernel sets
+
+
+def test_cpu_description_names_the_model_and_torch_kernels():
+    from pathlib import Path
+
+    import torch
+
+    from gr_graph.experiments.report import machine_line
+    from gr_graph.provenance import cpu_description, provenance
+
+    cpu = cpu_description()
+    assert cpu["torch_capability"] == torch.backends.cpu.get_cpu_capability()
+    info = Path("/proc/cpuinfo")
+    names = ([ln.split(":", 1)[1].strip() for ln in info.read_text().splitlines()
+              if ln.lower().startswith("model name")] if info.exists() else [])
+    if names:
+        assert cpu["model"] == names[0]
+    assert cpu["model"]
+    assert provenance()["cpu"] == cpu
+    assert f"{cpu['model']} (torch kernels {cpu['torch_capability']})" in machine_line()
 
 
 def test_cli_route_seed_and_trajectory_reach_the_config(tmp_path):

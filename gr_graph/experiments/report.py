@@ -26,9 +26,14 @@ RESULTS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
 
 def machine_line() -> str:
-    """CPU, core count, Python."""
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.platform()}, "
-            f"Python {platform.python_version()}")
+    """CPU model and torch's kernel instruction set, core count, platform, Python."""
+    import torch  # noqa: F401  (loaded, so that the kernel instruction set is known)
+
+    from gr_graph.provenance import cpu_description
+
+    cpu = cpu_description()
+    return (f"{cpu['model']} (torch kernels {cpu['torch_capability']}), {os.cpu_count()} cores, "
+            f"{platform.platform()}, Python {platform.python_version()}")
 
 
 def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[str]:
