@@ -344,6 +344,14 @@ def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path
     assert "3 / 0 | 0 / 1 |" in md
 
 
+def test_acceptance_count_judges_against_the_last_accepted_round():
+    # round 1 rejected and worse than round 0; round 2 better than round 1 but still worse than
+    # round 0 (the test's reference): worse; an equal round brings nothing: worse
+    cells = [_t1_result(0, [0.40, 0.60, 0.50], [False, False]), _t1_result(1, [0.40, 0.40, 0.30], [False, True])]
+    assert agg.acceptance_counts(cells) == {"accepted_better": 1, "accepted_worse": 0, "rejected_better": 0,
+                                            "rejected_worse": 3}
+
+
 # ----------------------------------------------------------------------------- the new options
 
 

@@ -134,19 +134,25 @@ def table1_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def acceptance_counts(cells: Sequence[dict[str, Any]], key: str = "rpe300_all_pairs_mean") -> dict[str, int]:
-    """2x2 count over the learning rounds of ``cells``: accepted/rejected x better/worse than the
-    previous round by ground truth (``key``); rounds without an ``accepted`` flag are not counted."""
+    """2x2 count over the learning rounds of ``cells``: accepted/rejected x better/worse by ground
+    truth (``key``) than the round the test judged against, the last accepted one (round 0 at
+    first); "better" is strictly lower, so a round equal to its reference counts as worse
+    (no gain). Rounds without an ``accepted`` flag are not counted."""
     counts = {"accepted_better": 0, "accepted_worse": 0, "rejected_better": 0, "rejected_worse": 0}
     for c in cells:
         rounds = c.get("rounds", {})
+        reference = 0
         for r in sorted(int(k) for k in rounds):
-            if r == 0 or rounds[str(r)].get("accepted") is None:
+            accepted = rounds[str(r)].get("accepted")
+            if r == 0 or accepted is None:
                 continue
-            now, before = rounds[str(r)]["slam"].get(key), rounds[str(r - 1)]["slam"].get(key)
-            if now is None or before is None:
-                continue
-            a = "accepted" if rounds[str(r)]["accepted"] else "rejected"
-            counts[f"{a}_{'better' if now <= before else 'worse'}"] += 1
+            now = rounds[str(r)]["slam"].get(key)
+            before = rounds.get(str(reference), {}).get("slam", {}).get(key)
+            if now is not None and before is not None:
+                a = "accepted" if accepted else "rejected"
+                counts[f"{a}_{'better' if now < before else 'worse'}"] += 1
+            if accepted:
+                reference = r
     return counts
 
 

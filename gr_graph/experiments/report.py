@@ -103,7 +103,7 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
             lines += ["", "Notes: " + "; ".join(sorted(set(notes)))]
         a = s["acceptance_2x2"]
         if acceptance:
-            lines += ["", f"Round acceptance vs ground truth (RPE-300 all pairs vs the previous round): accepted "
+            lines += ["", f"Round acceptance vs ground truth (RPE-300 all pairs vs the last accepted round, the one the test judged against; equal counts as worse): accepted "
                       f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
                       f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
         lines.append("")
@@ -137,7 +137,7 @@ def _ablations_md(summary: dict[str, Any]) -> list[str]:
              "## Against round 0: what the learning rounds bring", "",
              "Reduction against the same seed's round 0, per seed, then mean ± std over seeds (positive = the "
              "rounds helped); acceptance: the learning rounds' 2x2 count (accepted/rejected x better/worse than "
-             "the previous round by all-pairs RPE-300).", "",
+             "the last accepted round, the one the test judged against, by all-pairs RPE-300; equal counts as worse).", "",
              "| ablation | step | " + " | ".join(agg.METRIC_LABELS[k].split(" [")[0] for k in keys)
              + " | accepted better / worse | rejected better / worse |", "|---|---|" + "---|" * (len(keys) + 2)]
     if summary:
