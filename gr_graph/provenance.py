@@ -64,14 +64,20 @@ def thread_count() -> int | None:
 def cpu_description() -> dict[str, str | None]:
     """The CPU model (``/proc/cpuinfo``'s ``model name``, else :func:`platform.processor`) and
     the instruction set torch's CPU kernels use (``torch.backends.cpu.get_cpu_capability()``,
-    e.g. ``AVX2`` or ``AVX512``; None when torch is not loaded). Float results of training can
+    e.g. ``AVX2`` or ``AVX512``; None when torch is not loaded, as in a round-0 run) beside the
+    vector extensions the CPU has (``simd``, from ``/proc/cpuinfo``'s flags). Float results of training can
     differ between kernel sets, so a result names both."""
-    model = None
+    model, simd = None, None
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
             for line in f:
-                if line.lower().startswith("model name"):
+                low = line.lower()
+                if model is None and low.startswith("model name"):
                     model = line.split(":", 1)[1].strip() or None
+                elif simd is None and low.startswith("flags"):
+                    flags = set(low.split(":", 1)[1].split())
+                    simd = " ".join(x for x in ("avx512f", "avx2", "fma", "neon", "asimd") if x in flags) or None
+                if model is not None and simd is not None:
                     break
     except OSError:
         pass
@@ -82,7 +88,8 @@ def cpu_description() -> dict[str, str | None]:
             capability = str(torch.backends.cpu.get_cpu_capability())
         except (AttributeError, RuntimeError):
             capability = None
-    return {"model": model or platform.processor() or platform.machine() or None, "torch_capability": capability}
+    return {"model": model or platform.processor() or platform.machine() or None, "simd": simd,
+            "torch_capability": capability}
 
 
 def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
