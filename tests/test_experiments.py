@@ -344,6 +344,77 @@ def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path
     assert "3 / 0 | 0 / 1 |" in md
 
 
+def test_published_report_names_no_path_of_the_machine(tmp_path, monkeypatch):
+    root = tmp_path / "my_machine_root"
+    res = [_t1_result(seed, [0.40, 0.30, 0.20], [True, True], group="default") for seed in (0, 1)]
+    for r in res:
+        r["what"] = "default method, 16 channels"
+    fig = tmp_path / "fig.png"
+    fig.write_bytes(b"png")
+    monkeypatch.setattr(report, "_figures", lambda *a, **k: {"rounds": fig})
+    monkeypatch.setattr(report, "read_cell_result", lambda root, c: res[c.seed])
+    monkeypatch.setattr(report, "RESULTS_DIR", tmp_path / "published")
+    cells = [c for c in cells_for("ablations", "paper") if c.group == "default" and c.seed in (0, 1)]
+    command = f"python -m gr_graph.experiments ablations --root {root}"
+    local = report.write_report("ablations", root, BUDGETS["paper"], cells, command, publish=True)
+    assert str(root) in local.read_text()  # the local report says where its cells are
+    published = [tmp_path / "published" / n for n in ("ablations.md", "ablations.json")]
+    for path in published:
+        text = path.read_text()
+        assert str(tmp_path) not in text, path
+        assert "--root ROOT" in text
+    assert json.loads(published[1].read_text())["figures"] == {"rounds": "figures/fig.png"}
+    assert (tmp_path / "published" / "figures" / "fig.png").read_bytes() == b"png"
+
+
+def _write_round_marginals(round_dir, edge_error: float, position_error: float) -> None:
+    """A 3-pose round along x whose two odometry edges are ``edge_error`` m long in x and whose poses
+    are ``position_error`` m off in y: with information 100 I and marginals 0.01 I both NEES are
+    ``100 edge_error^2`` and ``100 position_error^2`` by hand."""
+    gt = np.stack([np.eye(4)] * 3)
+    gt[:, 0, 3] = [0.0, 1.0, 2.0]
+    poses = gt.copy()
+    poses[1:, 1, 3] += position_error
+    edge_T = np.stack([np.eye(4)] * 2)
+    edge_T[:, 0, 3] = -1.0 - edge_error  # scan k into the frame of scan l = k + 1
+    round_dir.mkdir(parents=True)
+    np.savez(round_dir / "marginals.npz", poses=poses, gt_poses=gt, covariance=np.stack([np.eye(6)] * 3),
+             position_cov_world=np.stack([0.01 * np.eye(3)] * 3), edges=np.array([[0, 1], [1, 2]]),
+             edge_T=edge_T, edge_information=np.stack([100 * np.eye(6)] * 2), edge_kind=np.zeros(2, np.uint8),
+             edge_ok=np.ones(2, bool))
+
+
+def test_reports_carry_nees_of_every_round_from_the_marginals(tmp_path, monkeypatch):
+    cells = [c for c in cells_for("ablations", "paper") if c.group == "default" and c.seed in (0, 1)]
+    res = {}
+    for c in cells:
+        res[c.seed] = _t1_result(c.seed, [0.40, 0.30, 0.20], [True, True], group="default")
+        res[c.seed]["what"] = "default method, 16 channels"
+        slam = rc.cell_dir(tmp_path, c) / "slam"
+        _write_round_marginals(slam / "round_0", 0.1, 0.1 * (1 + c.seed))  # NEES 1; 1 and 4
+        _write_round_marginals(slam / "round_1", 0.3, 0.2)  # 9; 4
+        # round 2 has no marginals: its NEES are missing, the report is still written
+    got = rc.with_noise_consistency(tmp_path, cells[0], res[0])
+    assert got["rounds"]["0"]["nees"] == pytest.approx(
+        {"nees_odometry_mean": 1.0, "nees_loop_mean": None, "nees_position_mean": 1.0})
+    assert got["rounds"]["1"]["nees"]["nees_odometry_mean"] == pytest.approx(9.0)
+    assert got["rounds"]["2"]["nees"] == dict.fromkeys(rc.NEES_KEYS)
+    assert "nees" not in res[0]["rounds"]["0"]  # the cell's result is not changed
+    s = agg.ablation_summary([rc.with_noise_consistency(tmp_path, c, res[c.seed]) for c in cells])["default"]
+    pos = s["steps"]["raw"]["nees_position_mean"]
+    assert pos["values"] == pytest.approx([1.0, 4.0]) and pos["std"] == pytest.approx(np.std([1, 4], ddof=1))
+    assert s["steps"]["1-step"]["nees_odometry_mean"]["mean"] == pytest.approx(9.0)
+    assert s["steps"]["2-step"]["nees_odometry_mean"]["n"] == 0
+    monkeypatch.setattr(report, "_figures", lambda *a, **k: {})
+    monkeypatch.setattr(report, "read_cell_result", lambda root, c: res[c.seed])
+    md = report.write_report("ablations", tmp_path, BUDGETS["paper"], cells, "cmd").read_text()
+    assert "## Noise consistency (NEES against ground truth)" in md
+    assert "| round 0 (all) | raw | 1 ± 0 | n/a | 2.5 ± 2.12 |" in md
+    assert "| default | 1-step | 9 ± 0 | n/a | 4 ± 0 |" in md
+    t1 = agg.table1_summary([rc.with_noise_consistency(tmp_path, c, res[c.seed]) for c in cells])
+    assert t1["default"]["steps"]["1-step"]["nees_position_mean"]["mean"] == pytest.approx(4.0)
+
+
 def test_acceptance_count_judges_against_the_last_accepted_round():
     # round 1 rejected and worse than round 0; round 2 better than round 1 but still worse than
     # round 0 (the test's reference): worse; an equal round brings nothing: worse

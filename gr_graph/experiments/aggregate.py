@@ -22,10 +22,10 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from gr_graph.experiments.cells import PAPER_REDUCTIONS, PAPER_REGISTRATION
-from gr_graph.experiments.run_cell import METRIC_KEYS
+from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS
 
 __all__ = ["mean_std", "reduction_percent", "select_round", "table1_summary", "table2_summary",
-           "ablation_summary", "fmt_ms", "STEPS", "METRIC_LABELS"]
+           "ablation_summary", "fmt_ms", "round_nees", "STEPS", "METRIC_LABELS", "NEES_LABELS", "NEES_IDEAL"]
 
 STEPS = ("raw", "1-step", "2-step", "2-step guarded")
 METRIC_LABELS = {
@@ -36,6 +36,10 @@ METRIC_LABELS = {
     "ate_rmse": "ATE RMSE [m]",
     "kitti_t_err_percent": "KITTI [%]",
 }
+NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
+               "nees_position_mean": "marginal positions"}
+#: the ideal mean NEES (chi2 degrees of freedom) of each of :data:`NEES_KEYS`
+NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3}
 
 
 def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
@@ -80,6 +84,12 @@ def select_round(rounds: dict[str, Any], step: str) -> tuple[int | None, str | N
     return earlier[-1], f"round {want} not run (the run stopped after round {earlier[-1]}, e.g. converged)"
 
 
+def round_nees(cell: dict[str, Any], r: int | None) -> dict[str, float | None]:
+    """The mean NEES figures (:data:`NEES_KEYS`) of round ``r`` of ``cell`` (None where absent)."""
+    nees = (cell["rounds"].get(str(r), {}).get("nees") or {}) if r is not None else {}
+    return {k: nees.get(k) for k in NEES_KEYS}
+
+
 def fmt_ms(d: dict[str, Any] | None, fmt: str = "{:.3f}", pct: bool = False) -> str:
     """``mean ± std`` (``n/a`` parts when missing)."""
     if not d or d.get("mean") is None:
@@ -116,12 +126,12 @@ def table1_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
                 r, note = select_round(c["rounds"], step)
                 fig = c["rounds"][str(r)]["slam"] if r is not None else {}
                 raw = c["rounds"]["0"]["slam"]
-                per_seed.append({"seed": c["definition"]["seed"], "round": r, **fig,
+                per_seed.append({"seed": c["definition"]["seed"], "round": r, **fig, **round_nees(c, r),
                                  **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k)) for k in METRIC_KEYS}})
                 if note:
                     notes.append(f"seed {c['definition']['seed']}: {note}")
             steps[step] = {"per_seed": per_seed, "notes": notes,
-                           **{k: mean_std(p.get(k) for p in per_seed) for k in METRIC_KEYS},
+                           **{k: mean_std(p.get(k) for p in per_seed) for k in METRIC_KEYS + NEES_KEYS},
                            **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
                               for k in METRIC_KEYS}}
         kiss = [c.get("kiss_icp") for c in cells if c.get("kiss_icp")]
@@ -202,7 +212,7 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                 r, note = select_round(c["rounds"], step)
                 fig = c["rounds"][str(r)]["slam"] if r is not None else {}
                 raw = c["rounds"].get("0", {}).get("slam", {})
-                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig,
+                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig, **round_nees(c, r),
                                        **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k))
                                           for k in METRIC_KEYS}}
                 b = base.get(seed)
@@ -214,7 +224,7 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                                             else fig[k] - bfig[k])
                 per_seed.append(row)
             entry: dict[str, Any] = {"per_seed": per_seed, **{k: mean_std(p.get(k) for p in per_seed)
-                                                              for k in METRIC_KEYS},
+                                                              for k in METRIC_KEYS + NEES_KEYS},
                                      **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
                                         for k in METRIC_KEYS}}
             for k in METRIC_KEYS:

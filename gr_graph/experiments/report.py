@@ -18,7 +18,7 @@ from typing import Any
 from gr_graph.atomic import atomic_write_json, atomic_write_text
 from gr_graph.experiments import aggregate as agg
 from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
-from gr_graph.experiments.run_cell import METRIC_KEYS, cell_dir, read_cell_result
+from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, cell_dir, read_cell_result, with_noise_consistency
 
 __all__ = ["write_report", "RESULTS_DIR", "budget_lines", "machine_line"]
 
@@ -56,7 +56,7 @@ def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[st
     return lines
 
 
-def _header(table: str, title: str, budget: Budget, root: Path, cells: list[Cell],
+def _header(table: str, title: str, budget: Budget, root: Path | str, cells: list[Cell],
             results: dict[str, dict[str, Any]], command: str) -> list[str]:
     return [f"# {title}", "",
             f"Command: `{command}` (one cell: add `--cell K`; `--list` shows the cells). Results in `{root}`.", "",
@@ -98,6 +98,7 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
             lines.append(f"| {step} | " + " | ".join(agg.fmt_ms(d[f"reduction_{k}"], "{:.1f}", pct=True)
                                                      for k in METRIC_KEYS)
                          + f" | {'n/a' if p is None else f'{p} %'} |")
+        lines += [""] + _nees_md([(g, step, d) for step, d in s["steps"].items()])
         notes = [n for d in s["steps"].values() for n in d["notes"]]
         if notes:
             lines += ["", "Notes: " + "; ".join(sorted(set(notes)))]
@@ -127,6 +128,22 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
                          f"{'best step %.0f' % paper['best_step'] if paper else ''} |")
     lines.append("")
     return lines
+
+
+def _nees_md(rows: list[tuple[str, str, dict[str, Any]]]) -> list[str]:
+    """The noise-consistency table: per (name, step, step summary) the mean NEES ± std over seeds."""
+    if not any(d.get(k, {}).get("n") for _, _, d in rows for k in NEES_KEYS):
+        return []
+    ideal = ", ".join(f"{agg.NEES_LABELS[k]} {agg.NEES_IDEAL[k]}" for k in NEES_KEYS)
+    lines = ["## Noise consistency (NEES against ground truth)", "",
+             "Mean NEES of a run (`python -m gr_graph.noise_consistency RUN`: edges `xi^T Lambda xi` with the "
+             "information the graph used, flagged registrations left out; positions against the marginals), "
+             f"then mean ± std over seeds. Ideal: {ideal}; the target is within a factor 2. Above: "
+             "over-confident, below: conservative.", "",
+             "| run | step | " + " | ".join(agg.NEES_LABELS[k] for k in NEES_KEYS) + " |", "|---|---|---|---|---|"]
+    for name, step, d in rows:
+        lines.append(f"| {name} | {step} | " + " | ".join(agg.fmt_ms(d.get(k), "{:.3g}") for k in NEES_KEYS) + " |")
+    return lines + [""]
 
 
 def _ablations_md(summary: dict[str, Any]) -> list[str]:
@@ -173,6 +190,9 @@ def _ablations_md(summary: dict[str, Any]) -> list[str]:
             lines.append(f"| {name}: {ABLATIONS.get(name, (s['what'],))[0]} | "
                          + " | ".join(agg.fmt_ms(d[k]) for k in keys) + " | " + " | ".join(diffs) + " |")
         lines.append("")
+    first = next(iter(summary), None)  # every cell of a seed shares round 0: its row once
+    lines += _nees_md([("round 0 (all)" if step == "raw" else name, step, d) for name, s in summary.items()
+                       for step, d in s["steps"].items() if step != "raw" or name == first])
     reuse = {n: s["reuse"] for n, s in summary.items() if any(v for v in s["reuse"].values())}
     if reuse:
         lines += ["Reuse: " + "; ".join(f"{n} seed {seed}: {r.get('copied') or r.get('note')}"
@@ -241,9 +261,9 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     """Aggregate the finished cells of ``table``; write ``ROOT/<table>/report.md`` and
     ``report.json`` (and publish them); return the markdown path."""
     root = Path(root)
-    results = {c.key: r for c in cells if (r := read_cell_result(root, c)) is not None}
+    results = {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
     res_list = [results[c.key] for c in cells if c.key in results]
-    lines = _header(table, TITLES[table], budget, root, cells, results, command)
+    lines: list[str] = []
     if table == "table1":
         summary = agg.table1_summary(res_list)
         lines += _table1_md(summary, agg.acceptance_recorded(res_list))
@@ -259,19 +279,26 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     md_dir = root / table
     pub_dir = RESULTS_DIR
     fig_lines = list(figs.items())
-    doc = {"table": table, "command": command, "budget": budget.name, "seeds": list(budget.seeds),
-           "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
-                                                        "est_minutes": c.est_minutes}
-                                                for i, c in enumerate(cells)},
-           "summary": summary, "figures": {k: str(v) for k, v in figs.items()}}
     fig_md = ["## Figures", ""] + [f"![{n}](figures/{p.name})" for n, p in fig_lines] + [""] if fig_lines else []
-    local = lines + fig_md
-    atomic_write_json(md_dir / "report.json", doc)
-    md = atomic_write_text(md_dir / "report.md", "\n".join(local) + "\n")
+
+    def document(shown_command: str, fig_paths: dict[str, str]) -> dict[str, Any]:
+        return {"table": table, "command": shown_command, "budget": budget.name, "seeds": list(budget.seeds),
+                "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
+                                                             "est_minutes": c.est_minutes}
+                                                     for i, c in enumerate(cells)},
+                "summary": summary, "figures": fig_paths}
+
+    header = _header(table, TITLES[table], budget, root, cells, results, command)
+    atomic_write_json(md_dir / "report.json", document(command, {k: str(v) for k, v in figs.items()}))
+    md = atomic_write_text(md_dir / "report.md", "\n".join(header + lines + fig_md) + "\n")
     if publish:
+        # The published copy names no path of this machine: the root reads ROOT, figures are relative.
+        pub_command = command.replace(str(root), "ROOT")
+        pub_header = _header(table, TITLES[table], budget, "ROOT", cells, results, pub_command)
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
             shutil.copyfile(p, pub_dir / "figures" / p.name)
-        atomic_write_text(pub_dir / f"{table}.md", "\n".join(lines + fig_md) + "\n")
-        atomic_write_json(pub_dir / f"{table}.json", doc)
+        atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub_header + lines + fig_md) + "\n")
+        atomic_write_json(pub_dir / f"{table}.json",
+                          document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
     return md

@@ -42,11 +42,13 @@ from gr_graph.experiments.cells import Cell
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METRIC_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done", "run_cell",
-           "prune_cell", "prune_finished", "round_figures"]
+__all__ = ["METRIC_KEYS", "NEES_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done",
+           "run_cell", "prune_cell", "prune_finished", "round_figures", "with_noise_consistency"]
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
                "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
+#: mean NEES per run of the odometry edges, loop edges and marginal positions (ideal 6, 6, 3)
+NEES_KEYS = ("nees_odometry_mean", "nees_loop_mean", "nees_position_mean")
 CELL_JSON = "cell.json"
 DEFINITION_JSON = "definition.json"
 
@@ -107,6 +109,32 @@ def round_figures(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
             "trajectory_change": s.get("trajectory_change"),
             "runtime_s": s.get("runtime_s"),
         }
+    return out
+
+
+def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any]) -> dict[str, Any]:
+    """``result`` (a SLAM cell's ``cell.json``) with ``rounds[r]["nees"]``: the mean NEES of the
+    round's odometry edges, loop edges and marginal positions (:data:`NEES_KEYS`, by
+    :mod:`gr_graph.noise_consistency` from ``round_<r>/marginals.npz``, which pruning keeps).
+
+    Computed when a report is written, so cells finished before it existed get it too; a round
+    without usable marginals gets None values (logged), never a failed report."""
+    from gr_graph.noise_consistency import round_noise_consistency
+
+    if cell.kind != "slam":
+        return result
+    out = {**result, "rounds": {r: dict(v) for r, v in result.get("rounds", {}).items()}}
+    for r, figures in out["rounds"].items():
+        round_dir = cell_dir(root, cell) / "slam" / f"round_{r}"
+        try:
+            nc = round_noise_consistency(round_dir)
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("%s/%s round %s: no NEES (%s)", cell.table, cell.key, r, exc)
+            figures["nees"] = dict.fromkeys(NEES_KEYS)
+            continue
+        figures["nees"] = {"nees_odometry_mean": nc["edges"]["odometry"]["mean"],
+                           "nees_loop_mean": nc["edges"]["loop"]["mean"],
+                           "nees_position_mean": nc["position"]["mean"]}
     return out
 
 

@@ -89,8 +89,8 @@ def _scene_key(town_seed: int, path: SensorPath, town_config: TownConfig | None)
 def get_town_and_scene(town_seed: int, path: SensorPath,
                        town_config: TownConfig | None = None) -> tuple[Town, object]:
     """The town of ``town_seed`` around ``path`` and its RaycastingScene (cached, built once)."""
+    town_config = town_config or TownConfig()
     key = _scene_key(town_seed, path, town_config)
-    town_config = key[2]
     with _LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
