@@ -135,6 +135,16 @@ def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, ca
     assert out["edges"]["odometry"]["n"] == 28 and out["edges"]["loop"]["n"] == 6
     assert out["edges"]["odometry"]["mean"] == pytest.approx(ref[odo].mean())
     assert out["edges"]["n_flagged_left_out"] == 1
+    # per axis: the edge errors against a Logmap of each edge written out here, variances from the information
+    xi = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T)).between(gtsam.Pose3(np.linalg.inv(gt[b]) @ gt[a])))
+                   for (a, b), T in zip(arrays["edges"], arrays["edge_T"])])
+    var = np.array([np.diag(np.linalg.inv(i)) for i in arrays["edge_information"]])
+    ax = out["edges"]["odometry"]["per_axis"]
+    assert ax["axes"] == ["rot_x", "rot_y", "rot_z", "x", "y", "z"]
+    assert ax["error_mean"] == pytest.approx(xi[odo].mean(0)) and ax["error_rms"] == pytest.approx(
+        np.sqrt((xi[odo] ** 2).mean(0)))
+    assert ax["z2_mean"] == pytest.approx((xi[odo] ** 2 / var[odo]).mean(0))
+    assert sum(ax["z2_mean"]) > 0 and all(np.isfinite(ax["z2_mean"]))
     assert out["position"]["n"] == 29
     assert main([str(tmp_path / "run"), "--json", str(tmp_path / "nees.json")]) == 0
     assert "| 1 |" in capsys.readouterr().out
