@@ -67,6 +67,7 @@ from gr_graph.preprocess import preprocess_scan
 log = logging.getLogger(__name__)
 
 __all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS", "DensifiedPoints", "densify_points",
+           "horizontal_surfaces",
            "densify_cloud", "covariance_problem", "covariances_valid", "COVARIANCE_FALLBACKS"]
 
 FALLBACK_REASONS = {
@@ -89,6 +90,22 @@ def covariance_problem(C: np.ndarray) -> str | None:
     if len(C) and np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1)))[:, 0].min() <= 0.0:
         return "non_pd_covariance"
     return None
+
+
+def horizontal_surfaces(C: np.ndarray, max_tilt_deg: float = 30.0) -> np.ndarray:
+    """``(N,)`` bool: covariances whose minor axis (the surface normal) is within ``max_tilt_deg``
+    of the sensor's z axis, i.e. horizontal surfaces (the ground, for a level-mounted sensor).
+    Only covariances with a defined normal count (smallest eigenvalue under half the middle one).
+
+    A diagnostic of what the anisotropy filter keeps (:meth:`DensifiedSequence.stats`):
+    ground points move with the sensor's ring pattern and constrain neither forward motion nor
+    heading, so a densified scan made mostly of them registers poorly along the direction of travel.
+    """
+    C = np.asarray(C, np.float64)
+    if len(C) == 0:
+        return np.zeros(0, bool)
+    w, V = np.linalg.eigh(0.5 * (C + C.transpose(0, 2, 1)))
+    return (np.abs(V[:, 2, 0]) > np.cos(np.radians(max_tilt_deg))) & (w[:, 0] < 0.5 * w[:, 1])
 
 
 def covariances_valid(C: np.ndarray) -> bool:
@@ -247,7 +264,8 @@ class DensifiedSequence:
         self.T_cam_velo = parent.T_cam_velo
         inherit_sweep_attributes(self, parent)
         self.fallbacks: dict[int, str] = {}
-        self._n_points: dict[int, tuple[int, int, int]] = {}  # index -> (preprocessed, kept, output)
+        # index -> (preprocessed, kept, output, with covariances, horizontal among them, horizontal among kept)
+        self._n_points: dict[int, tuple[int, int, int, int, int, int]] = {}
         self._lock = threading.Lock()
         self._parent_lock = threading.Lock()
         self._position: dict[int, int] = {}  # frame.index -> position in the parent, of every frame read
@@ -263,18 +281,21 @@ class DensifiedSequence:
         for i in range(len(self)):
             yield self[i]
 
-    def _record(self, index: int, n_pre: int, n_kept: int, n_out: int, reason: str | None) -> None:
+    def _record(self, index: int, n_pre: int, n_kept: int, n_out: int, reason: str | None,
+                n_horizontal: tuple[int, int, int] = (0, 0, 0)) -> None:
         with self._lock:
-            self._n_points[index] = (n_pre, n_kept, n_out)
+            self._n_points[index] = (n_pre, n_kept, n_out, *n_horizontal)
             if reason is not None:
                 if index not in self.fallbacks:
                     log.warning("densify frame %d: %s", index, FALLBACK_REASONS[reason])
                 self.fallbacks[index] = reason
 
     def stats(self) -> dict[str, Any]:
-        """Counts over the frames read so far: fallbacks per reason, mean points per stage."""
+        """Counts over the frames read so far: fallbacks per reason, mean points per stage, and the
+        share of horizontal surfaces (:func:`horizontal_surfaces`) among the points with
+        covariances and among the points the anisotropy filter kept."""
         with self._lock:
-            n = np.array(list(self._n_points.values()), dtype=np.float64).reshape(-1, 3)
+            n = np.array(list(self._n_points.values()), dtype=np.float64).reshape(-1, 6)
             return {
                 "frames": len(n),
                 "fallbacks": dict(Counter(self.fallbacks.values())),
@@ -283,6 +304,8 @@ class DensifiedSequence:
                 "mean_kept_points": float(n[:, 1].mean()) if len(n) else 0.0,
                 "mean_output_points": float(n[:, 2].mean()) if len(n) else 0.0,
                 "kept_fraction": float(n[:, 1].sum() / max(n[:, 0].sum(), 1.0)),
+                "horizontal_fraction_input": float(n[:, 4].sum() / max(n[:, 3].sum(), 1.0)),
+                "horizontal_fraction_kept": float(n[:, 5].sum() / max(n[:, 1].sum(), 1.0)),
             }
 
     def predicted(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -359,10 +382,12 @@ class DensifiedSequence:
             self._record(idx, len(s), 0, len(raw.points), res.fallback)
             return raw
         self._keep(idx, s, res.input_covariances)  # only covariances densify accepted (finite, positive definite)
+        horizontal = horizontal_surfaces(res.input_covariances)
+        n_horizontal = (len(s), int(horizontal.sum()), int((horizontal & res.kept).sum()))
         if not cfg.densify:  # ablation (training.densify: false): raw scans, predictions kept for the edge noise
-            self._record(idx, len(s), res.n_kept, len(raw.points), None)
+            self._record(idx, len(s), res.n_kept, len(raw.points), None, n_horizontal)
             return raw
-        self._record(idx, len(s), res.n_kept, len(res.points), res.fallback)
+        self._record(idx, len(s), res.n_kept, len(res.points), res.fallback, n_horizontal)
         intensity = source_intensity(raw.points, raw.intensity, s)[res.source]
         return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),
                           intensity=intensity.astype(np.float32), ring=None, n_rings=raw.n_rings,

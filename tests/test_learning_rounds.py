@@ -78,6 +78,33 @@ def test_view_metadata_and_lazy():
     assert view.stats()["frames"] == 0  # nothing computed before a frame is read
 
 
+def test_stats_count_the_horizontal_share_of_kept_points():
+    from gr_graph.densify import horizontal_surfaces
+
+    # a wall (normal along x), a floor tilted 20 deg and one tilted 40 deg, an isotropic blob (no normal)
+    def tilted(deg):
+        c, s_ = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        R = np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
+        return R @ np.diag([0.09, 0.04, 4e-4]) @ R.T
+
+    wall = np.diag([4e-4, 0.09, 0.04])
+    assert horizontal_surfaces(np.stack([wall, tilted(20), tilted(40), C_ISO, C_PLANE])).tolist() == [
+        False, True, False, False, True]
+    seq = PlaneScenes(n=3)
+    view = densified_sequence(seq, plane_predictor, _cfg(), preprocess=PRE)
+    on_plane = 0
+    n_pre = 0
+    for i in range(3):
+        view[i]
+        s = preprocess_scan(seq[i].points, PRE, index=i).points
+        on_plane += int((np.abs(s[:, 2] - GROUND_Z) < 0.1).sum())
+        n_pre += len(s)
+    st = view.stats()
+    assert st["horizontal_fraction_kept"] == 1.0  # only the ground is anisotropic here
+    assert st["horizontal_fraction_input"] == pytest.approx(on_plane / n_pre)
+    assert 0.0 < st["horizontal_fraction_input"] < 1.0
+
+
 def test_kept_points_are_the_anisotropic_ones_and_samples_follow_C():
     M = 64
     seq = PlaneScenes()
