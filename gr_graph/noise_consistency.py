@@ -11,7 +11,8 @@ position covariances and the re-anchored ground truth):
   ``Lambda^-1`` is the covariance of the measurement error, NEES ~ chi2(6): mean 6. Reported
   per kind (odometry, loop) over edges whose registration was not flagged, with a breakdown per
   axis (:func:`axis_stats`: error mean and RMS, ``xi_a^2 / Sigma_aa``) that shows which axis
-  is over-confident or biased;
+  is over-confident or biased, and the odometry's path length against ground truth
+  (:func:`path_error_percent`, a scale error);
 - **position NEES of the marginals**: ``e = p_k - p_k^GT`` (world = first scan, both
   anchored there) and ``NEES = e^T Sigma_k^-1 e`` with the world-frame position marginal
   ``Sigma_k`` (``position_cov_world``): mean 3 if consistent (the first pose, fixed by the
@@ -35,7 +36,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-__all__ = ["edge_nees", "edge_errors", "axis_stats", "AXES", "position_nees", "round_noise_consistency", "run_noise_consistency", "main"]
+__all__ = ["edge_nees", "edge_errors", "axis_stats", "path_error_percent", "AXES", "position_nees", "round_noise_consistency", "run_noise_consistency", "main"]
 
 EDGE_KINDS = {0: "odometry", 1: "loop"}
 
@@ -67,6 +68,17 @@ def edge_errors(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> np.nda
         T_gt = gtsam.Pose3(np.linalg.inv(gt[l]) @ gt[k])
         out[i] = gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, np.float64)).between(T_gt))
     return out
+
+
+def path_error_percent(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> float | None:
+    """``100 (sum |t̂_kl| / sum |t_kl| - 1)``: the length of the path the edges measure against
+    ground truth (negative: motion under-estimated, e.g. a scan pattern that moves with the
+    sensor holding registrations back); None without edges or motion. Arguments as :func:`edge_nees`."""
+    if len(edges) == 0:
+        return None
+    measured = float(np.linalg.norm(np.asarray(edge_T)[:, :3, 3], axis=1).sum())
+    true = float(sum(np.linalg.norm((np.linalg.inv(gt[l]) @ gt[k])[:3, 3]) for k, l in np.asarray(edges)))
+    return None if true <= 0 else 100.0 * (measured / true - 1.0)
 
 
 AXES = ("rot_x", "rot_y", "rot_z", "x", "y", "z")
@@ -129,6 +141,8 @@ def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
     for code, kind in EDGE_KINDS.items():
         sel = (d["edge_kind"] == code) & ok
         out["edges"][kind] = {**_stats(nees[sel], 6), "per_axis": axis_stats(xi[sel], info[sel])}
+    out["edges"]["odometry"]["path_error_percent"] = path_error_percent(
+        d["edges"][d["edge_kind"] == 0], d["edge_T"][d["edge_kind"] == 0], gt)
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
     out["position"] = _stats(position_nees(d["poses"], d["position_cov_world"], gt), 3)
     return out

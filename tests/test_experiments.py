@@ -395,8 +395,10 @@ def test_reports_carry_nees_of_every_round_from_the_marginals(tmp_path, monkeypa
         _write_round_marginals(slam / "round_1", 0.3, 0.2)  # 9; 4
         # round 2 has no marginals: its NEES are missing, the report is still written
     got = rc.with_noise_consistency(tmp_path, cells[0], res[0])
+    # path: the edges measure 1 + edge_error m of a 1 m step
     assert got["rounds"]["0"]["nees"] == pytest.approx(
-        {"nees_odometry_mean": 1.0, "nees_loop_mean": None, "nees_position_mean": 1.0})
+        {"nees_odometry_mean": 1.0, "nees_loop_mean": None, "nees_position_mean": 1.0,
+         "odometry_path_error_percent": 10.0})
     assert got["rounds"]["1"]["nees"]["nees_odometry_mean"] == pytest.approx(9.0)
     assert got["rounds"]["2"]["nees"] == dict.fromkeys(rc.NEES_KEYS)
     assert "nees" not in res[0]["rounds"]["0"]  # the cell's result is not changed
@@ -409,8 +411,8 @@ def test_reports_carry_nees_of_every_round_from_the_marginals(tmp_path, monkeypa
     monkeypatch.setattr(report, "read_cell_result", lambda root, c: res[c.seed])
     md = report.write_report("ablations", tmp_path, BUDGETS["paper"], cells, "cmd").read_text()
     assert "## Noise consistency (NEES against ground truth)" in md
-    assert "| round 0 (all) | raw | 1 ± 0 | n/a | 2.5 ± 2.12 |" in md
-    assert "| default | 1-step | 9 ± 0 | n/a | 4 ± 0 |" in md
+    assert "| round 0 (all) | raw | 1 ± 0 | n/a | 2.5 ± 2.12 | 10 ± 0 |" in md
+    assert "| default | 1-step | 9 ± 0 | n/a | 4 ± 0 | 30 ± 0 |" in md
     t1 = agg.table1_summary([rc.with_noise_consistency(tmp_path, c, res[c.seed]) for c in cells])
     assert t1["default"]["steps"]["1-step"]["nees_position_mean"]["mean"] == pytest.approx(4.0)
 

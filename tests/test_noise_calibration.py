@@ -145,6 +145,10 @@ def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, ca
         np.sqrt((xi[odo] ** 2).mean(0)))
     assert ax["z2_mean"] == pytest.approx((xi[odo] ** 2 / var[odo]).mean(0))
     assert sum(ax["z2_mean"]) > 0 and all(np.isfinite(ax["z2_mean"]))
+    steps = [(np.linalg.norm(np.asarray(T)[:3, 3]), np.linalg.norm((np.linalg.inv(gt[b]) @ gt[a])[:3, 3]))
+             for (a, b), T, kind in zip(arrays["edges"], arrays["edge_T"], arrays["edge_kind"]) if kind == 0]
+    measured, true = np.sum(steps, axis=0)
+    assert out["edges"]["odometry"]["path_error_percent"] == pytest.approx(100 * (measured / true - 1))
     assert out["position"]["n"] == 29
     assert main([str(tmp_path / "run"), "--json", str(tmp_path / "nees.json")]) == 0
     assert "| 1 |" in capsys.readouterr().out

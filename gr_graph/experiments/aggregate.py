@@ -37,9 +37,9 @@ METRIC_LABELS = {
     "kitti_t_err_percent": "KITTI [%]",
 }
 NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
-               "nees_position_mean": "marginal positions"}
-#: the ideal mean NEES (chi2 degrees of freedom) of each of :data:`NEES_KEYS`
-NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3}
+               "nees_position_mean": "marginal positions", "odometry_path_error_percent": "odometry path error [%]"}
+#: the ideal value of each of :data:`NEES_KEYS` (the mean NEES: chi2 degrees of freedom)
+NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3, "odometry_path_error_percent": 0}
 
 
 def mean_std(values: Iterable[float | None]) -> dict[str, Any]:

@@ -134,13 +134,15 @@ def _nees_md(rows: list[tuple[str, str, dict[str, Any]]]) -> list[str]:
     """The noise-consistency table: per (name, step, step summary) the mean NEES ± std over seeds."""
     if not any(d.get(k, {}).get("n") for _, _, d in rows for k in NEES_KEYS):
         return []
-    ideal = ", ".join(f"{agg.NEES_LABELS[k]} {agg.NEES_IDEAL[k]}" for k in NEES_KEYS)
+    ideal = ", ".join(f"{agg.NEES_LABELS[k].split(' [')[0]} {agg.NEES_IDEAL[k]}" for k in NEES_KEYS)
     lines = ["## Noise consistency (NEES against ground truth)", "",
              "Mean NEES of a run (`python -m gr_graph.noise_consistency RUN`: edges `xi^T Lambda xi` with the "
              "information the graph used, flagged registrations left out; positions against the marginals), "
-             f"then mean ± std over seeds. Ideal: {ideal}; the target is within a factor 2. Above: "
-             "over-confident, below: conservative.", "",
-             "| run | step | " + " | ".join(agg.NEES_LABELS[k] for k in NEES_KEYS) + " |", "|---|---|---|---|---|"]
+             "then mean ± std over seeds; the NEES target is within a factor 2 of the ideal (above: over-confident, "
+             "below: conservative). Odometry path error: the length of the path the odometry edges measure "
+             f"against ground truth (negative: motion under-estimated). Ideal: {ideal}.", "",
+             "| run | step | " + " | ".join(agg.NEES_LABELS[k] for k in NEES_KEYS) + " |",
+             "|---|---|" + "---|" * len(NEES_KEYS)]
     for name, step, d in rows:
         lines.append(f"| {name} | {step} | " + " | ".join(agg.fmt_ms(d.get(k), "{:.3g}") for k in NEES_KEYS) + " |")
     return lines + [""]

@@ -47,8 +47,9 @@ __all__ = ["METRIC_KEYS", "NEES_KEYS", "CellDependencyError", "cell_dir", "read_
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
                "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
-#: mean NEES per run of the odometry edges, loop edges and marginal positions (ideal 6, 6, 3)
-NEES_KEYS = ("nees_odometry_mean", "nees_loop_mean", "nees_position_mean")
+#: mean NEES per run of the odometry edges, loop edges and marginal positions (ideal 6, 6, 3), and
+#: the odometry's path length against ground truth in percent (ideal 0)
+NEES_KEYS = ("nees_odometry_mean", "nees_loop_mean", "nees_position_mean", "odometry_path_error_percent")
 CELL_JSON = "cell.json"
 DEFINITION_JSON = "definition.json"
 
@@ -114,7 +115,8 @@ def round_figures(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any]) -> dict[str, Any]:
     """``result`` (a SLAM cell's ``cell.json``) with ``rounds[r]["nees"]``: the mean NEES of the
-    round's odometry edges, loop edges and marginal positions (:data:`NEES_KEYS`, by
+    round's odometry edges, loop edges and marginal positions and the odometry's path error
+    (:data:`NEES_KEYS`, by
     :mod:`gr_graph.noise_consistency` from ``round_<r>/marginals.npz``, which pruning keeps).
 
     Computed when a report is written, so cells finished before it existed get it too; a round
@@ -134,7 +136,8 @@ def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any])
             continue
         figures["nees"] = {"nees_odometry_mean": nc["edges"]["odometry"]["mean"],
                            "nees_loop_mean": nc["edges"]["loop"]["mean"],
-                           "nees_position_mean": nc["position"]["mean"]}
+                           "nees_position_mean": nc["position"]["mean"],
+                           "odometry_path_error_percent": nc["edges"]["odometry"].get("path_error_percent")}
     return out
 
 
