@@ -52,7 +52,11 @@ _S_DENSIFY = 0.29
 _S_SLAM = 0.04
 _S_KISS = 0.03  # rendering again + KISS-ICP, per frame
 _CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
-_S_PAIR = 3.0  # two scans (densified) + KISS-Matcher + FPFH/RANSAC per pair
+# Table II, per pair: two scans rendered (and densified) + KISS-Matcher + FPFH/RANSAC. Measured
+# 2026-12-02 on 8 pairs of the 16-channel ablation scans (frames 0:600, AMD EPYC, 2 cores): raw
+# 7.1 s a pair with the town's one-time build (27 s), about 3.7 s without; densified with round 1's
+# model 1.2 s a pair when the frames were already rendered; the solvers 0.07-0.56 s of it.
+_S_PAIR = 3.7
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,7 @@ def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, 
 
 
 def estimate_registration_minutes(n_pairs: int, channels: int) -> float:
-    """Rough wall minutes of a Table II cell on 2 cores (unmeasured guess: 3 s a pair)."""
+    """Rough wall minutes of a Table II cell on 2 cores (3.7 s a pair, measured at 16 channels)."""
     return round(n_pairs * _S_PAIR * _CHANNEL_FACTOR[channels] / 60.0, 1)
 
 
