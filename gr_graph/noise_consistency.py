@@ -72,7 +72,7 @@ def edge_errors(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> np.nda
 
 def path_error_percent(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> float | None:
     """``100 (sum |t̂_kl| / sum |t_kl| - 1)``: the length of the path the edges measure against
-    ground truth (negative: motion under-estimated, e.g. a scan pattern that moves with the
+    ground truth (:func:`round_noise_consistency`: the odometry edges whose registration was not flagged) (negative: motion under-estimated, e.g. a scan pattern that moves with the
     sensor holding registrations back); None without edges or motion. Arguments as :func:`edge_nees`."""
     if len(edges) == 0:
         return None
@@ -87,12 +87,19 @@ AXES = ("rot_x", "rot_y", "rot_z", "x", "y", "z")
 def axis_stats(xi: np.ndarray, information: np.ndarray) -> dict[str, Any]:
     """Per axis of the edge errors ``xi`` ``(E, 6)``: mean (a bias), RMS, and the mean of
     ``xi_a^2 / Sigma_aa`` with ``Sigma = information^-1`` (ideal 1; which axis is over-confident).
-    Rotations in radians, translations in metres, each edge in its frame ``l``."""
+
+    ``xi`` is the right perturbation of :func:`edge_errors`, so each edge's error is expressed
+    in the frame of its source scan ``k``; rotations in radians, the translation part is
+    Logmap's ``v`` (metres; the translation error itself for small rotations). A singular
+    information (stored before the graph's eigenvalue floor) counts as infinite variance along
+    its null space (pseudo-inverse; those axes contribute 0)."""
     if len(xi) == 0:
         return {"axes": list(AXES), "error_mean": None, "error_rms": None, "z2_mean": None}
-    var = np.diagonal(np.linalg.inv(information), axis1=1, axis2=2)
+    var = np.diagonal(np.linalg.pinv(information, hermitian=True), axis1=1, axis2=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z2 = np.where(var > 0, xi**2 / np.where(var > 0, var, 1.0), 0.0)
     return {"axes": list(AXES), "error_mean": xi.mean(0).tolist(), "error_rms": np.sqrt((xi**2).mean(0)).tolist(),
-            "z2_mean": (xi**2 / var).mean(0).tolist()}
+            "z2_mean": z2.mean(0).tolist()}
 
 
 def position_nees(poses: np.ndarray, position_cov_world: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -127,7 +134,8 @@ def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file (not a finished round)")
     with np.load(path) as z:
-        missing = [k for k in ("gt_poses", "edge_T", "covariance", "position_cov_world") if k not in z.files]
+        missing = [k for k in ("gt_poses", "edge_T", "covariance", "position_cov_world", "poses", "edges",
+                               "edge_information", "edge_kind", "edge_ok") if k not in z.files]
         if missing:
             raise ValueError(f"{path}: lacks {missing} (a run without ground truth or marginals, or written "
                              "before edge_T was stored)")
@@ -141,8 +149,8 @@ def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
     for code, kind in EDGE_KINDS.items():
         sel = (d["edge_kind"] == code) & ok
         out["edges"][kind] = {**_stats(nees[sel], 6), "per_axis": axis_stats(xi[sel], info[sel])}
-    out["edges"]["odometry"]["path_error_percent"] = path_error_percent(
-        d["edges"][d["edge_kind"] == 0], d["edge_T"][d["edge_kind"] == 0], gt)
+    odometry = (d["edge_kind"] == 0) & ok  # the same edges as the NEES: flagged registrations left out
+    out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edges"][odometry], d["edge_T"][odometry], gt)
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
     out["position"] = _stats(position_nees(d["poses"], d["position_cov_world"], gt), 3)
     return out

@@ -410,7 +410,11 @@ class SlamPipeline:
         if self.gt is not None:
             summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap))
             if res.covariances is not None:  # NEES of edges and marginals against ground truth
-                summary["noise_consistency"] = round_noise_consistency(rd)
+                try:
+                    summary["noise_consistency"] = round_noise_consistency(rd)
+                except Exception as exc:  # a diagnostic: never lose the round over it
+                    log.warning("round %d: noise consistency not computed (%s: %s)", r, type(exc).__name__, exc)
+                    summary["noise_consistency"] = {"error": f"{type(exc).__name__}: {exc}"}
         runtime = {**res.runtime, **timer.seconds}
         runtime["total"] = time.perf_counter() - t0
         if train_seconds is not None:

@@ -365,6 +365,12 @@ def test_published_report_names_no_path_of_the_machine(tmp_path, monkeypatch):
         assert "--root ROOT" in text
     assert json.loads(published[1].read_text())["figures"] == {"rounds": "figures/fig.png"}
     assert (tmp_path / "published" / "figures" / "fig.png").read_bytes() == b"png"
+    # a short relative root: only the --root argument is replaced, the rest of the command stays
+    monkeypatch.chdir(tmp_path)
+    report.write_report("ablations", "exp", BUDGETS["paper"], cells,
+                        "python -m gr_graph.experiments ablations --root exp", publish=True)
+    doc = json.loads(published[1].read_text())
+    assert doc["command"] == "python -m gr_graph.experiments ablations --root ROOT"
 
 
 def _write_round_marginals(round_dir, edge_error: float, position_error: float) -> None:
@@ -402,6 +408,19 @@ def test_reports_carry_nees_of_every_round_from_the_marginals(tmp_path, monkeypa
     assert got["rounds"]["1"]["nees"]["nees_odometry_mean"] == pytest.approx(9.0)
     assert got["rounds"]["2"]["nees"] == dict.fromkeys(rc.NEES_KEYS)
     assert "nees" not in res[0]["rounds"]["0"]  # the cell's result is not changed
+    # a round without ground truth in its marginals, and a damaged file: no NEES, no failure
+    slam1 = rc.cell_dir(tmp_path, cells[1]) / "slam"
+    with np.load(slam1 / "round_1" / "marginals.npz") as z:
+        no_gt = {k: z[k] for k in z.files if k != "gt_poses"}
+    np.savez(slam1 / "round_1" / "marginals.npz", **no_gt)
+    (slam1 / "round_0" / "marginals.npz").write_bytes(b"PK\x03\x04 truncated")
+    broken = rc.with_noise_consistency(tmp_path, cells[1], res[1])
+    assert broken["rounds"]["0"]["nees"] == dict.fromkeys(rc.NEES_KEYS)
+    assert broken["rounds"]["1"]["nees"] == dict.fromkeys(rc.NEES_KEYS)
+    _write_round_marginals(tmp_path / "again" / "round_0", 0.1, 0.2)  # restore cell 1's rounds
+    (slam1 / "round_0" / "marginals.npz").write_bytes((tmp_path / "again" / "round_0" / "marginals.npz").read_bytes())
+    _write_round_marginals(tmp_path / "again" / "round_1", 0.3, 0.2)
+    (slam1 / "round_1" / "marginals.npz").write_bytes((tmp_path / "again" / "round_1" / "marginals.npz").read_bytes())
     s = agg.ablation_summary([rc.with_noise_consistency(tmp_path, c, res[c.seed]) for c in cells])["default"]
     pos = s["steps"]["raw"]["nees_position_mean"]
     assert pos["values"] == pytest.approx([1.0, 4.0]) and pos["std"] == pytest.approx(np.std([1, 4], ddof=1))

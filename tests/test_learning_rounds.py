@@ -90,19 +90,23 @@ def test_stats_count_the_horizontal_share_of_kept_points():
     wall = np.diag([4e-4, 0.09, 0.04])
     assert horizontal_surfaces(np.stack([wall, tilted(20), tilted(40), C_ISO, C_PLANE])).tolist() == [
         False, True, False, False, True]
+    def ground_and_walls(points):  # the plane predictor, plus a wall covariance on clutter above 3 m
+        return np.where((points[:, 2] > 3.0)[:, None, None], wall, plane_predictor(points))
+
     seq = PlaneScenes(n=3)
-    view = densified_sequence(seq, plane_predictor, _cfg(), preprocess=PRE)
-    on_plane = 0
-    n_pre = 0
+    view = densified_sequence(seq, ground_and_walls, _cfg(), preprocess=PRE)
+    on_plane = high = n_pre = 0
     for i in range(3):
         view[i]
         s = preprocess_scan(seq[i].points, PRE, index=i).points
         on_plane += int((np.abs(s[:, 2] - GROUND_Z) < 0.1).sum())
+        high += int((s[:, 2] > 3.0).sum())
         n_pre += len(s)
     st = view.stats()
-    assert st["horizontal_fraction_kept"] == 1.0  # only the ground is anisotropic here
+    assert st["kept_fraction"] == pytest.approx((on_plane + high) / n_pre)  # ground and walls are kept
+    assert st["horizontal_fraction_kept"] == pytest.approx(on_plane / (on_plane + high))
     assert st["horizontal_fraction_input"] == pytest.approx(on_plane / n_pre)
-    assert 0.0 < st["horizontal_fraction_input"] < 1.0
+    assert 0.0 < st["horizontal_fraction_kept"] < 1.0
 
 
 def test_kept_points_are_the_anisotropic_ones_and_samples_follow_C():

@@ -38,7 +38,7 @@ METRIC_LABELS = {
 }
 NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
                "nees_position_mean": "marginal positions", "odometry_path_error_percent": "odometry path error [%]"}
-#: the ideal value of each of :data:`NEES_KEYS` (the mean NEES: chi2 degrees of freedom)
+#: the ideal value of each of :data:`NEES_KEYS` (a mean NEES: its chi2 degrees of freedom; the path error: 0)
 NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3, "odometry_path_error_percent": 0}
 
 

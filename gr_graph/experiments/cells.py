@@ -55,8 +55,10 @@ _CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
 # Table II, per pair: two scans rendered (and densified) + KISS-Matcher + FPFH/RANSAC. Measured
 # 2026-12-02 on 8 pairs of the 16-channel ablation scans (frames 0:600, AMD EPYC, 2 cores): raw
 # 7.1 s a pair with the town's one-time build (27 s), about 3.7 s without; densified with round 1's
-# model 1.2 s a pair when the frames were already rendered; the solvers 0.07-0.56 s of it.
+# model 1.2 s a pair more than the rendering (frames already rendered); the solvers 0.07-0.56 s.
 _S_PAIR = 3.7
+_S_PAIR_DENSIFY = 1.2
+_S_TOWN = 30.0  # building the synthetic town, once a cell
 
 
 @dataclass(frozen=True)
@@ -138,9 +140,10 @@ def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, 
     return round(s / 60.0, 1)
 
 
-def estimate_registration_minutes(n_pairs: int, channels: int) -> float:
-    """Rough wall minutes of a Table II cell on 2 cores (3.7 s a pair, measured at 16 channels)."""
-    return round(n_pairs * _S_PAIR * _CHANNEL_FACTOR[channels] / 60.0, 1)
+def estimate_registration_minutes(n_pairs: int, channels: int, densified: bool = False) -> float:
+    """Rough wall minutes of a Table II cell on 2 cores (per-pair costs measured at 16 channels)."""
+    per_pair = _S_PAIR + (_S_PAIR_DENSIFY if densified else 0.0)
+    return round((_S_TOWN + n_pairs * per_pair * _CHANNEL_FACTOR[channels]) / 60.0, 1)
 
 
 def _slam_overrides(budget: Budget, seed: int, channels: int, frames: tuple[int, int], rounds: int,
@@ -201,7 +204,7 @@ def table2_cells(budget: Budget) -> list[Cell]:
                               src.channels, src.frames, f"{src.channels}ch", source=f"table1/{src.key}",
                               params={"round": r, "n_pairs": budget.n_pairs, "max_distance": 10.0,
                                       "solvers": ["kiss_matcher", "fpfh_ransac"]},
-                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
+                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels, r > 0)))
     return cells
 
 

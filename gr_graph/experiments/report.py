@@ -98,7 +98,6 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
             lines.append(f"| {step} | " + " | ".join(agg.fmt_ms(d[f"reduction_{k}"], "{:.1f}", pct=True)
                                                      for k in METRIC_KEYS)
                          + f" | {'n/a' if p is None else f'{p} %'} |")
-        lines += [""] + _nees_md([(g, step, d) for step, d in s["steps"].items()])
         notes = [n for d in s["steps"].values() for n in d["notes"]]
         if notes:
             lines += ["", "Notes: " + "; ".join(sorted(set(notes)))]
@@ -108,6 +107,7 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
                       f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
                       f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
         lines.append("")
+        lines += _nees_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
     return lines
 
 
@@ -130,12 +130,12 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _nees_md(rows: list[tuple[str, str, dict[str, Any]]]) -> list[str]:
+def _nees_md(rows: list[tuple[str, str, dict[str, Any]]], heading: str = "##") -> list[str]:
     """The noise-consistency table: per (name, step, step summary) the mean NEES ± std over seeds."""
     if not any(d.get(k, {}).get("n") for _, _, d in rows for k in NEES_KEYS):
         return []
     ideal = ", ".join(f"{agg.NEES_LABELS[k].split(' [')[0]} {agg.NEES_IDEAL[k]}" for k in NEES_KEYS)
-    lines = ["## Noise consistency (NEES against ground truth)", "",
+    lines = [f"{heading} Noise consistency (NEES against ground truth)", "",
              "Mean NEES of a run (`python -m gr_graph.noise_consistency RUN`: edges `xi^T Lambda xi` with the "
              "information the graph used, flagged registrations left out; positions against the marginals), "
              "then mean ± std over seeds; the NEES target is within a factor 2 of the ideal (above: over-confident, "
@@ -295,7 +295,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     md = atomic_write_text(md_dir / "report.md", "\n".join(header + lines + fig_md) + "\n")
     if publish:
         # The published copy names no path of this machine: the root reads ROOT, figures are relative.
-        pub_command = command.replace(str(root), "ROOT")
+        pub_command = command.replace(f"--root {root}", "--root ROOT")
         pub_header = _header(table, TITLES[table], budget, "ROOT", cells, results, pub_command)
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:

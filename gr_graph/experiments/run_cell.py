@@ -130,8 +130,8 @@ def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any])
         round_dir = cell_dir(root, cell) / "slam" / f"round_{r}"
         try:
             nc = round_noise_consistency(round_dir)
-        except (OSError, ValueError, KeyError) as exc:
-            log.warning("%s/%s round %s: no NEES (%s)", cell.table, cell.key, r, exc)
+        except Exception as exc:  # a diagnostic: a damaged or partial file must not cost the report
+            log.warning("%s/%s round %s: no NEES (%s: %s)", cell.table, cell.key, r, type(exc).__name__, exc)
             figures["nees"] = dict.fromkeys(NEES_KEYS)
             continue
         figures["nees"] = {"nees_odometry_mean": nc["edges"]["odometry"]["mean"],
