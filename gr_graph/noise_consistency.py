@@ -36,7 +36,8 @@ from typing import Any
 import gtsam
 import numpy as np
 
-__all__ = ["edge_nees", "edge_errors", "axis_stats", "path_error_percent", "AXES", "position_nees", "round_noise_consistency", "run_noise_consistency", "main"]
+__all__ = ["edge_nees", "gt_relative_poses", "edge_errors", "axis_stats", "path_error_percent", "AXES",
+           "position_nees", "round_noise_consistency", "run_noise_consistency", "main"]
 
 EDGE_KINDS = {0: "odometry", 1: "loop"}
 
@@ -55,29 +56,44 @@ def edge_nees(edges: np.ndarray, edge_T: np.ndarray, information: np.ndarray, gt
     gt : (K, 4, 4) array
         Ground-truth poses (any common world frame).
     """
-    xi = edge_errors(edges, edge_T, gt)
-    info = 0.5 * (information + np.transpose(information, (0, 2, 1)))
-    return np.einsum("ei,eij,ej->e", xi, info, xi)
+    return _nees(edge_errors(edge_T, gt_relative_poses(edges, gt)), _symmetric(information))
 
 
-def edge_errors(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> np.ndarray:
+def _symmetric(information: np.ndarray) -> np.ndarray:
+    return 0.5 * (information + np.transpose(information, (0, 2, 1)))
+
+
+def _nees(xi: np.ndarray, information: np.ndarray) -> np.ndarray:
+    return np.einsum("ei,eij,ej->e", xi, information, xi)
+
+
+def gt_relative_poses(edges: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``(E, 4, 4)`` ground-truth relative poses ``T_kl = G_l^-1 G_k`` of the edges ``(k, l)``
+    (arguments as :func:`edge_nees`)."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    gt = np.asarray(gt, np.float64)
+    return np.linalg.inv(gt[edges[:, 1]]) @ gt[edges[:, 0]]
+
+
+def edge_errors(edge_T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
     """``(E, 6)`` errors ``xi = Log(T̂_kl^-1 T_kl)`` ([omega, v], gtsam order) of each edge's
-    measurement against the ground-truth relative pose (arguments as :func:`edge_nees`)."""
-    out = np.empty((len(edges), 6))
-    for i, ((k, l), T) in enumerate(zip(np.asarray(edges), edge_T)):
-        T_gt = gtsam.Pose3(np.linalg.inv(gt[l]) @ gt[k])
-        out[i] = gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, np.float64)).between(T_gt))
+    measurement ``edge_T`` against its ground-truth relative pose (:func:`gt_relative_poses`)."""
+    out = np.empty((len(T_gt), 6))
+    for i, (T, T_ref) in enumerate(zip(edge_T, T_gt)):
+        out[i] = gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, np.float64)).between(gtsam.Pose3(T_ref)))
     return out
 
 
-def path_error_percent(edges: np.ndarray, edge_T: np.ndarray, gt: np.ndarray) -> float | None:
-    """``100 (sum |t̂_kl| / sum |t_kl| - 1)``: the length of the path the edges measure against
-    ground truth (:func:`round_noise_consistency`: the odometry edges whose registration was not flagged) (negative: motion under-estimated, e.g. a scan pattern that moves with the
-    sensor holding registrations back); None without edges or motion. Arguments as :func:`edge_nees`."""
-    if len(edges) == 0:
+def path_error_percent(edge_T: np.ndarray, T_gt: np.ndarray) -> float | None:
+    """``100 (sum |t̂_kl| / sum |t_kl| - 1)``: the length of the path the measurements ``edge_T``
+    add up to against their ground truth ``T_gt`` (:func:`gt_relative_poses`); negative: motion
+    under-estimated, e.g. a scan pattern that moves with the sensor holding registrations back.
+    None without edges or motion. :func:`round_noise_consistency` uses the odometry edges whose
+    registration was not flagged."""
+    if len(T_gt) == 0:
         return None
     measured = float(np.linalg.norm(np.asarray(edge_T)[:, :3, 3], axis=1).sum())
-    true = float(sum(np.linalg.norm((np.linalg.inv(gt[l]) @ gt[k])[:3, 3]) for k, l in np.asarray(edges)))
+    true = float(np.linalg.norm(np.asarray(T_gt)[:, :3, 3], axis=1).sum())
     return None if true <= 0 else 100.0 * (measured / true - 1.0)
 
 
@@ -141,16 +157,17 @@ def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
                              "before edge_T was stored)")
         d = {k: np.array(z[k]) for k in z.files}
     gt = d["gt_poses"]
-    xi = edge_errors(d["edges"], d["edge_T"], gt)
-    info = 0.5 * (d["edge_information"] + np.transpose(d["edge_information"], (0, 2, 1)))
-    nees = np.einsum("ei,eij,ej->e", xi, info, xi)
+    T_gt = gt_relative_poses(d["edges"], gt)
+    xi = edge_errors(d["edge_T"], T_gt)
+    info = _symmetric(d["edge_information"])
+    nees = _nees(xi, info)
     ok = d["edge_ok"].astype(bool)
     out: dict[str, Any] = {"edges": {}}
     for code, kind in EDGE_KINDS.items():
         sel = (d["edge_kind"] == code) & ok
         out["edges"][kind] = {**_stats(nees[sel], 6), "per_axis": axis_stats(xi[sel], info[sel])}
     odometry = (d["edge_kind"] == 0) & ok  # the same edges as the NEES: flagged registrations left out
-    out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edges"][odometry], d["edge_T"][odometry], gt)
+    out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edge_T"][odometry], T_gt[odometry])
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
     out["position"] = _stats(position_nees(d["poses"], d["position_cov_world"], gt), 3)
     return out

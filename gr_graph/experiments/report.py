@@ -103,7 +103,8 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
             lines += ["", "Notes: " + "; ".join(sorted(set(notes)))]
         a = s["acceptance_2x2"]
         if acceptance:
-            lines += ["", f"Round acceptance vs ground truth (RPE-300 all pairs vs the last accepted round, the one the test judged against; equal counts as worse): accepted "
+            lines += ["", "Round acceptance vs ground truth (RPE-300 all pairs vs the last accepted round, the one "
+                      "the test judged against; equal counts as worse): accepted "
                       f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
                       f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
         lines.append("")

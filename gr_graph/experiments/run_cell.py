@@ -116,8 +116,8 @@ def round_figures(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
 def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any]) -> dict[str, Any]:
     """``result`` (a SLAM cell's ``cell.json``) with ``rounds[r]["nees"]``: the mean NEES of the
     round's odometry edges, loop edges and marginal positions and the odometry's path error
-    (:data:`NEES_KEYS`, by
-    :mod:`gr_graph.noise_consistency` from ``round_<r>/marginals.npz``, which pruning keeps).
+    (:data:`NEES_KEYS`, by :mod:`gr_graph.noise_consistency` from ``round_<r>/marginals.npz``,
+    which pruning keeps).
 
     Computed when a report is written, so cells finished before it existed get it too; a round
     without usable marginals gets None values (logged), never a failed report."""
