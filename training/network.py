@@ -181,14 +181,21 @@ def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch
     networks): the weights enter ``S`` only through their ratios, so they are normalised in
     log space, ``w_j / max_k w_k = exp(logsigmoid(l_j) - max_k logsigmoid(l_k))``: trained
     logits reach -100, where float32 ``sigmoid`` underflows (0 / 0 when every weight of a point
-    did). And ``alpha kappa S (S + kappa I)^-1`` is formed so that it is positive semi-definite
-    by construction, in float64: with ``S = G^T G`` (``G``'s rows ``sqrt(w_j / sum w) o_j``),
-    ``S (S + kappa I)^-1 = G^T (G G^T + kappa I_k)^-1 G = Y^T Y`` with ``Y = R^-1 G`` and
-    ``R R^T = G G^T + kappa I_k`` (Cholesky; its smallest eigenvalue is at least ``kappa``). The
-    former float32 adjugate inverse of ``S + kappa I`` followed by the product with ``S`` lost
-    the small eigenvalues when wide neighbours tens of metres away made ``S``'s largest
-    eigenvalue ~10^3 m^2 against ``kappa`` ~ 10^-2 m^2: negative eigenvalues of ``C``, or a
-    singular ``S + kappa I`` (inf / NaN).
+    did). And ``M = S (S + kappa I)^-1`` is formed in float64 as a sum of two Gram matrices, so
+    that it is positive semi-definite by construction: with ``S = G^T G`` (``G``'s rows
+    ``sqrt(w_j / sum w) o_j``), ``B = S + kappa I``, ``V = G B^-1`` and ``W = G^T V = S B^-1``,
+
+        M = W^T W + kappa V^T V = (S^2 + kappa S) B^-2 = S B^-1
+
+    (``S`` and ``B^-1`` commute). ``B^-1`` comes from ``B``'s 3x3 Cholesky factor written out
+    (:func:`_cholesky3`; ``B >= kappa I``), so every operation is on 3x3 matrices. The former
+    float32 adjugate inverse of ``S + kappa I`` followed by the product with ``S`` lost the small
+    eigenvalues when wide neighbours tens of metres away made ``S``'s largest eigenvalue
+    ~10^3 m^2 against ``kappa`` ~ 10^-2 m^2: negative eigenvalues of ``C``, or a singular
+    ``S + kappa I`` (inf / NaN). An equivalent k x k form, ``G^T (G G^T + kappa I_k)^-1 G``,
+    is PSD by construction too but its batched k x k Cholesky and triangular solves made the
+    head ~3x slower to train than the rest of the network (the test suite keeps it as a
+    reference).
     """
     f64 = torch.float64
     logw = torch.nn.functional.logsigmoid(logits.to(f64))
@@ -198,11 +205,43 @@ def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch
     alpha = 0.5 * torch.exp(a[:, 0])
     kappa = cov_scale**2 * torch.exp(a[:, 1])
     gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
-    k = G.shape[1]
-    K = G @ G.transpose(-1, -2) + kappa[:, None, None] * torch.eye(k, dtype=f64, device=raw.device)
-    R, _ = torch.linalg.cholesky_ex(K)  # K >= kappa I: positive definite
-    Y = torch.linalg.solve_triangular(R, G, upper=False)  # (N, k, 3)
     eye = torch.eye(3, dtype=f64, device=raw.device)
-    M = (alpha * kappa)[:, None, None] * (Y.transpose(-1, -2) @ Y) + gamma2[:, None, None] * eye
+    S = G.transpose(-1, -2) @ G
+    B_inv = _spd_inverse3(S + kappa[:, None, None] * eye)
+    V = G @ B_inv  # (N, k, 3)
+    W = G.transpose(-1, -2) @ V  # S B^-1
+    M = W.transpose(-1, -2) @ W + kappa[:, None, None] * (V.transpose(-1, -2) @ V)
+    M = (alpha * kappa)[:, None, None] * M + gamma2[:, None, None] * eye
     L, _ = torch.linalg.cholesky_ex(M)
     return L, M + eps * eye
+
+
+def _cholesky3(A: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Entries ``(l00, l10, l11, l20, l21, l22)`` of the Cholesky factor of ``(N, 3, 3)`` SPD ``A``.
+
+    Written out (batched LAPACK calls on 3x3 matrices cost more than the arithmetic). The
+    pivots are clamped at the smallest positive float64 so that a matrix that is singular in
+    rounding gives a large finite inverse, not NaN; the callers' matrices are ``>= kappa I``.
+    """
+    tiny = torch.finfo(A.dtype).tiny
+    l00 = torch.sqrt(A[:, 0, 0].clamp_min(tiny))
+    l10 = A[:, 1, 0] / l00
+    l20 = A[:, 2, 0] / l00
+    l11 = torch.sqrt((A[:, 1, 1] - l10 * l10).clamp_min(tiny))
+    l21 = (A[:, 2, 1] - l20 * l10) / l11
+    l22 = torch.sqrt((A[:, 2, 2] - l20 * l20 - l21 * l21).clamp_min(tiny))
+    return l00, l10, l11, l20, l21, l22
+
+
+def _spd_inverse3(A: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``(N, 3, 3)`` SPD matrices as ``P^-T P^-1`` with ``P = cholesky(A)`` (symmetric)."""
+    l00, l10, l11, l20, l21, l22 = _cholesky3(A)
+    # P^-1 (lower triangular) by forward substitution
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    i10 = -l10 * i00 * i11
+    i21 = -l21 * i11 * i22
+    i20 = -(l20 * i00 + l21 * i10) * i22
+    zero = torch.zeros_like(i00)
+    P_inv = torch.stack([torch.stack([i00, zero, zero], -1), torch.stack([i10, i11, zero], -1),
+                         torch.stack([i20, i21, i22], -1)], -2)
+    return P_inv.transpose(-1, -2) @ P_inv

@@ -176,6 +176,70 @@ def test_geometric_head_is_positive_definite_on_extreme_inputs():
     assert rel.max() < 1e-4, rel.max()  # condition numbers up to 1e11 here
 
 
+def _kxk_reference(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor, cov_scale: float,
+                   eps: float) -> torch.Tensor:
+    """The geometric head's former k x k form (independent of the 3x3 one): ``alpha kappa
+    G^T (G G^T + kappa I_k)^-1 G + gamma^2 I + eps I`` by a batched LAPACK Cholesky, float64."""
+    f64 = torch.float64
+    logw = torch.nn.functional.logsigmoid(logits.to(f64))
+    w = torch.exp(logw - logw.amax(1, keepdim=True))
+    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)
+    a = torch.clamp(raw.to(f64), -12.0, 8.0)
+    alpha, kappa = 0.5 * torch.exp(a[:, 0]), cov_scale**2 * torch.exp(a[:, 1])
+    gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
+    K = G @ G.transpose(-1, -2) + kappa[:, None, None] * torch.eye(G.shape[1], dtype=f64)
+    Y = torch.linalg.solve_triangular(torch.linalg.cholesky(K), G, upper=False)
+    return (alpha * kappa)[:, None, None] * (Y.transpose(-1, -2) @ Y) + (gamma2 + eps)[:, None, None] * torch.eye(3, dtype=f64)
+
+
+def test_geometric_head_values_and_gradients_equal_the_kxk_form():
+    """The 3x3 Gram form of the head against the k x k form: same covariances and the same
+    gradients with respect to every input (raw outputs, attention logits, offsets), on ordinary
+    neighbourhoods and on the far, needle-like ones of the tests above."""
+    from training.network import geometric_covariance
+
+    g = torch.Generator().manual_seed(3)
+    n, k = 400, 24
+    scale = torch.where(torch.arange(n)[:, None, None] < n // 2, torch.tensor([1.0, 0.5, 0.05]),
+                        torch.tensor([40.0, 0.3, 1e-3])).to(torch.float64)
+    offsets = torch.randn(n, k, 3, generator=g, dtype=torch.float64) * scale
+    Q = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))[0]
+    offsets = offsets @ Q.transpose(1, 2)
+    raw = torch.rand(n, 3, generator=g, dtype=torch.float64) * 10 - 6
+    logits = torch.randn(n, k, 1, generator=g, dtype=torch.float64) * 20
+    weights = torch.randn(n, 3, 3, generator=g, dtype=torch.float64)
+    grads = []
+    for fn in (lambda *a: geometric_covariance(*a, 0.1, 1e-6)[1], lambda *a: _kxk_reference(*a, 0.1, 1e-6)):
+        inputs = [t.clone().requires_grad_(True) for t in (raw, logits, offsets)]
+        C = fn(*inputs)
+        (C * weights).sum().backward()
+        grads.append((C.detach(), [t.grad for t in inputs]))
+    (C_new, g_new), (C_ref, g_ref) = grads
+    rel = torch.linalg.matrix_norm(C_new - C_ref) / torch.linalg.matrix_norm(C_ref)
+    assert float(rel.max()) < 1e-7, float(rel.max())  # condition numbers of B up to ~1e8 here
+    for name, a, b in zip(("raw", "logits", "offsets"), g_new, g_ref):
+        err = (a - b).abs().max() / b.abs().max()
+        assert err < 1e-7, (name, float(err))
+
+
+def test_spd_inverse3_against_lapack():
+    from training.network import _spd_inverse3
+
+    g = torch.Generator().manual_seed(1)
+    Q = torch.linalg.qr(torch.randn(500, 3, 3, generator=g, dtype=torch.float64))[0]
+    lam = 10.0 ** (torch.rand(500, 3, generator=g, dtype=torch.float64) * 12 - 8)  # condition up to 1e12
+    A = Q @ torch.diag_embed(lam) @ Q.transpose(1, 2)
+    inv = _spd_inverse3(A)
+    assert torch.equal(inv, inv.transpose(1, 2))
+    ref = torch.linalg.inv(A)
+    rel = torch.linalg.matrix_norm(inv - ref) / torch.linalg.matrix_norm(ref)
+    cond = lam.amax(1) / lam.amin(1)
+    assert bool((rel < 1e-14 * cond + 1e-15).all())  # the accuracy a backward-stable inverse has
+    eye = torch.eye(3, dtype=torch.float64).expand(500, 3, 3)
+    well = lam.amax(1) / lam.amin(1) < 1e4
+    torch.testing.assert_close((inv @ A)[well], eye[well], rtol=0, atol=1e-10)
+
+
 def test_network_with_underflowing_attention_weights_is_finite():
     """Attention logits of -150 everywhere (float32 sigmoid = 0, the former 0 / 0): the weights
     only count through their ratios, so the covariances equal those of logits 0."""
