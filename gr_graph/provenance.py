@@ -127,3 +127,13 @@ def provenance(seeds: dict[str, int] | None = None, device: str = "cpu",
         "device": device,
         "environment": {k: os.environ[k] for k in env_keys if k in os.environ},
     }
+
+
+def machine_line() -> str:
+    """One line naming the machine: CPU model and torch's kernel instruction set, core count,
+    platform, Python (imports torch, so that the instruction set is known)."""
+    import torch  # noqa: F401
+
+    cpu = cpu_description()
+    return (f"{cpu['model']} (torch kernels {cpu['torch_capability']}), {os.cpu_count()} cores, "
+            f"{platform.platform()}, Python {platform.python_version()}")

@@ -23,5 +23,6 @@ Modules: :mod:`~gr_graph.experiments.cells` (cell definitions and budgets, pure 
 (one cell: resume, reuse, pruning), :mod:`~gr_graph.experiments.kiss_baseline` (KISS-ICP on the
 same scans), :mod:`~gr_graph.experiments.aggregate` (mean ± std, reductions),
 :mod:`~gr_graph.experiments.figures`, :mod:`~gr_graph.experiments.report`,
-:mod:`~gr_graph.experiments.cli`.
+:mod:`~gr_graph.experiments.records` (published cell records: a report combines cells run in
+different roots), :mod:`~gr_graph.experiments.cli`.
 """

@@ -2,8 +2,10 @@
 
 Without ``--cell``/``--list``/``--report`` every unfinished cell runs in order (a cell that
 fails is reported and the next one runs; the exit status is 1 if any failed), finished
-memories are pruned, then the report is written. ``--cell K`` runs one cell (index or key)
-and prunes, without the report. ``--report`` only writes the report of the finished cells.
+memories are pruned, then the report is written; cells with a current published record
+(:mod:`gr_graph.experiments.records`) count as finished unless ``--no-records``. ``--cell K``
+runs one cell (index or key) and prunes, without the report. ``--report`` only writes the
+report of the finished cells.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 
 from gr_graph.cli_common import add_device, add_log_level, make_parser, setup_logging
 from gr_graph.experiments.cells import BUDGETS, TABLES, Cell, cells_for
+from gr_graph.experiments.records import RECORDS_DIR, read_records
 from gr_graph.experiments.run_cell import CellDependencyError, is_done, prune_finished, run_cell
 
 log = logging.getLogger(__name__)
@@ -48,17 +51,25 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     ap.add_argument("--cell", default=None, metavar="K", help="run only cell K (index or key)")
     ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")
     ap.add_argument("--publish", action="store_true",
-                    help="also write benchmarks/results/<table>.md (+ .json, figures/)")
+                    help="also write benchmarks/results/<table>.md (+ .json, figures/) and a record of each cell "
+                         "finished in the root (benchmarks/results/cells/<table>/<key>.json)")
+    ap.add_argument("--no-records", action="store_true",
+                    help="report only the cells in the root (default: cells missing there are taken from the "
+                         "published records whose definition is current, named in the report)")
     add_device(ap, "torch device of training and densification")
     add_log_level(ap)
     return ap
 
 
-def list_cells(cells: list[Cell], root: Path | None = None) -> str:
-    """One line per cell: index, key, estimated wall minutes (2 cores), done/-, what; then the total."""
+def list_cells(cells: list[Cell], root: Path | None = None, records_dir: Path | None = None) -> str:
+    """One line per cell: index, key, estimated wall minutes (2 cores), done, what; then the total.
+
+    done: ``yes`` (finished in ``root``), ``rec`` (a current published record in ``records_dir``), ``-``.
+    """
+    recorded = read_records(records_dir, cells).results if records_dir is not None else {}
     rows = [f"{'#':>3}  {'key':<24} {'est. min':>12}  {'done':<4}  what"]
     for i, c in enumerate(cells):
-        done = "yes" if root is not None and is_done(root, c) else "-"
+        done = "yes" if root is not None and is_done(root, c) else ("rec" if c.key in recorded else "-")
         rows.append(f"{i:>3}  {c.key:<24} {c.est_minutes:>12.1f}  {done:<4}  {c.what}")
     total = sum(c.est_minutes for c in cells)
     rows.append(f"{len(cells)} cells, estimated {total:.0f} minutes ({total / 60:.1f} h) on 2 cores")
@@ -87,15 +98,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = f"python -m gr_graph.experiments {args.table} --budget {args.budget} --root {root}"
     if args.device != "cpu":
         command += f" --device {args.device}"
+    records = None if args.no_records else RECORDS_DIR
     if args.list:
-        print(list_cells(cells, root))
+        print(list_cells(cells, root, records))
         return 0
     if args.report:
         from gr_graph.experiments.report import write_report
 
-        print(write_report(args.table, root, budget, cells, command, args.publish, args.device))
+        print(write_report(args.table, root, budget, cells, command, args.publish, args.device, records))
         return 0
     todo = [_pick(cells, args.cell)] if args.cell is not None else cells
+    if args.cell is None and records is not None:
+        recorded = read_records(records, cells).results
+        skip = [c.key for c in cells if c.key in recorded and not is_done(root, c)]
+        if skip:
+            log.info("skipping %d cell(s) with a current published record (--no-records runs them): %s",
+                     len(skip), ", ".join(skip))
+            todo = [c for c in cells if c.key not in skip]
     failed = []
     for c in todo:
         try:
@@ -113,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.cell is None:
         from gr_graph.experiments.report import write_report
 
-        print(write_report(args.table, root, budget, cells, command, args.publish, args.device))
+        print(write_report(args.table, root, budget, cells, command, args.publish, args.device, records))
     if failed:
         print(f"{len(failed)} cell(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1

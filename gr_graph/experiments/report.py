@@ -8,32 +8,21 @@ and measured time), the machine, which cells are missing, and the conventions of
 
 from __future__ import annotations
 
-import os
-import platform
 import shutil
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from gr_graph.atomic import atomic_write_json, atomic_write_text
+from gr_graph.atomic import atomic_write_json, atomic_write_text, read_json_or_none
 from gr_graph.experiments import aggregate as agg
 from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
+from gr_graph.experiments.records import RecordSet, read_records, write_records
+from gr_graph.provenance import machine_line
 from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, cell_dir, read_cell_result, with_noise_consistency
 
 __all__ = ["write_report", "RESULTS_DIR", "budget_lines", "machine_line"]
 
 RESULTS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
-
-
-def machine_line() -> str:
-    """CPU model and torch's kernel instruction set, core count, platform, Python."""
-    import torch  # noqa: F401  (loaded, so that the kernel instruction set is known)
-
-    from gr_graph.provenance import cpu_description
-
-    cpu = cpu_description()
-    return (f"{cpu['model']} (torch kernels {cpu['torch_capability']}), {os.cpu_count()} cores, "
-            f"{platform.platform()}, Python {platform.python_version()}")
 
 
 def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[str]:
@@ -260,11 +249,20 @@ TITLES = {"table1": "Table I: trajectory error over learning rounds, gr_graph vs
 
 
 def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell], command: str,
-                 publish: bool = False, device: str = "cpu") -> Path:
+                 publish: bool = False, device: str = "cpu", records_dir: str | Path | None = None) -> Path:
     """Aggregate the finished cells of ``table``; write ``ROOT/<table>/report.md`` and
-    ``report.json`` (and publish them); return the markdown path."""
+    ``report.json`` (and publish them); return the markdown path.
+
+    ``records_dir`` (e.g. :data:`gr_graph.experiments.records.RECORDS_DIR`): cells not finished
+    in ``root`` are taken from the published records there whose definition is current (the
+    report names them and their commits); None: only ``root``. ``publish`` also writes a record
+    of every cell finished in ``root`` to ``RESULTS_DIR/cells``.
+    """
     root = Path(root)
-    results = {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
+    local = {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
+    recs = read_records(records_dir, cells) if records_dir is not None else None
+    recorded = {k: v for k, v in (recs.results if recs else {}).items() if k not in local}
+    results = {c.key: local.get(c.key, recorded.get(c.key)) for c in cells if c.key in local or c.key in recorded}
     res_list = [results[c.key] for c in cells if c.key in results]
     lines: list[str] = []
     if table == "table1":
@@ -278,7 +276,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     else:
         summary = agg.ablation_summary(res_list)
         lines += _ablations_md(summary)
-    figs = _figures(table, root, cells, results, summary, device)
+    figs = _figures(table, root, cells, local, summary, device)  # pictures need the cells' files
     md_dir = root / table
     pub_dir = RESULTS_DIR
     fig_lines = list(figs.items())
@@ -287,21 +285,47 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     def document(shown_command: str, fig_paths: dict[str, str]) -> dict[str, Any]:
         return {"table": table, "command": shown_command, "budget": budget.name, "seeds": list(budget.seeds),
                 "machine": machine_line(), "cells": {c.key: {"index": i, "done": c.key in results, "what": c.what,
-                                                             "est_minutes": c.est_minutes}
+                                                             "est_minutes": c.est_minutes,
+                                                             "from_record": c.key in recorded}
                                                      for i, c in enumerate(cells)},
                 "summary": summary, "figures": fig_paths}
 
-    header = _header(table, TITLES[table], budget, root, cells, results, command)
+    provenance_md = _provenance_lines(cells, local, recorded, recs)
+    header = _header(table, TITLES[table], budget, root, cells, results, command)[:-1] + provenance_md + [""]
     atomic_write_json(md_dir / "report.json", document(command, {k: str(v) for k, v in figs.items()}))
     md = atomic_write_text(md_dir / "report.md", "\n".join(header + lines + fig_md) + "\n")
     if publish:
         # The published copy names no path of this machine: the root reads ROOT, figures are relative.
         pub_command = command.replace(f"--root {root}", "--root ROOT")
-        pub_header = _header(table, TITLES[table], budget, "ROOT", cells, results, pub_command)
+        pub_header = _header(table, TITLES[table], budget, "ROOT", cells, results, pub_command)[:-1] + provenance_md + [""]
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
             shutil.copyfile(p, pub_dir / "figures" / p.name)
         atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub_header + lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{table}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
+        slam_metrics = {c.key: read_json_or_none(cell_dir(root, c) / "slam" / "metrics.json") for c in cells if c.key in local}
+        write_records(pub_dir / "cells", cells, local, slam_metrics)
     return md
+
+
+def _provenance_lines(cells: list[Cell], local: dict[str, Any], recorded: dict[str, Any],
+                      recs: RecordSet | None) -> list[str]:
+    """Which cells come from published records (and their commits), and the stale records."""
+    if recs is None:
+        return []
+    lines = []
+    if recorded:
+        by_commit: dict[str, list[str]] = {}
+        for c in cells:
+            if c.key in recorded:
+                by_commit.setdefault((recs.commit_of(c.key) or "unknown commit")[:10], []).append(f"`{c.key}`")
+        lines.append("- cells from published records (`benchmarks/results/cells/`, run on other machines or "
+                     "sessions; no figures drawn for them): "
+                     + "; ".join(f"{', '.join(keys)} (commit {commit})" for commit, keys in by_commit.items()))
+        lines.append(f"- cells run in this report's root: {', '.join(f'`{k}`' for k in local) or 'none'}")
+    if recs.stale:
+        lines.append(f"- records ignored because the cell's definition changed since: {', '.join(recs.stale)}")
+    if recs.unreadable:
+        lines.append(f"- unreadable records ignored: {', '.join(recs.unreadable)}")
+    return lines

@@ -39,6 +39,7 @@ import numpy as np
 
 from gr_graph.atomic import atomic_write_json, read_json_or_none
 from gr_graph.experiments.cells import Cell
+from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +261,7 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
            "definition": cell.definition(), "device": device, "command": command,
            "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-           "est_minutes": cell.est_minutes, **result}
+           "est_minutes": cell.est_minutes, "git": git_state(), "machine": machine_line(), **result}
     atomic_write_json(d / CELL_JSON, doc)
     return doc
 

@@ -1,0 +1,101 @@
+"""Published cell records: the figures of finished cells, kept in the repository.
+
+A table's cells may run on different machines, or in sessions whose experiment root does not
+outlive them, so a report cannot rely on one ``ROOT`` holding every cell. ``--publish`` writes
+each finished cell of ``ROOT`` as ``benchmarks/results/cells/<table>/<key>.json``: its
+``cell.json`` figures with the noise consistency already computed (the marginals it comes from
+stay behind in ``ROOT``), the commit and machine it ran on. A later report fills the cells
+missing in its ``ROOT`` from these records, but only where the record's fingerprint equals the
+cell's current definition (a changed definition makes a record stale: ignored, logged and
+listed in the report). The report names every cell taken from a record and its commit; figures
+that need files (trajectories, scans) are drawn only for the cells in ``ROOT``.
+
+A record holds figures, never data that came from elsewhere: no scans, poses or models.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from gr_graph.atomic import atomic_write_json, read_json_or_none
+from gr_graph.experiments.cells import Cell
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RECORDS_DIR", "record_path", "write_records", "read_records", "RecordSet"]
+
+RECORDS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "cells"
+#: keys of a cell result that name files or paths of the machine it ran on; left out of a record
+_LOCAL_KEYS = ("command",)
+
+
+def record_path(records_dir: str | Path, cell: Cell) -> Path:
+    """``records_dir/<table>/<key>.json``."""
+    return Path(records_dir) / cell.table / f"{cell.key}.json"
+
+
+def _commit_of(result: dict[str, Any], slam_metrics: dict[str, Any] | None) -> str | None:
+    """The commit a cell ran with: its own ``git`` entry (cells since records exist), else the
+    pipeline's provenance in ``slam/metrics.json``; None when neither says."""
+    git = result.get("git") or ((slam_metrics or {}).get("provenance") or {}).get("git") or {}
+    return git.get("commit")
+
+
+def write_records(records_dir: str | Path, cells: list[Cell], results: dict[str, dict[str, Any]],
+                  slam_metrics: dict[str, dict[str, Any] | None] | None = None) -> list[Path]:
+    """Write one record per finished cell in ``results`` (key -> result with noise consistency).
+
+    ``slam_metrics`` (key -> the cell's ``slam/metrics.json`` or None) supplies the commit of
+    cells whose result does not name it. Returns the written paths.
+    """
+    written = []
+    for c in cells:
+        if c.key not in results:
+            continue
+        res = {k: v for k, v in results[c.key].items() if k not in _LOCAL_KEYS}
+        res["record"] = {"commit": _commit_of(results[c.key], (slam_metrics or {}).get(c.key)),
+                         "dirty": (results[c.key].get("git") or {}).get("dirty"),
+                         "machine": results[c.key].get("machine")}
+        written.append(atomic_write_json(record_path(records_dir, c), res))
+    return written
+
+
+class RecordSet:
+    """The usable records of a table's cells (``results``) and the stale ones (``stale``: keys).
+
+    Parameters
+    ----------
+    records_dir : path
+        ``benchmarks/results/cells`` or another folder of the same layout.
+    cells : list of Cell
+        The table's current cells; a record counts only when its fingerprint equals the cell's.
+    """
+
+    def __init__(self, records_dir: str | Path, cells: list[Cell]):
+        self.results: dict[str, dict[str, Any]] = {}
+        self.stale: list[str] = []
+        self.unreadable: list[str] = []
+        for c in cells:
+            p = record_path(records_dir, c)
+            if not p.exists():
+                continue
+            rec = read_json_or_none(p)
+            if not isinstance(rec, dict):
+                log.warning("%s: not a readable cell record; ignored", p)
+                self.unreadable.append(c.key)
+            elif rec.get("fingerprint") != c.fingerprint():
+                log.warning("%s: made with another definition of cell %s (stale); ignored", p, c.key)
+                self.stale.append(c.key)
+            else:
+                self.results[c.key] = rec
+
+    def commit_of(self, key: str) -> str | None:
+        """The commit the recorded cell ran with (None when unknown)."""
+        return (self.results[key].get("record") or {}).get("commit")
+
+
+def read_records(records_dir: str | Path, cells: list[Cell]) -> RecordSet:
+    """The records of ``cells`` in ``records_dir`` (:class:`RecordSet`)."""
+    return RecordSet(records_dir, cells)

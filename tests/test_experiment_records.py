@@ -1,0 +1,114 @@
+"""Published cell records: a report combines cells run in different roots (machines, sessions)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from gr_graph.experiments import cli, report
+from gr_graph.experiments import run_cell as rc
+from gr_graph.experiments.cells import BUDGETS, cells_for
+from gr_graph.experiments.records import read_records, record_path, write_records
+
+
+def _result(cell, rpe: list[float], accepted: list[bool]) -> dict:
+    rounds = {}
+    for r, v in enumerate(rpe):
+        slam = dict.fromkeys(rc.METRIC_KEYS)
+        slam.update(rpe300_consecutive_mean=v, rpe300_all_pairs_mean=1.1 * v, ate_rmse=v / 2)
+        rounds[str(r)] = {"slam": slam, "accepted": None if r == 0 else accepted[r - 1],
+                          "nees": {"nees_odometry_mean": 6.0 + r, "nees_loop_mean": None,
+                                   "nees_position_mean": 3.0, "odometry_path_error_percent": 0.1}}
+    return {"table": cell.table, "key": cell.key, "what": cell.what, "fingerprint": cell.fingerprint(),
+            "definition": cell.definition(),
+            "command": f"python -m gr_graph.experiments ablations --root /my/machine --cell {cell.key}",
+            "wall_s": 60.0, "cpu_s": 100.0, "git": {"commit": f"{cell.seed}" * 40, "dirty": False},
+            "machine": "test machine", "rounds": rounds}
+
+
+@pytest.fixture
+def default_cells():
+    return [c for c in cells_for("ablations", "paper") if c.group == "default"]
+
+
+def _report(monkeypatch, tmp_path, root_results: dict, cells, records_dir=None, publish=False) -> str:
+    monkeypatch.setattr(report, "_figures", lambda *a, **k: {})
+    monkeypatch.setattr(report, "RESULTS_DIR", tmp_path / "published")
+    monkeypatch.setattr(report, "read_cell_result", lambda root, c: root_results.get(c.key))
+    monkeypatch.setattr(report, "with_noise_consistency", lambda root, c, r: r)  # the results carry it
+    return report.write_report("ablations", tmp_path / "root", BUDGETS["paper"], cells, "cmd", publish=publish,
+                               records_dir=records_dir).read_text()
+
+
+def test_cells_from_two_roots_give_the_report_of_all_cells_in_one(tmp_path, monkeypatch, default_cells):
+    rpe = {0: [0.4, 0.3, 0.2], 1: [0.4, 0.6, 0.35], 2: [0.5, 0.45, 0.5]}
+    res = {c.key: _result(c, rpe[c.seed], [c.seed != 1, True]) for c in default_cells}
+    both = _report(monkeypatch, tmp_path / "a", res, default_cells)
+    # session 1 ran seed 0 and published it; session 2 runs seeds 1 and 2 and reads the record
+    first = {k: v for k, v in res.items() if k.endswith("s0")}
+    _report(monkeypatch, tmp_path / "s1", first, default_cells, publish=True)
+    records = tmp_path / "s1" / "published" / "cells"
+    rec = json.loads(record_path(records, default_cells[0]).read_text())
+    assert rec["record"] == {"commit": "0" * 40, "dirty": False, "machine": "test machine"}
+    assert "command" not in rec  # names a path of the machine it ran on
+    assert not record_path(records, default_cells[1]).exists()
+    rest = {k: v for k, v in res.items() if not k.endswith("s0")}
+    merged = _report(monkeypatch, tmp_path / "s2", rest, default_cells, records_dir=records)
+    tables = [line for line in merged.splitlines() if line.startswith("|")]
+    assert tables == [line for line in both.splitlines() if line.startswith("|")]
+    assert "cells from published records" in merged and "`default-s0` (commit 0000000000)" in merged
+    assert "cells run in this report's root: `default-s1`, `default-s2`" in merged
+    doc = json.loads((tmp_path / "s2" / "root" / "ablations" / "report.json").read_text())
+    assert doc["cells"]["default-s0"]["from_record"] and not doc["cells"]["default-s1"]["from_record"]
+    # without the records the seed-0 cell is missing
+    alone = _report(monkeypatch, tmp_path / "s3", rest, default_cells)
+    assert "**missing cells** (not finished): 0 `default-s0`" in alone
+
+
+def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, monkeypatch, default_cells):
+    c0 = default_cells[0]
+    old = _result(c0, [0.4, 9.0, 9.0], [False, False])
+    records = tmp_path / "records"
+    write_records(records, [c0], {c0.key: old})
+    new = _result(c0, [0.4, 0.3, 0.2], [True, True])
+    md = _report(monkeypatch, tmp_path, {c0.key: new}, [c0], records_dir=records)
+    assert "cells from published records" not in md  # the root's own cell is used
+    s = json.loads((tmp_path / "root" / "ablations" / "report.json").read_text())["summary"]["default"]
+    assert s["steps"]["1-step"]["per_seed"][0]["ate_rmse"] == pytest.approx(0.15)
+    # a record made with another definition of the cell: ignored, named in the report
+    changed = dataclasses.replace(c0, frames=(0, 700))
+    got = read_records(records, [changed])
+    assert got.results == {} and got.stale == [c0.key]
+    md = _report(monkeypatch, tmp_path / "b", {}, [changed], records_dir=records)
+    assert f"records ignored because the cell's definition changed since: {c0.key}" in md
+    assert "**missing cells**" in md
+    # a damaged record: ignored and named, never a failed report
+    record_path(records, c0).write_text("{cut short")
+    md = _report(monkeypatch, tmp_path / "c", {}, [c0], records_dir=records)
+    assert f"unreadable records ignored: {c0.key}" in md
+
+
+def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch, capsys):
+    cells = cells_for("ablations", "smoke")
+    records = tmp_path / "records"
+    write_records(records, [cells[1]], {cells[1].key: _result(cells[1], [0.4, 0.3], [True])})
+    monkeypatch.setattr(cli, "RECORDS_DIR", records)
+    ran: list[str] = []
+    monkeypatch.setattr(cli, "run_cell", lambda root, c, device, command: ran.append(c.key))
+    monkeypatch.setattr(cli, "prune_finished", lambda root, cells: [])
+    monkeypatch.setattr(report, "write_report", lambda *a, **k: tmp_path / "report.md")
+    root = str(tmp_path / "exp")
+    assert cli.main(["ablations", "--budget", "smoke", "--root", root]) == 0
+    assert ran == [c.key for c in cells if c.key != cells[1].key]
+    ran.clear()
+    assert cli.main(["ablations", "--budget", "smoke", "--root", root, "--no-records"]) == 0
+    assert ran == [c.key for c in cells]
+    ran.clear()
+    assert cli.main(["ablations", "--budget", "smoke", "--root", root, "--cell", cells[1].key]) == 0
+    assert ran == [cells[1].key]  # asked for by name: run
+    capsys.readouterr()
+    assert cli.main(["ablations", "--budget", "smoke", "--root", root, "--list"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert rows[2].split()[3] == "rec" and rows[1].split()[3] == "-"
