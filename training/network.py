@@ -46,7 +46,8 @@ from torch import nn
 from training.config import NetConfig
 from training.neighbors import Neighborhoods
 
-__all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov", "geometric_covariance"]
+__all__ = ["NetConfig", "CovarianceNet", "neighborhoods_to_torch", "cholesky_to_cov", "geometric_covariance",
+           "geometric_covariance_kxk"]
 
 
 def _mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
@@ -193,25 +194,50 @@ def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch
     eigenvalues when wide neighbours tens of metres away made ``S``'s largest eigenvalue
     ~10^3 m^2 against ``kappa`` ~ 10^-2 m^2: negative eigenvalues of ``C``, or a singular
     ``S + kappa I`` (inf / NaN). An equivalent k x k form, ``G^T (G G^T + kappa I_k)^-1 G``,
-    is PSD by construction too but its batched k x k Cholesky and triangular solves made the
-    head ~3x slower to train than the rest of the network (the test suite keeps it as a
-    reference).
+    is PSD by construction too but its batched k x k Cholesky and triangular solves made a
+    training step 2.3x slower (:func:`geometric_covariance_kxk`, kept as a reference).
     """
-    f64 = torch.float64
-    logw = torch.nn.functional.logsigmoid(logits.to(f64))
-    w = torch.exp(logw - logw.amax(1, keepdim=True))  # (N, k, 1), max 1: the sum is >= 1
-    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)  # (N, k, 3): S = G^T G
-    a = torch.clamp(raw.to(f64), -12.0, 8.0)
-    alpha = 0.5 * torch.exp(a[:, 0])
-    kappa = cov_scale**2 * torch.exp(a[:, 1])
-    gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
-    eye = torch.eye(3, dtype=f64, device=raw.device)
+    G, alpha, kappa, gamma2 = _head_terms(raw, logits, offsets, cov_scale)
+    eye = torch.eye(3, dtype=G.dtype, device=G.device)
     S = G.transpose(-1, -2) @ G
     B_inv = _spd_inverse3(S + kappa[:, None, None] * eye)
     V = G @ B_inv  # (N, k, 3)
     W = G.transpose(-1, -2) @ V  # S B^-1
     M = W.transpose(-1, -2) @ W + kappa[:, None, None] * (V.transpose(-1, -2) @ V)
     M = (alpha * kappa)[:, None, None] * M + gamma2[:, None, None] * eye
+    L, _ = torch.linalg.cholesky_ex(M)
+    return L, M + eps * eye
+
+
+def _head_terms(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor,
+                cov_scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``G`` ``(N, k, 3)`` (``S = G^T G``), ``alpha``, ``kappa``, ``gamma^2`` ``(N,)`` of the geometric
+    head, float64 (the weights normalised in log space: :func:`geometric_covariance`)."""
+    f64 = torch.float64
+    logw = torch.nn.functional.logsigmoid(logits.to(f64))
+    w = torch.exp(logw - logw.amax(1, keepdim=True))  # (N, k, 1), max 1: the sum is >= 1
+    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)
+    a = torch.clamp(raw.to(f64), -12.0, 8.0)
+    alpha = 0.5 * torch.exp(a[:, 0])
+    kappa = cov_scale**2 * torch.exp(a[:, 1])
+    gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
+    return G, alpha, kappa, gamma2
+
+
+def geometric_covariance_kxk(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor, cov_scale: float,
+                             eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The geometric head's former k x k form, an independent reference of
+    :func:`geometric_covariance` (tests, ``benchmarks/bench_head.py``): same arguments and result.
+
+    ``S (S + kappa I)^-1 = G^T (G G^T + kappa I_k)^-1 G = Y^T Y``, ``Y = R^-1 G``,
+    ``R R^T = G G^T + kappa I_k`` (batched LAPACK Cholesky and triangular solve, float64).
+    """
+    G, alpha, kappa, gamma2 = _head_terms(raw, logits, offsets, cov_scale)
+    K = G @ G.transpose(-1, -2) + kappa[:, None, None] * torch.eye(G.shape[1], dtype=G.dtype, device=G.device)
+    R, _ = torch.linalg.cholesky_ex(K)  # K >= kappa I: positive definite
+    Y = torch.linalg.solve_triangular(R, G, upper=False)
+    eye = torch.eye(3, dtype=G.dtype, device=G.device)
+    M = (alpha * kappa)[:, None, None] * (Y.transpose(-1, -2) @ Y) + gamma2[:, None, None] * eye
     L, _ = torch.linalg.cholesky_ex(M)
     return L, M + eps * eye
 

@@ -176,27 +176,11 @@ def test_geometric_head_is_positive_definite_on_extreme_inputs():
     assert rel.max() < 1e-4, rel.max()  # condition numbers up to 1e11 here
 
 
-def _kxk_reference(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor, cov_scale: float,
-                   eps: float) -> torch.Tensor:
-    """The geometric head's former k x k form (independent of the 3x3 one): ``alpha kappa
-    G^T (G G^T + kappa I_k)^-1 G + gamma^2 I + eps I`` by a batched LAPACK Cholesky, float64."""
-    f64 = torch.float64
-    logw = torch.nn.functional.logsigmoid(logits.to(f64))
-    w = torch.exp(logw - logw.amax(1, keepdim=True))
-    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)
-    a = torch.clamp(raw.to(f64), -12.0, 8.0)
-    alpha, kappa = 0.5 * torch.exp(a[:, 0]), cov_scale**2 * torch.exp(a[:, 1])
-    gamma2 = (0.03 * cov_scale) ** 2 * torch.exp(2 * a[:, 2])
-    K = G @ G.transpose(-1, -2) + kappa[:, None, None] * torch.eye(G.shape[1], dtype=f64)
-    Y = torch.linalg.solve_triangular(torch.linalg.cholesky(K), G, upper=False)
-    return (alpha * kappa)[:, None, None] * (Y.transpose(-1, -2) @ Y) + (gamma2 + eps)[:, None, None] * torch.eye(3, dtype=f64)
-
-
 def test_geometric_head_values_and_gradients_equal_the_kxk_form():
     """The 3x3 Gram form of the head against the k x k form: same covariances and the same
     gradients with respect to every input (raw outputs, attention logits, offsets), on ordinary
     neighbourhoods and on the far, needle-like ones of the tests above."""
-    from training.network import geometric_covariance
+    from training.network import geometric_covariance, geometric_covariance_kxk
 
     g = torch.Generator().manual_seed(3)
     n, k = 400, 24
@@ -209,7 +193,7 @@ def test_geometric_head_values_and_gradients_equal_the_kxk_form():
     logits = torch.randn(n, k, 1, generator=g, dtype=torch.float64) * 20
     weights = torch.randn(n, 3, 3, generator=g, dtype=torch.float64)
     grads = []
-    for fn in (lambda *a: geometric_covariance(*a, 0.1, 1e-6)[1], lambda *a: _kxk_reference(*a, 0.1, 1e-6)):
+    for fn in (lambda *a: geometric_covariance(*a, 0.1, 1e-6)[1], lambda *a: geometric_covariance_kxk(*a, 0.1, 1e-6)[1]):
         inputs = [t.clone().requires_grad_(True) for t in (raw, logits, offsets)]
         C = fn(*inputs)
         (C * weights).sum().backward()
