@@ -112,3 +112,20 @@ def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch,
     assert cli.main(["ablations", "--budget", "smoke", "--root", root, "--list"]) == 0
     rows = capsys.readouterr().out.splitlines()
     assert rows[2].split()[3] == "rec" and rows[1].split()[3] == "-"
+
+
+def test_publish_records_writes_records_and_leaves_the_table(tmp_path, monkeypatch, default_cells, capsys):
+    c0 = default_cells[0]
+    res = _result(c0, [0.4, 0.3, 0.2], [True, True])
+    res.pop("git")  # a cell finished before cell.json named its commit: the pipeline's provenance does
+    root = tmp_path / "exp"
+    (rc.cell_dir(root, c0) / "slam").mkdir(parents=True)
+    (rc.cell_dir(root, c0) / "slam" / "metrics.json").write_text(json.dumps({"provenance": {"git": {"commit": "ab" * 20}}}))
+    monkeypatch.setattr(report, "RESULTS_DIR", tmp_path / "published")
+    monkeypatch.setattr(report, "read_cell_result", lambda r, c: res if c.key == c0.key else None)
+    monkeypatch.setattr(report, "with_noise_consistency", lambda r, c, x: x)
+    assert cli.main(["ablations", "--root", str(root), "--publish-records"]) == 0
+    assert capsys.readouterr().out.strip() == str(record_path(tmp_path / "published" / "cells", c0))
+    rec = json.loads(record_path(tmp_path / "published" / "cells", c0).read_text())
+    assert rec["record"]["commit"] == "ab" * 20 and rec["rounds"] == res["rounds"]
+    assert not (tmp_path / "published" / "ablations.md").exists()

@@ -53,6 +53,9 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     ap.add_argument("--publish", action="store_true",
                     help="also write benchmarks/results/<table>.md (+ .json, figures/) and a record of each cell "
                          "finished in the root (benchmarks/results/cells/<table>/<key>.json)")
+    ap.add_argument("--publish-records", action="store_true",
+                    help="only write the records of the cells finished in the root (benchmarks/results/cells/), "
+                         "not the table: for a root that holds part of a table whose published report stays")
     ap.add_argument("--no-records", action="store_true",
                     help="report only the cells in the root (default: cells missing there are taken from the "
                          "published records whose definition is current, named in the report)")
@@ -101,6 +104,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     records = None if args.no_records else RECORDS_DIR
     if args.list:
         print(list_cells(cells, root, records))
+        return 0
+    if args.publish_records:
+        from gr_graph.experiments.report import publish_records
+
+        for p in publish_records(root, cells):
+            print(p)
         return 0
     if args.report:
         from gr_graph.experiments.report import write_report

@@ -20,7 +20,7 @@ from gr_graph.experiments.records import RecordSet, read_records, write_records
 from gr_graph.provenance import machine_line
 from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, cell_dir, read_cell_result, with_noise_consistency
 
-__all__ = ["write_report", "RESULTS_DIR", "budget_lines", "machine_line"]
+__all__ = ["write_report", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
 RESULTS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
@@ -259,7 +259,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     of every cell finished in ``root`` to ``RESULTS_DIR/cells``.
     """
     root = Path(root)
-    local = {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
+    local = local_results(root, cells)
     recs = read_records(records_dir, cells) if records_dir is not None else None
     recorded = {k: v for k, v in (recs.results if recs else {}).items() if k not in local}
     results = {c.key: local.get(c.key, recorded.get(c.key)) for c in cells if c.key in local or c.key in recorded}
@@ -304,9 +304,22 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub_header + lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{table}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
-        slam_metrics = {c.key: read_json_or_none(cell_dir(root, c) / "slam" / "metrics.json") for c in cells if c.key in local}
-        write_records(pub_dir / "cells", cells, local, slam_metrics)
+        publish_records(root, cells, local)
     return md
+
+
+def local_results(root: str | Path, cells: list[Cell]) -> dict[str, dict[str, Any]]:
+    """The cells finished in ``root`` (key -> ``cell.json`` with the noise consistency of every round)."""
+    return {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
+
+
+def publish_records(root: str | Path, cells: list[Cell], local: dict[str, dict[str, Any]] | None = None) -> list[Path]:
+    """Write a record of every cell finished in ``root`` to ``RESULTS_DIR/cells`` (no table);
+    ``local``: :func:`local_results` when already computed. Returns the written paths."""
+    local = local_results(root, cells) if local is None else local
+    slam_metrics = {c.key: read_json_or_none(cell_dir(root, c) / "slam" / "metrics.json") for c in cells
+                    if c.key in local}
+    return write_records(RESULTS_DIR / "cells", cells, local, slam_metrics)
 
 
 def _provenance_lines(cells: list[Cell], local: dict[str, Any], recorded: dict[str, Any],
