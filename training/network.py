@@ -189,7 +189,10 @@ def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch
         M = W^T W + kappa V^T V = (S^2 + kappa S) B^-2 = S B^-1
 
     (``S`` and ``B^-1`` commute). ``B^-1`` comes from ``B``'s 3x3 Cholesky factor written out
-    (:func:`_cholesky3`; ``B >= kappa I``), so every operation is on 3x3 matrices. The former
+    (:func:`_cholesky3`; ``B >= kappa I``, its pivots clamped at ``kappa``), so every operation is on
+    3x3 matrices; its gradients are those of the k x k form to ~1e-7 relative on ordinary
+    neighbourhoods and less accurate where ``B``'s condition number nears 1e11 (``kappa`` at its
+    clamp, needles tens of metres long; ~1 % on the logits' gradient there). The former
     float32 adjugate inverse of ``S + kappa I`` followed by the product with ``S`` lost the small
     eigenvalues when wide neighbours tens of metres away made ``S``'s largest eigenvalue
     ~10^3 m^2 against ``kappa`` ~ 10^-2 m^2: negative eigenvalues of ``C``, or a singular
@@ -200,7 +203,7 @@ def geometric_covariance(raw: torch.Tensor, logits: torch.Tensor, offsets: torch
     G, alpha, kappa, gamma2 = _head_terms(raw, logits, offsets, cov_scale)
     eye = torch.eye(3, dtype=G.dtype, device=G.device)
     S = G.transpose(-1, -2) @ G
-    B_inv = _spd_inverse3(S + kappa[:, None, None] * eye)
+    B_inv = _spd_inverse3(S + kappa[:, None, None] * eye, kappa)
     V = G @ B_inv  # (N, k, 3)
     W = G.transpose(-1, -2) @ V  # S B^-1
     M = W.transpose(-1, -2) @ W + kappa[:, None, None] * (V.transpose(-1, -2) @ V)
@@ -215,8 +218,10 @@ def _head_terms(raw: torch.Tensor, logits: torch.Tensor, offsets: torch.Tensor,
     head, float64 (the weights normalised in log space: :func:`geometric_covariance`)."""
     f64 = torch.float64
     logw = torch.nn.functional.logsigmoid(logits.to(f64))
-    w = torch.exp(logw - logw.amax(1, keepdim=True))  # (N, k, 1), max 1: the sum is >= 1
-    G = torch.sqrt(w / w.sum(1, keepdim=True)) * offsets.to(f64)
+    half = 0.5 * (logw - logw.amax(1, keepdim=True))  # log sqrt(w_j / max w)
+    # sqrt(w_j / sum w) as exp(half) / sqrt(sum w): sqrt of a weight that underflowed to 0 would
+    # give an infinite derivative (NaN gradients); the sum is >= 1
+    G = torch.exp(half) / torch.sqrt(torch.exp(2.0 * half).sum(1, keepdim=True)) * offsets.to(f64)
     a = torch.clamp(raw.to(f64), -12.0, 8.0)
     alpha = 0.5 * torch.exp(a[:, 0])
     kappa = cov_scale**2 * torch.exp(a[:, 1])
@@ -242,26 +247,27 @@ def geometric_covariance_kxk(raw: torch.Tensor, logits: torch.Tensor, offsets: t
     return L, M + eps * eye
 
 
-def _cholesky3(A: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def _cholesky3(A: torch.Tensor, floor: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Entries ``(l00, l10, l11, l20, l21, l22)`` of the Cholesky factor of ``(N, 3, 3)`` SPD ``A``.
 
-    Written out (batched LAPACK calls on 3x3 matrices cost more than the arithmetic). The
-    pivots are clamped at the smallest positive float64 so that a matrix that is singular in
-    rounding gives a large finite inverse, not NaN; the callers' matrices are ``>= kappa I``.
+    Written out (batched LAPACK calls on 3x3 matrices cost more than the arithmetic). ``floor``
+    ``(N,)``: a lower bound of ``A``'s smallest eigenvalue; every squared pivot is at least that
+    (``l_ii^2 >= lambda_min(A)``), so clamping the pivots there changes nothing in exact
+    arithmetic and keeps rounding from giving a zero or negative pivot (inverse at most
+    ``1 / floor``).
     """
-    tiny = torch.finfo(A.dtype).tiny
-    l00 = torch.sqrt(A[:, 0, 0].clamp_min(tiny))
+    l00 = torch.sqrt(torch.maximum(A[:, 0, 0], floor))
     l10 = A[:, 1, 0] / l00
     l20 = A[:, 2, 0] / l00
-    l11 = torch.sqrt((A[:, 1, 1] - l10 * l10).clamp_min(tiny))
+    l11 = torch.sqrt(torch.maximum(A[:, 1, 1] - l10 * l10, floor))
     l21 = (A[:, 2, 1] - l20 * l10) / l11
-    l22 = torch.sqrt((A[:, 2, 2] - l20 * l20 - l21 * l21).clamp_min(tiny))
+    l22 = torch.sqrt(torch.maximum(A[:, 2, 2] - l20 * l20 - l21 * l21, floor))
     return l00, l10, l11, l20, l21, l22
 
 
-def _spd_inverse3(A: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``(N, 3, 3)`` SPD matrices as ``P^-T P^-1`` with ``P = cholesky(A)`` (symmetric)."""
-    l00, l10, l11, l20, l21, l22 = _cholesky3(A)
+def _spd_inverse3(A: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``(N, 3, 3)`` SPD matrices ``A >= floor I`` as ``P^-T P^-1``, ``P = cholesky(A)`` (symmetric)."""
+    l00, l10, l11, l20, l21, l22 = _cholesky3(A, floor)
     # P^-1 (lower triangular) by forward substitution
     i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
     i10 = -l10 * i00 * i11

@@ -206,6 +206,45 @@ def test_geometric_head_values_and_gradients_equal_the_kxk_form():
         assert err < 1e-7, (name, float(err))
 
 
+def _head_gradients(fn, raw, logits, offsets, weights):
+    inputs = [t.clone().requires_grad_(True) for t in (raw, logits, offsets)]
+    C = fn(*inputs, 0.1, 1e-6)[1]
+    (C * weights).sum().backward()
+    return C.detach(), [t.grad for t in inputs]
+
+
+def test_geometric_head_gradients_at_the_kappa_clamp_and_with_underflowing_weights():
+    """kappa at its clamp against needles 60 m long (condition numbers of S + kappa I ~1e11): the
+    gradients stay finite and within the conditioning's reach of the k x k form's; a weight that
+    underflows to exactly 0 (logit gap < -745) gives finite gradients (sqrt's derivative at 0
+    used to give NaN) equal to those without that neighbour's weight."""
+    from training.network import geometric_covariance, geometric_covariance_kxk
+
+    g = torch.Generator().manual_seed(7)
+    n, k = 300, 16
+    o = torch.randn(n, k, 3, generator=g, dtype=torch.float64) * torch.tensor([60.0, 1e-2, 1e-4], dtype=torch.float64)
+    raw = torch.rand(n, 3, generator=g, dtype=torch.float64) * 4 - 2
+    raw[:, 1] = -13.0  # kappa clamped at cov_scale^2 e^-12
+    logits = torch.randn(n, k, 1, generator=g, dtype=torch.float64) * 5
+    weights = torch.randn(n, 3, 3, generator=g, dtype=torch.float64)
+    C, grads = _head_gradients(geometric_covariance, raw, logits, o, weights)
+    C_ref, grads_ref = _head_gradients(geometric_covariance_kxk, raw, logits, o, weights)
+    assert all(bool(torch.isfinite(x).all()) for x in grads)
+    assert float((torch.linalg.matrix_norm(C - C_ref) / torch.linalg.matrix_norm(C_ref)).max()) < 1e-4
+    for a, b in zip(grads, grads_ref):
+        assert float((a - b).norm() / b.norm()) < 5e-2  # ~1 % seen (module docstring)
+    under = logits.clone()
+    under[:, 3] = -2000.0  # exp(logsigmoid) gap far below float64's range: the weight is exactly 0
+    C_u, grads_u = _head_gradients(geometric_covariance, raw[:50] * 0, under[:50], o[:50] + 1.0, weights[:50])
+    assert all(bool(torch.isfinite(x).all()) for x in grads_u)
+    dropped = torch.cat([under[:50, :3], under[:50, 4:]], 1)
+    C_d, grads_d = _head_gradients(geometric_covariance, raw[:50] * 0, dropped,
+                                   torch.cat([o[:50, :3], o[:50, 4:]], 1) + 1.0, weights[:50])
+    assert float((torch.linalg.matrix_norm(C_u - C_d) / torch.linalg.matrix_norm(C_d)).max()) < 1e-10
+    assert float((grads_u[0] - grads_d[0]).norm() / grads_d[0].norm()) < 1e-9
+    assert float(grads_u[1][:, 3].abs().max()) == 0.0 and float(grads_u[2][:, 3].abs().max()) == 0.0
+
+
 def test_spd_inverse3_against_lapack():
     from training.network import _spd_inverse3
 
@@ -213,7 +252,7 @@ def test_spd_inverse3_against_lapack():
     Q = torch.linalg.qr(torch.randn(500, 3, 3, generator=g, dtype=torch.float64))[0]
     lam = 10.0 ** (torch.rand(500, 3, generator=g, dtype=torch.float64) * 12 - 8)  # condition up to 1e12
     A = Q @ torch.diag_embed(lam) @ Q.transpose(1, 2)
-    inv = _spd_inverse3(A)
+    inv = _spd_inverse3(A, 0.5 * lam.amin(1))
     assert torch.equal(inv, inv.transpose(1, 2))
     ref = torch.linalg.inv(A)
     rel = torch.linalg.matrix_norm(inv - ref) / torch.linalg.matrix_norm(ref)
