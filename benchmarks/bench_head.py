@@ -15,6 +15,7 @@ the result is the median time per step and its ratio to the 3x3 geometric head.
 from __future__ import annotations
 
 import argparse
+import shlex
 import statistics
 import sys
 import tempfile
@@ -31,6 +32,7 @@ from bench_training import build_synthetic_memory  # noqa: E402
 import training.network as network  # noqa: E402
 from gr_graph.atomic import atomic_write_json, atomic_write_text  # noqa: E402
 from gr_graph.provenance import machine_line  # noqa: E402
+from training.dataset import SkipSample  # noqa: E402
 from training.trainer import TrainConfig, Trainer  # noqa: E402
 
 VARIANTS = {
@@ -40,12 +42,16 @@ VARIANTS = {
 }
 
 
-def step_seconds(trainer: Trainer, edge: int) -> float:
-    """Wall seconds of one step without the optimiser: sample, forward, losses, backward."""
+def step_seconds(trainer: Trainer, edge: int) -> float | None:
+    """Wall seconds of one step without the optimiser: sample, forward, losses, backward (None
+    when the trainer would skip the pair)."""
     t0 = time.perf_counter()
     s = trainer.dataset.sample(edge, 99)
     C = trainer.forward(s)
-    loss, _ = trainer.pair_loss(s, C)
+    try:
+        loss, _ = trainer.pair_loss(s, C)
+    except SkipSample:
+        return None
     loss.backward()
     trainer.model.zero_grad()
     return time.perf_counter() - t0
@@ -68,7 +74,7 @@ def measure(args: argparse.Namespace) -> dict:
                     dt = step_seconds(trainers[name], rep % mem.n_edges)
                 finally:
                     network.geometric_covariance = VARIANTS["geometric, 3x3 form (default)"][1]
-                if rep:
+                if rep and dt is not None:
                     times[name].append(dt)
     base = statistics.median(times["geometric, 3x3 form (default)"])
     return {"frames": args.frames, "start": args.start, "rings": args.rings, "threads": args.threads,
@@ -81,7 +87,7 @@ def write_report(res: dict, argv: list[str]) -> Path:
     out = REPO / "benchmarks" / "results"
     atomic_write_json(out / "head_speed.json", res)
     lines = ["# Covariance head: time of a training step", "",
-             f"Reproduce: `{' '.join(['python benchmarks/bench_head.py', *argv])}`", "",
+             f"Reproduce: `{shlex.join(['python', 'benchmarks/bench_head.py', *argv])}`", "",
              f"Machine: {machine_line()}, torch {torch.__version__}, "
              f"{res['threads']} torch thread(s). {res['rings']}-channel synthetic scans, frames {res['start']}.."
              f"{res['start'] + res['frames'] - 1} ({res['pairs']} odometry pairs), default network and trainer "

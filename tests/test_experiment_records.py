@@ -50,15 +50,17 @@ def test_cells_from_two_roots_give_the_report_of_all_cells_in_one(tmp_path, monk
     first = {k: v for k, v in res.items() if k.endswith("s0")}
     _report(monkeypatch, tmp_path / "s1", first, default_cells, publish=True)
     records = tmp_path / "s1" / "published" / "cells"
-    rec = json.loads(record_path(records, default_cells[0]).read_text())
+    rec = json.loads(record_path(records, "paper", default_cells[0]).read_text())
     assert rec["record"] == {"commit": "0" * 40, "dirty": False, "machine": "test machine"}
     assert "command" not in rec  # names a path of the machine it ran on
-    assert not record_path(records, default_cells[1]).exists()
+    assert not record_path(records, "paper", default_cells[1]).exists()
     rest = {k: v for k, v in res.items() if not k.endswith("s0")}
     merged = _report(monkeypatch, tmp_path / "s2", rest, default_cells, records_dir=records)
     tables = [line for line in merged.splitlines() if line.startswith("|")]
     assert tables == [line for line in both.splitlines() if line.startswith("|")]
-    assert "cells from published records" in merged and "`default-s0` (commit 0000000000)" in merged
+    assert "cells from published records" in merged
+    assert "`default-s0` (commit 0000000000, test machine)" in merged
+    assert str(tmp_path) not in record_path(records, "paper", default_cells[0]).read_text()
     assert "cells run in this report's root: `default-s1`, `default-s2`" in merged
     doc = json.loads((tmp_path / "s2" / "root" / "ablations" / "report.json").read_text())
     assert doc["cells"]["default-s0"]["from_record"] and not doc["cells"]["default-s1"]["from_record"]
@@ -71,7 +73,7 @@ def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, m
     c0 = default_cells[0]
     old = _result(c0, [0.4, 9.0, 9.0], [False, False])
     records = tmp_path / "records"
-    write_records(records, [c0], {c0.key: old})
+    write_records(records, "paper", [c0], {c0.key: old})
     new = _result(c0, [0.4, 0.3, 0.2], [True, True])
     md = _report(monkeypatch, tmp_path, {c0.key: new}, [c0], records_dir=records)
     assert "cells from published records" not in md  # the root's own cell is used
@@ -79,13 +81,17 @@ def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, m
     assert s["steps"]["1-step"]["per_seed"][0]["ate_rmse"] == pytest.approx(0.15)
     # a record made with another definition of the cell: ignored, named in the report
     changed = dataclasses.replace(c0, frames=(0, 700))
-    got = read_records(records, [changed])
+    got = read_records(records, "paper", [changed])
     assert got.results == {} and got.stale == [c0.key]
     md = _report(monkeypatch, tmp_path / "b", {}, [changed], records_dir=records)
     assert f"records ignored because the cell's definition changed since: {c0.key}" in md
     assert "**missing cells**" in md
+    # a record of a cell that no longer exists: listed, ignored
+    (records / "paper" / "ablations" / "gone-s0.json").write_text("{}")
+    md = _report(monkeypatch, tmp_path / "o", {}, [c0], records_dir=records)
+    assert "records of cells that no longer exist, ignored: ablations/gone-s0" in md
     # a damaged record: ignored and named, never a failed report
-    record_path(records, c0).write_text("{cut short")
+    record_path(records, "paper", c0).write_text("{cut short")
     md = _report(monkeypatch, tmp_path / "c", {}, [c0], records_dir=records)
     assert f"unreadable records ignored: {c0.key}" in md
 
@@ -93,7 +99,10 @@ def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, m
 def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch, capsys):
     cells = cells_for("ablations", "smoke")
     records = tmp_path / "records"
-    write_records(records, [cells[1]], {cells[1].key: _result(cells[1], [0.4, 0.3], [True])})
+    write_records(records, "smoke", [cells[1]], {cells[1].key: _result(cells[1], [0.4, 0.3], [True])})
+    # the same key of the paper budget (a different cell) is no record of the smoke one
+    paper = cells_for("ablations", "paper")
+    write_records(records, "paper", [paper[2]], {paper[2].key: _result(paper[2], [0.4, 0.3], [True])})
     monkeypatch.setattr(cli, "RECORDS_DIR", records)
     ran: list[str] = []
     monkeypatch.setattr(cli, "run_cell", lambda root, c, device, command: ran.append(c.key))
@@ -125,7 +134,23 @@ def test_publish_records_writes_records_and_leaves_the_table(tmp_path, monkeypat
     monkeypatch.setattr(report, "read_cell_result", lambda r, c: res if c.key == c0.key else None)
     monkeypatch.setattr(report, "with_noise_consistency", lambda r, c, x: x)
     assert cli.main(["ablations", "--root", str(root), "--publish-records"]) == 0
-    assert capsys.readouterr().out.strip() == str(record_path(tmp_path / "published" / "cells", c0))
-    rec = json.loads(record_path(tmp_path / "published" / "cells", c0).read_text())
+    assert capsys.readouterr().out.strip() == str(record_path(tmp_path / "published" / "cells", "paper", c0))
+    rec = json.loads(record_path(tmp_path / "published" / "cells", "paper", c0).read_text())
     assert rec["record"]["commit"] == "ab" * 20 and rec["rounds"] == res["rounds"]
     assert not (tmp_path / "published" / "ablations.md").exists()
+
+
+def test_cells_refuse_to_run_on_a_kitti_root_found_on_the_machine(tmp_path, monkeypatch):
+    """A cell's fingerprint says synthetic world; a KITTI root in the environment must not swap in
+    real scans under it (records would mix them)."""
+    cell = cells_for("ablations", "smoke")[0]
+    (tmp_path / "kitti" / "sequences" / "00" / "velodyne").mkdir(parents=True)
+    cfg = rc._slam_config(tmp_path / "cell", cell, "cpu")
+    monkeypatch.delenv("GR_GRAPH_KITTI_ROOT", raising=False)
+    from gr_graph.datasets import registry
+
+    monkeypatch.setattr(registry, "_DEFAULT_ROOTS", (tmp_path / "no-kitti-here",))
+    rc._require_synthetic(cfg, cell)
+    monkeypatch.setenv("GR_GRAPH_KITTI_ROOT", str(tmp_path / "kitti"))
+    with pytest.raises(RuntimeError, match="run on the synthetic world"):
+        rc._require_synthetic(cfg, cell)

@@ -64,12 +64,13 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     return ap
 
 
-def list_cells(cells: list[Cell], root: Path | None = None, records_dir: Path | None = None) -> str:
+def list_cells(cells: list[Cell], root: Path | None = None, records_dir: Path | None = None,
+               budget: str = "paper") -> str:
     """One line per cell: index, key, estimated wall minutes (2 cores), done, what; then the total.
 
     done: ``yes`` (finished in ``root``), ``rec`` (a current published record in ``records_dir``), ``-``.
     """
-    recorded = read_records(records_dir, cells).results if records_dir is not None else {}
+    recorded = read_records(records_dir, budget, cells).results if records_dir is not None else {}
     rows = [f"{'#':>3}  {'key':<24} {'est. min':>12}  {'done':<4}  what"]
     for i, c in enumerate(cells):
         done = "yes" if root is not None and is_done(root, c) else ("rec" if c.key in recorded else "-")
@@ -103,12 +104,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         command += f" --device {args.device}"
     records = None if args.no_records else RECORDS_DIR
     if args.list:
-        print(list_cells(cells, root, records))
+        print(list_cells(cells, root, records, budget.name))
         return 0
     if args.publish_records:
         from gr_graph.experiments.report import publish_records
 
-        for p in publish_records(root, cells):
+        for p in publish_records(root, budget, cells):
             print(p)
         return 0
     if args.report:
@@ -118,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     todo = [_pick(cells, args.cell)] if args.cell is not None else cells
     if args.cell is None and records is not None:
-        recorded = read_records(records, cells).results
+        recorded = read_records(records, budget.name, cells).results
         skip = [c.key for c in cells if c.key in recorded and not is_done(root, c)]
         if skip:
             log.info("skipping %d cell(s) with a current published record (--no-records runs them): %s",

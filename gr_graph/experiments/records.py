@@ -2,7 +2,7 @@
 
 A table's cells may run on different machines, or in sessions whose experiment root does not
 outlive them, so a report cannot rely on one ``ROOT`` holding every cell. ``--publish`` writes
-each finished cell of ``ROOT`` as ``benchmarks/results/cells/<table>/<key>.json``: its
+each finished cell of ``ROOT`` as ``benchmarks/results/cells/<budget>/<table>/<key>.json``: its
 ``cell.json`` figures with the noise consistency already computed (the marginals it comes from
 stay behind in ``ROOT``), the commit and machine it ran on. A later report fills the cells
 missing in its ``ROOT`` from these records, but only where the record's fingerprint equals the
@@ -31,19 +31,19 @@ RECORDS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "
 _LOCAL_KEYS = ("command",)
 
 
-def record_path(records_dir: str | Path, cell: Cell) -> Path:
-    """``records_dir/<table>/<key>.json``."""
-    return Path(records_dir) / cell.table / f"{cell.key}.json"
+def record_path(records_dir: str | Path, budget: str, cell: Cell) -> Path:
+    """``records_dir/<budget>/<table>/<key>.json`` (keys repeat between budgets)."""
+    return Path(records_dir) / budget / cell.table / f"{cell.key}.json"
 
 
-def _commit_of(result: dict[str, Any], slam_metrics: dict[str, Any] | None) -> str | None:
-    """The commit a cell ran with: its own ``git`` entry (cells since records exist), else the
-    pipeline's provenance in ``slam/metrics.json``; None when neither says."""
-    git = result.get("git") or ((slam_metrics or {}).get("provenance") or {}).get("git") or {}
-    return git.get("commit")
+def _git_of(result: dict[str, Any], slam_metrics: dict[str, Any] | None) -> dict[str, Any]:
+    """The commit a cell ran with (``{"commit", "dirty"}``): its own ``git`` entry (cells since
+    records exist), else the pipeline's provenance kept in the result or in ``slam/metrics.json``."""
+    return (result.get("git") or (result.get("provenance") or {}).get("git")
+            or ((slam_metrics or {}).get("provenance") or {}).get("git") or {})
 
 
-def write_records(records_dir: str | Path, cells: list[Cell], results: dict[str, dict[str, Any]],
+def write_records(records_dir: str | Path, budget: str, cells: list[Cell], results: dict[str, dict[str, Any]],
                   slam_metrics: dict[str, dict[str, Any] | None] | None = None) -> list[Path]:
     """Write one record per finished cell in ``results`` (key -> result with noise consistency).
 
@@ -55,30 +55,37 @@ def write_records(records_dir: str | Path, cells: list[Cell], results: dict[str,
         if c.key not in results:
             continue
         res = {k: v for k, v in results[c.key].items() if k not in _LOCAL_KEYS}
-        res["record"] = {"commit": _commit_of(results[c.key], (slam_metrics or {}).get(c.key)),
-                         "dirty": (results[c.key].get("git") or {}).get("dirty"),
-                         "machine": results[c.key].get("machine")}
-        written.append(atomic_write_json(record_path(records_dir, c), res))
+        git = _git_of(results[c.key], (slam_metrics or {}).get(c.key))
+        res["record"] = {"commit": git.get("commit"), "dirty": git.get("dirty"), "machine": results[c.key].get("machine")}
+        written.append(atomic_write_json(record_path(records_dir, budget, c), res))
     return written
 
 
 class RecordSet:
-    """The usable records of a table's cells (``results``) and the stale ones (``stale``: keys).
+    """The usable records of a table's cells (``results``: key -> record), and the keys of stale
+    (``stale``), unreadable (``unreadable``) and orphaned records (``orphans``: files of the table
+    that name no current cell).
 
     Parameters
     ----------
     records_dir : path
         ``benchmarks/results/cells`` or another folder of the same layout.
+    budget : str
+        The budget the cells belong to.
     cells : list of Cell
         The table's current cells; a record counts only when its fingerprint equals the cell's.
     """
 
-    def __init__(self, records_dir: str | Path, cells: list[Cell]):
+    def __init__(self, records_dir: str | Path, budget: str, cells: list[Cell]):
         self.results: dict[str, dict[str, Any]] = {}
         self.stale: list[str] = []
         self.unreadable: list[str] = []
+        keys = {c.key for c in cells}
+        tables = {c.table for c in cells}
+        self.orphans = sorted(f"{t}/{p.stem}" for t in tables
+                              for p in (Path(records_dir) / budget / t).glob("*.json") if p.stem not in keys)
         for c in cells:
-            p = record_path(records_dir, c)
+            p = record_path(records_dir, budget, c)
             if not p.exists():
                 continue
             rec = read_json_or_none(p)
@@ -91,11 +98,13 @@ class RecordSet:
             else:
                 self.results[c.key] = rec
 
-    def commit_of(self, key: str) -> str | None:
-        """The commit the recorded cell ran with (None when unknown)."""
-        return (self.results[key].get("record") or {}).get("commit")
+    def provenance_of(self, key: str) -> str:
+        """``commit <10 hex>[, uncommitted changes], <machine>`` of a recorded cell."""
+        rec = self.results[key].get("record") or {}
+        return (f"commit {(rec.get('commit') or 'unknown')[:10]}{', uncommitted changes' if rec.get('dirty') else ''}, "
+                f"{rec.get('machine') or 'machine not recorded'}")
 
 
-def read_records(records_dir: str | Path, cells: list[Cell]) -> RecordSet:
-    """The records of ``cells`` in ``records_dir`` (:class:`RecordSet`)."""
-    return RecordSet(records_dir, cells)
+def read_records(records_dir: str | Path, budget: str, cells: list[Cell]) -> RecordSet:
+    """The records of ``cells`` of ``budget`` in ``records_dir`` (:class:`RecordSet`)."""
+    return RecordSet(records_dir, budget, cells)

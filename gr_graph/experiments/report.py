@@ -260,7 +260,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     """
     root = Path(root)
     local = local_results(root, cells)
-    recs = read_records(records_dir, cells) if records_dir is not None else None
+    recs = read_records(records_dir, budget.name, cells) if records_dir is not None else None
     recorded = {k: v for k, v in (recs.results if recs else {}).items() if k not in local}
     results = {c.key: local.get(c.key, recorded.get(c.key)) for c in cells if c.key in local or c.key in recorded}
     res_list = [results[c.key] for c in cells if c.key in results]
@@ -304,7 +304,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub_header + lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{table}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
-        publish_records(root, cells, local)
+        publish_records(root, budget, cells, local)
     return md
 
 
@@ -313,13 +313,14 @@ def local_results(root: str | Path, cells: list[Cell]) -> dict[str, dict[str, An
     return {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
 
 
-def publish_records(root: str | Path, cells: list[Cell], local: dict[str, dict[str, Any]] | None = None) -> list[Path]:
+def publish_records(root: str | Path, budget: Budget, cells: list[Cell],
+                    local: dict[str, dict[str, Any]] | None = None) -> list[Path]:
     """Write a record of every cell finished in ``root`` to ``RESULTS_DIR/cells`` (no table);
     ``local``: :func:`local_results` when already computed. Returns the written paths."""
     local = local_results(root, cells) if local is None else local
     slam_metrics = {c.key: read_json_or_none(cell_dir(root, c) / "slam" / "metrics.json") for c in cells
                     if c.key in local}
-    return write_records(RESULTS_DIR / "cells", cells, local, slam_metrics)
+    return write_records(RESULTS_DIR / "cells", budget.name, cells, local, slam_metrics)
 
 
 def _provenance_lines(cells: list[Cell], local: dict[str, Any], recorded: dict[str, Any],
@@ -329,16 +330,18 @@ def _provenance_lines(cells: list[Cell], local: dict[str, Any], recorded: dict[s
         return []
     lines = []
     if recorded:
-        by_commit: dict[str, list[str]] = {}
+        by_origin: dict[str, list[str]] = {}
         for c in cells:
             if c.key in recorded:
-                by_commit.setdefault((recs.commit_of(c.key) or "unknown commit")[:10], []).append(f"`{c.key}`")
+                by_origin.setdefault(recs.provenance_of(c.key), []).append(f"`{c.key}`")
         lines.append("- cells from published records (`benchmarks/results/cells/`, run on other machines or "
-                     "sessions; no figures drawn for them): "
-                     + "; ".join(f"{', '.join(keys)} (commit {commit})" for commit, keys in by_commit.items()))
+                     "sessions; no figures drawn for them; the measured times above add up all machines): "
+                     + "; ".join(f"{', '.join(keys)} ({origin})" for origin, keys in by_origin.items()))
         lines.append(f"- cells run in this report's root: {', '.join(f'`{k}`' for k in local) or 'none'}")
     if recs.stale:
         lines.append(f"- records ignored because the cell's definition changed since: {', '.join(recs.stale)}")
     if recs.unreadable:
         lines.append(f"- unreadable records ignored: {', '.join(recs.unreadable)}")
+    if recs.orphans:
+        lines.append(f"- records of cells that no longer exist, ignored: {', '.join(recs.orphans)}")
     return lines

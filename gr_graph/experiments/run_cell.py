@@ -149,6 +149,18 @@ def _slam_config(d: Path, cell: Cell, device: str) -> Any:
     return load_config(None, {**cell.overrides, "device": device, "output": out})
 
 
+def _require_synthetic(cfg: Any, cell: Cell) -> None:
+    """The cells are defined on the synthetic world: fail when this machine would read KITTI
+    instead (a root in ``GR_GRAPH_KITTI_ROOT`` or ``./data/kitti``), which the cell's fingerprint
+    would not show."""
+    from gr_graph.datasets.registry import find_kitti_root
+
+    if cfg.data.dataset == "auto" and cfg.data.path is None and find_kitti_root(cfg.data.seq, cfg.data.data_root):
+        raise RuntimeError(f"{cell.table}/{cell.key}: the experiment cells run on the synthetic world, but this "
+                           "machine has a KITTI root (GR_GRAPH_KITTI_ROOT, ./data/kitti or ~/data/kitti) that "
+                           "the pipeline would read instead: unset or move it for the experiments")
+
+
 def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
     """Copy round 0 (and round 1's training) from the source cell when possible (module docstring)."""
     what = cell.params.get("reuse")
@@ -178,6 +190,7 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
     from gr_graph.pipeline import SlamPipeline
 
     cfg = _slam_config(d, cell, device)
+    _require_synthetic(cfg, cell)
     reuse = _reuse(root, d, cell)
     metrics = SlamPipeline(cfg).run()
     result: dict[str, Any] = {"rounds": round_figures(metrics), "source": metrics.get("source"),
@@ -219,7 +232,8 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
     src = Path(root) / cell.source
     if read_json_or_none(src / CELL_JSON) is None:
         table, key = cell.source.split("/")
-        raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished: run "
+        raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished in this root (its models; "
+                                  "a published record of it holds figures only): run "
                                   f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
     cfg = load_config(src / "slam" / "config.yaml", {"device": device})
     seq, desc = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
