@@ -42,13 +42,14 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
                       64: {"raw": 97.0, "best_step": 98.0}}
 
 # Wall seconds per frame on the 2-core reference machine (no other load), 16 channels, `kitti`
-# preset, measured on the ablation cells (frames 0:600, 2026-12-02): round 0 (rendering, SLAM,
-# memory) 85 s; one training epoch 133 s (605 edges); a learning round's densification 176 s
-# (rendering again + the network on every frame) and SLAM 22 s. 32/64 channels scaled by their
-# points per scan (rough, not measured).
-_S_ROUND0 = 0.15
-_S_EPOCH = 0.22
-_S_DENSIFY = 0.29
+# preset, measured on the ablation cells default-s0/s1 (frames 0:600, 2026-12-02, after the
+# geometric head's 3x3 form): round 0 (rendering, SLAM, memory) 93-100 s; one training epoch
+# 67-73 s (605 edges; 133 s with the former k x k head); a learning round's densification
+# 164-216 s (rendering again + the network on every frame) and SLAM about 20 s. 32/64 channels
+# scaled by their points per scan (rough, not measured).
+_S_ROUND0 = 0.16
+_S_EPOCH = 0.12
+_S_DENSIFY = 0.33
 _S_SLAM = 0.04
 _S_KISS = 0.03  # rendering again + KISS-ICP, per frame
 _CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
