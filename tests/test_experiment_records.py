@@ -126,7 +126,9 @@ def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch,
 def test_publish_records_writes_records_and_leaves_the_table(tmp_path, monkeypatch, default_cells, capsys):
     c0 = default_cells[0]
     res = _result(c0, [0.4, 0.3, 0.2], [True, True])
-    res.pop("git")  # a cell finished before cell.json named its commit: the pipeline's provenance does
+    res.pop("git")  # a cell finished before cell.json named its commit and machine: the pipeline's provenance does
+    res.pop("machine")
+    res["provenance"] = {"cpu": {"model": "Some CPU"}, "cpu_count": 2, "platform": "Linux-x", "python": "3.11.7"}
     root = tmp_path / "exp"
     (rc.cell_dir(root, c0) / "slam").mkdir(parents=True)
     (rc.cell_dir(root, c0) / "slam" / "metrics.json").write_text(json.dumps({"provenance": {"git": {"commit": "ab" * 20}}}))
@@ -137,6 +139,7 @@ def test_publish_records_writes_records_and_leaves_the_table(tmp_path, monkeypat
     assert capsys.readouterr().out.strip() == str(record_path(tmp_path / "published" / "cells", "paper", c0))
     rec = json.loads(record_path(tmp_path / "published" / "cells", "paper", c0).read_text())
     assert rec["record"]["commit"] == "ab" * 20 and rec["rounds"] == res["rounds"]
+    assert rec["record"]["machine"] == "Some CPU, 2 cores, Linux-x, Python 3.11.7"
     assert not (tmp_path / "published" / "ablations.md").exists()
 
 

@@ -43,6 +43,17 @@ def _git_of(result: dict[str, Any], slam_metrics: dict[str, Any] | None) -> dict
             or ((slam_metrics or {}).get("provenance") or {}).get("git") or {})
 
 
+def _machine_of(result: dict[str, Any]) -> str | None:
+    """The machine a cell ran on: its own ``machine`` line, else one made of the pipeline's provenance."""
+    if result.get("machine"):
+        return result["machine"]
+    prov = result.get("provenance") or {}
+    if not prov:
+        return None
+    return (f"{(prov.get('cpu') or {}).get('model') or 'unknown CPU'}, {prov.get('cpu_count')} cores, "
+            f"{prov.get('platform')}, Python {prov.get('python')}")
+
+
 def write_records(records_dir: str | Path, budget: str, cells: list[Cell], results: dict[str, dict[str, Any]],
                   slam_metrics: dict[str, dict[str, Any] | None] | None = None) -> list[Path]:
     """Write one record per finished cell in ``results`` (key -> result with noise consistency).
@@ -56,7 +67,7 @@ def write_records(records_dir: str | Path, budget: str, cells: list[Cell], resul
             continue
         res = {k: v for k, v in results[c.key].items() if k not in _LOCAL_KEYS}
         git = _git_of(results[c.key], (slam_metrics or {}).get(c.key))
-        res["record"] = {"commit": git.get("commit"), "dirty": git.get("dirty"), "machine": results[c.key].get("machine")}
+        res["record"] = {"commit": git.get("commit"), "dirty": git.get("dirty"), "machine": _machine_of(results[c.key])}
         written.append(atomic_write_json(record_path(records_dir, budget, c), res))
     return written
 
