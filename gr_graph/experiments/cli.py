@@ -52,7 +52,7 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")
     ap.add_argument("--publish", action="store_true",
                     help="also write benchmarks/results/<table>.md (+ .json, figures/) and a record of each cell "
-                         "finished in the root (benchmarks/results/cells/<table>/<key>.json)")
+                         "finished in the root (benchmarks/results/cells/<budget>/<table>/<key>.json)")
     ap.add_argument("--publish-records", action="store_true",
                     help="only write the records of the cells finished in the root (benchmarks/results/cells/), "
                          "not the table: for a root that holds part of a table whose published report stays")
