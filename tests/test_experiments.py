@@ -344,6 +344,30 @@ def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path
     assert "3 / 0 | 0 / 1 |" in md
 
 
+def test_error_plot_turns_logarithmic_only_when_a_round_is_ruined(tmp_path, monkeypatch):
+    """A 100x worse round beside raw and KISS-ICP gets a log axis; values within 30x stay linear."""
+    from gr_graph.experiments import figures as fig
+
+    assert fig.needs_log_scale([2.7, 8.2, 102.0, 1.3]) and not fig.needs_log_scale([2.7, 8.2, 1.3])
+    assert not fig.needs_log_scale([0.0, 100.0]) and not fig.needs_log_scale([])  # no log of zero
+    kept = []
+    monkeypatch.setattr(fig, "save_figure", lambda f, path, **k: kept.append(f) or path)
+
+    def summary(two_step):
+        val = {"mean": None, "std": None}
+        steps = {s: {m: dict(val, mean=v, std=0.1 * v) for m in ("rpe300_consecutive_mean", "ate_rmse")}
+                 for s, v in (("raw", 2.7), ("1-step", 8.2), ("2-step", two_step))}
+        return {"16ch": {"seeds": [0, 1, 2], "steps": steps,
+                         "kiss_icp": {"ate_rmse": {"mean": 0.9, "std": 0.0}}}}
+
+    metrics = ("rpe300_consecutive_mean", "ate_rmse")
+    fig.plot_rpe_over_rounds(summary(102.0), tmp_path / "a.png", metrics=metrics)
+    fig.plot_rpe_over_rounds(summary(3.0), tmp_path / "b.png", metrics=metrics)
+    assert [ax.get_yscale() for ax in kept[0].axes] == ["log", "log"]
+    assert [ax.get_yscale() for ax in kept[1].axes] == ["linear", "linear"]
+    assert "log scale" in kept[0].axes[1].get_ylabel()
+
+
 def test_published_report_names_no_path_of_the_machine(tmp_path, monkeypatch):
     root = tmp_path / "my_machine_root"
     res = [_t1_result(seed, [0.40, 0.30, 0.20], [True, True], group="default") for seed in (0, 1)]

@@ -18,7 +18,14 @@ import numpy as np
 from gr_graph.plots import pyplot as _plt
 from gr_graph.plots import save_figure
 
-__all__ = ["plot_rpe_over_rounds", "plot_round_trajectories", "plot_raw_vs_densified"]
+__all__ = ["needs_log_scale", "plot_rpe_over_rounds", "plot_round_trajectories", "plot_raw_vs_densified"]
+
+
+def needs_log_scale(values: list[float], max_ratio: float = 30.0) -> bool:
+    """True when positive ``values`` span more than ``max_ratio`` (a ruined round next to raw
+    and KISS-ICP: on a linear axis the small values, the ones compared, would sit on the floor)."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
+    return bool(v.size and v.min() > 0 and v.max() / v.min() > max_ratio)
 
 
 def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
@@ -36,6 +43,7 @@ def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 4.2), squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, m in zip(axes[0], metrics):
+        plotted: list[float] = []
         for i, g in enumerate(groups):
             s = summary[g]["steps"]
             xs, ys, es = [], [], []
@@ -43,15 +51,20 @@ def plot_rpe_over_rounds(summary: dict[str, Any], path: str | Path,
                 d = s.get(step, {}).get(m)
                 if d and d["mean"] is not None:
                     xs.append(r), ys.append(d["mean"]), es.append(d["std"] or 0.0)
+            plotted += ys
             c = colors[i % len(colors)]
             ax.errorbar(xs, ys, yerr=es, marker="o", capsize=4, color=c,
                         label=f"{g} (seeds {','.join(map(str, summary[g]['seeds']))})")
             k = (summary[g].get("kiss_icp") or {}).get(m)
             if k and k["mean"] is not None:
                 ax.axhline(k["mean"], color=c, ls="--", lw=0.8)
+                plotted.append(k["mean"])
         ax.plot([], [], "k--", lw=0.8, label="KISS-ICP (same scans)")
         ax.set_xticks([0, 1, 2], ["raw (round 0)", "1-step", "2-step"])
-        ax.set_ylabel(METRIC_LABELS[m])
+        log = needs_log_scale(plotted)
+        if log:
+            ax.set_yscale("log")
+        ax.set_ylabel(METRIC_LABELS[m] + (" (log scale)" if log else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle("Trajectory error over learning rounds, mean ± std over seeds (unguarded rounds)", fontsize=10)
