@@ -54,12 +54,13 @@ _S_SLAM = 0.04
 _S_KISS = 0.03  # rendering again + KISS-ICP, per frame
 _CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
 # Table II, per pair: two scans rendered (and densified) + KISS-Matcher + FPFH/RANSAC. Measured
-# 2026-12-02 on 8 pairs of the 16-channel ablation scans (frames 0:600, AMD EPYC, 2 cores): raw
-# 7.1 s a pair with the town's one-time build (27 s), about 3.7 s without; densified with round 1's
-# model 1.2 s a pair more than the rendering (frames already rendered); the solvers 0.07-0.56 s.
-_S_PAIR = 3.7
-_S_PAIR_DENSIFY = 1.2
-_S_TOWN = 30.0  # building the synthetic town, once a cell
+# 2026-12-02 on the nine 16-channel Table II cells (100 pairs each, frames 0:1500, AMD EPYC,
+# 2 cores): 2:21-2:58 wall a cell, raw and densified alike, about 1.2-1.3 s a pair after the
+# town's one-time build and the imports (~40 s); densifying with a round's model adds ~0.1 s a
+# pair. (An earlier 8-pair probe on the ablation scans gave 3.7 s a pair, 4.9 s densified.)
+_S_PAIR = 1.3
+_S_PAIR_DENSIFY = 0.1
+_S_TOWN = 40.0  # building the synthetic town and importing, once a cell
 
 
 @dataclass(frozen=True)
