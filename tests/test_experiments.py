@@ -302,7 +302,8 @@ def test_table2_success_mean_std_and_best_step():
 
 def test_ablation_differences_and_the_consistency_rule():
     res = []
-    vals = {"default": [0.10, 0.20, 0.30], "pca": [0.15, 0.26, 0.34], "untrained": [0.5, 0.1, 0.2]}
+    vals = {"default": [0.10, 0.20, 0.30], "pca": [0.15, 0.26, 0.34], "untrained": [0.5, 0.1, 0.2],
+            "rounding": [0.10 - 1e-10, 0.20 - 2e-10, 0.30 - 3e-10]}
     for name, v in vals.items():
         for seed, x in enumerate(v):
             r = _t1_result(seed, [0.4, x, x], [True, True], group=name)
@@ -315,6 +316,10 @@ def test_ablation_differences_and_the_consistency_rule():
     assert d["consistent"]  # all positive and the mean gap exceeds the spread
     assert not s["untrained"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]["consistent"]  # signs disagree
     assert s["default"]["steps"]["1-step"]["diff_rpe300_consecutive_mean"]["values"] == [0.0, 0.0, 0.0]
+    # gaps of float noise agree in sign with |mean| > std, yet are no difference
+    noise = s["rounding"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]
+    assert all(v < 0 for v in noise["values"]) and abs(noise["mean"]) > noise["std"]
+    assert not noise["consistent"]
 
 
 def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path, monkeypatch):

@@ -39,6 +39,10 @@ METRIC_LABELS = {
 NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
                "nees_position_mean": "marginal positions", "odometry_path_error_percent": "odometry path error [%]"}
 #: the ideal value of each of :data:`NEES_KEYS` (a mean NEES: its chi2 degrees of freedom; the path error: 0)
+#: Smallest gap to the baseline that counts, as a fraction of the baseline's own mean value: gaps
+#: below it are float noise (rounds that differ only in rounding give gaps of 1e-10 m that agree
+#: in sign on every seed), not a difference that could justify changing a default.
+MIN_RELATIVE_GAP = 1e-3
 NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3, "odometry_path_error_percent": 0}
 
 
@@ -197,7 +201,8 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
     """Per ablation and step (raw, 1-step, 2-step, 2-step guarded): metric mean +- std over seeds,
     the per-seed reduction against the cell's own round 0 (what the learning rounds bring), the
     per-seed difference to the ``baseline`` cell of the same seed (mean +- std, and whether all
-    seeds agree in sign with ``|mean| > std``: the rule for changing a default) and the 2x2
+    seeds agree in sign with ``|mean| > std`` and ``|mean|`` above :data:`MIN_RELATIVE_GAP` of the
+    baseline's value: the rule for changing a default) and the 2x2
     acceptance count of the ablation's learning rounds."""
     by: dict[str, dict[int, dict[str, Any]]] = {}
     for c in results:
@@ -230,8 +235,12 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
             for k in METRIC_KEYS:
                 diff = mean_std(p.get(f"diff_{k}") for p in per_seed)
                 vals = diff["values"]
+                base_mean = mean_std(p[k] - p[f"diff_{k}"] for p in per_seed
+                                     if p.get(k) is not None and p.get(f"diff_{k}") is not None)["mean"]
+                resolution = MIN_RELATIVE_GAP * abs(base_mean) if base_mean is not None else 0.0
                 diff["consistent"] = bool(len(vals) >= 2 and (all(v > 0 for v in vals) or all(v < 0 for v in vals))
-                                          and diff["std"] is not None and abs(diff["mean"]) > diff["std"])
+                                          and diff["std"] is not None and abs(diff["mean"]) > diff["std"]
+                                          and abs(diff["mean"]) > resolution)
                 entry[f"diff_{k}"] = diff
             steps[step] = entry
         out[name] = {"what": next(iter(cells.values()))["what"].split(",")[0], "seeds": sorted(cells),

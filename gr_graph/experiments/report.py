@@ -165,8 +165,9 @@ def _ablations_md(summary: dict[str, Any]) -> list[str]:
                          + " | ".join(agg.fmt_ms(d[f"reduction_{k}"], "{:.1f}", pct=True) for k in keys)
                          + f" | {acc} |")
     lines += ["", "Difference to the default cell of the same seed (ablation − default; negative = the ablation "
-              "is better), mean ± std over seeds; **bold**: all seeds agree in sign and |mean| > std (the rule "
-              "for changing a default).", ""]
+              "is better), mean ± std over seeds; **bold**: all seeds agree in sign, |mean| > std and |mean| > "
+              f"{agg.MIN_RELATIVE_GAP:.1%} of the default's value (the rule for changing a default; smaller gaps are "
+              "float noise).", ""]
     for step in ("1-step", "2-step", "2-step guarded"):
         lines += [f"## {step}", "", "| ablation | " + " | ".join(agg.METRIC_LABELS[k] for k in keys) + " | "
                   + " | ".join(f"Δ {agg.METRIC_LABELS[k].split(' [')[0]}" for k in keys) + " |",
