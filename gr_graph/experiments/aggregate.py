@@ -38,11 +38,11 @@ METRIC_LABELS = {
 }
 NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
                "nees_position_mean": "marginal positions", "odometry_path_error_percent": "odometry path error [%]"}
-#: the ideal value of each of :data:`NEES_KEYS` (a mean NEES: its chi2 degrees of freedom; the path error: 0)
 #: Smallest gap to the baseline that counts, as a fraction of the baseline's own mean value: gaps
 #: below it are float noise (rounds that differ only in rounding give gaps of 1e-10 m that agree
 #: in sign on every seed), not a difference that could justify changing a default.
 MIN_RELATIVE_GAP = 1e-3
+#: the ideal value of each of :data:`NEES_KEYS` (a mean NEES: its chi2 degrees of freedom; the path error: 0)
 NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean": 3, "odometry_path_error_percent": 0}
 
 
