@@ -134,6 +134,14 @@ def machine_line() -> str:
     platform, Python (imports torch, so that the instruction set is known)."""
     import torch  # noqa: F401
 
-    cpu = cpu_description()
-    return (f"{cpu['model']} (torch kernels {cpu['torch_capability']}), {os.cpu_count()} cores, "
-            f"{platform.platform()}, Python {platform.python_version()}")
+    return format_machine(cpu_description(), os.cpu_count(), platform.platform(), platform.python_version())
+
+
+def format_machine(cpu: dict[str, Any], cpu_count: int | None, platform_name: str | None, python: str | None) -> str:
+    """The line of :func:`machine_line` from its parts, e.g. from a stored :func:`provenance`
+    (``cpu``, ``cpu_count``, ``platform``, ``python``): an unknown CPU model reads "unknown CPU",
+    an unknown kernel instruction set (torch not loaded) is left out."""
+    kernels = cpu.get("torch_capability")
+    model = cpu.get("model") or "unknown CPU"
+    return (f"{model}{f' (torch kernels {kernels})' if kernels else ''}, {cpu_count} cores, "
+            f"{platform_name}, Python {python}")

@@ -28,6 +28,35 @@ from gr_graph.experiments.revisits import count_revisits, first_revisit_window, 
 # ----------------------------------------------------------------------------- cell definitions
 
 
+def test_estimates_follow_the_per_frame_costs_and_grow_with_the_work():
+    from gr_graph.experiments.cells import _S_PER_FRAME, _S_TOWN, estimate_registration_minutes, estimate_slam_minutes
+
+    c = _S_PER_FRAME[32]
+    by_hand = (_S_TOWN + 1500 * (c["round0"] + 2 * (3 * c["epoch"] + c["round"])) + 1500 * c["kiss"]) / 60
+    assert estimate_slam_minutes(1500, 32, 2, 3, True) == pytest.approx(by_hand, abs=0.05)
+    for ch in (16, 32, 64):
+        base = estimate_slam_minutes(600, ch, 1, 3, False)
+        assert estimate_slam_minutes(1200, ch, 1, 3, False) > base  # frames, rounds, epochs, the baseline add time
+        assert estimate_slam_minutes(600, ch, 2, 3, False) > base
+        assert estimate_slam_minutes(600, ch, 1, 4, False) > base
+        assert estimate_slam_minutes(600, ch, 1, 3, True) > base
+        assert estimate_registration_minutes(200, ch) > estimate_registration_minutes(100, ch) > 0
+
+
+def test_runtime_table_lists_each_slam_cell_stage_in_minutes():
+    cells = cells_for("table1", "paper")
+    reg = cells_for("table2", "paper")[0]
+    rounds = {"0": {"runtime_s": {"total": 120.0}},
+              "1": {"runtime_s": {"total": 300.0, "training": 600.0}},
+              "2": {"runtime_s": {"total": 330.0, "training": 660.0}}}
+    results = {cells[0].key: {"wall_s": 2400.0, "rounds": rounds, "kiss_icp": {"wall_s": 90.0}, "peak_rss_mb": 3072.0},
+               reg.key: {"wall_s": 60.0, "rounds": rounds}}
+    lines = report._runtime_md(cells + [reg], results)
+    rows = [ln for ln in lines if ln.startswith("| ")][1:]
+    assert rows == [f"| {cells[0].key} | 1500 | 40.0 | 2.0 | 10.0, 11.0 | 5.0, 5.5 | 1.5 | 3.0 |"]  # no registration cell
+    assert report._runtime_md(cells, {}) == []
+
+
 @pytest.mark.parametrize("budget", sorted(BUDGETS))
 @pytest.mark.parametrize("table", TABLES)
 def test_cells_have_unique_keys_and_paired_seeds(table, budget):
@@ -531,6 +560,7 @@ def test_smoke_cell_end_to_end_through_the_cli(tmp_path, capsys):
     d = rc.cell_dir(root, cell)
     doc = json.loads((d / "cell.json").read_text())
     assert doc["fingerprint"] == cell.fingerprint() and doc["cpu_s"] > 0
+    assert 100 < doc["peak_rss_mb"] < 24 * 1024  # this process's peak, in MiB (torch alone holds > 100)
     assert set(doc["git"]) == {"commit", "dirty"} and "cores" in doc["machine"]  # what a published record names
     assert set(doc["rounds"]) == {"0", "1", "2"}  # no convergence stop in a cell
     assert doc["rounds"]["1"]["slam"]["ate_rmse"] is not None

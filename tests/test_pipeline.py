@@ -322,6 +322,19 @@ def test_cpu_description_names_the_model_and_torch_kernels():
     assert f"{cpu['model']} (torch kernels {cpu['torch_capability']})" in machine_line()
 
 
+def test_record_machine_from_stored_provenance_matches_the_live_machine_line():
+    import torch  # noqa: F401  (the kernel set is known)
+
+    from gr_graph.experiments.records import _machine_of
+    from gr_graph.provenance import machine_line, provenance
+
+    stored = {"provenance": provenance()}  # a cell result without its own machine line
+    assert _machine_of(stored) == machine_line()
+    assert _machine_of({"machine": "given"}) == "given" and _machine_of({}) is None
+    bare = {"provenance": {"cpu": {}, "cpu_count": 2, "platform": "P", "python": "3.11"}}
+    assert _machine_of(bare) == "unknown CPU, 2 cores, P, Python 3.11"
+
+
 def test_cli_route_seed_and_trajectory_reach_the_config(tmp_path):
     from gr_graph.slam import build_parser, overrides_from_args
 

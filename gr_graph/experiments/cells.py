@@ -41,26 +41,28 @@ PAPER_REDUCTIONS = {16: {1: 35.6, 2: 49.5}, 32: {1: 39.1, 2: 47.8}, 64: {1: 4.9,
 PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "best_step": 96.0},
                       64: {"raw": 97.0, "best_step": 98.0}}
 
-# Wall seconds per frame on the 2-core reference machine (no other load), 16 channels, `kitti`
-# preset, measured on the ablation cells default-s0/s1 (frames 0:600, 2026-12-02, after the
-# geometric head's 3x3 form): round 0 (rendering, SLAM, memory) 93-100 s; one training epoch
-# 67-73 s (605 edges; 133 s with the former k x k head); a learning round's densification
-# 164-216 s (rendering again + the network on every frame) and SLAM about 20 s. 32/64 channels
-# scaled by their points per scan (rough, not measured).
-_S_ROUND0 = 0.16
-_S_EPOCH = 0.12
-_S_DENSIFY = 0.33
-_S_SLAM = 0.04
-_S_KISS = 0.03  # rendering again + KISS-ICP, per frame
-_CHANNEL_FACTOR = {16: 1.0, 32: 1.6, 64: 2.8}
-# Table II, per pair: two scans rendered (and densified) + KISS-Matcher + FPFH/RANSAC. Measured
-# 2026-12-02 on the nine 16-channel Table II cells (100 pairs each, frames 0:1500, AMD EPYC,
-# 2 cores): 2:21-2:58 wall a cell, raw and densified alike, about 1.2-1.3 s a pair after the
-# town's one-time build and the imports (~40 s); densifying with a round's model adds ~0.1 s a
-# pair. (An earlier 8-pair probe on the ablation scans gave 3.7 s a pair, 4.9 s densified.)
-_S_PAIR = 1.3
-_S_PAIR_DENSIFY = 0.1
+# Wall seconds per frame on the 2-core reference machine (AMD EPYC, no other load), `kitti`
+# preset, by channel count: round 0 (rendering, SLAM, memory), one training epoch, a learning
+# round (rendering again, the network on every frame, densification, SLAM) and the KISS-ICP
+# baseline (rendering again + KISS-ICP). Measured on the Table I cells run alone: 16 channels
+# on full-16ch-s0 (frames 0:4541, 2026-12-03: round 0 464 s, epochs 409-414 s over 4,609 edges,
+# learning round 1,213 s), 32 channels on 32ch-s0..s2 (frames 0:1500: round 0 161 s, epochs
+# 107-111 s, learning rounds 439-447 s, KISS-ICP 227 s), 64 channels on 64ch-s0 (179 s, 110 s,
+# 581 s, 278 s). Training cost hardly depends on the channel count (the network sees a fixed
+# number of points a scan); rendering dominates round 0 and the baseline. (The 16-channel
+# window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and perhaps beside
+# other work, against 34 min by these figures: take the estimates as a lower bound.)
+_S_PER_FRAME: dict[int, dict[str, float]] = {
+    16: {"round0": 0.102, "epoch": 0.090, "round": 0.267, "kiss": 0.15},
+    32: {"round0": 0.107, "epoch": 0.074, "round": 0.298, "kiss": 0.151},
+    64: {"round0": 0.119, "epoch": 0.074, "round": 0.387, "kiss": 0.185},
+}
 _S_TOWN = 40.0  # building the synthetic town and importing, once a cell
+# Table II, seconds per pair (two scans rendered, and densified, + KISS-Matcher + FPFH/RANSAC)
+# after the town's build, by channel count: measured on the 20 Table II cells (100 pairs each,
+# frames 0:1500, 2026-12-02/03: 1.7-3.6 min a cell). Densified pairs were no slower than raw
+# ones (fewer points for FPFH balance the network), so one figure serves both.
+_S_PAIR: dict[int, float] = {16: 1.3, 32: 1.2, 64: 1.8}
 
 
 @dataclass(frozen=True)
@@ -135,17 +137,17 @@ class Cell:
 
 def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, kiss_icp: bool) -> float:
     """Rough wall minutes of a SLAM cell on 2 cores (constants above)."""
-    f = _CHANNEL_FACTOR[channels]
-    s = frames * f * (_S_ROUND0 + rounds * (epochs * _S_EPOCH + _S_DENSIFY + _S_SLAM))
+    c = _S_PER_FRAME[channels]
+    s = _S_TOWN + frames * (c["round0"] + rounds * (epochs * c["epoch"] + c["round"]))
     if kiss_icp:
-        s += frames * f * _S_KISS
+        s += frames * c["kiss"]
     return round(s / 60.0, 1)
 
 
 def estimate_registration_minutes(n_pairs: int, channels: int, densified: bool = False) -> float:
-    """Rough wall minutes of a Table II cell on 2 cores (per-pair costs measured at 16 channels)."""
-    per_pair = _S_PAIR + (_S_PAIR_DENSIFY if densified else 0.0)
-    return round((_S_TOWN + n_pairs * per_pair * _CHANNEL_FACTOR[channels]) / 60.0, 1)
+    """Rough wall minutes of a Table II cell on 2 cores (constants above; ``densified`` pairs
+    measured no slower than raw ones)."""
+    return round((_S_TOWN + n_pairs * _S_PAIR[channels]) / 60.0, 1)
 
 
 def _slam_overrides(budget: Budget, seed: int, channels: int, frames: tuple[int, int], rounds: int,
@@ -220,10 +222,10 @@ def ablation_cells(budget: Budget) -> list[Cell]:
             rounds = 2
             epochs = 0 if training.get("covariances") == "pca" or training.get("epochs") == 0 else budget.epochs
             est = estimate_slam_minutes(w[1] - w[0], 16, rounds, epochs, False)
-            if reuse is not None:
-                est -= estimate_slam_minutes(w[1] - w[0], 16, 0, 0, False)  # round 0 reused
+            if reuse is not None:  # round 0 reused (the town is still built)
+                est -= (w[1] - w[0]) * _S_PER_FRAME[16]["round0"] / 60.0
             if reuse == "round1_training":
-                est -= (w[1] - w[0]) * epochs * _S_EPOCH / 60.0  # round 1's training reused
+                est -= (w[1] - w[0]) * epochs * _S_PER_FRAME[16]["epoch"] / 60.0  # round 1's training reused
             cells.append(Cell("ablations", f"{name}-s{s}", f"{what}, 16 channels, frames {w[0]}:{w[1]}, seed {s}",
                               "slam", s, 16, w, name, _slam_overrides(budget, s, 16, w, rounds, training),
                               source=None if reuse is None else f"ablations/default-s{s}",

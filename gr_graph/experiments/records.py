@@ -21,6 +21,7 @@ from typing import Any
 
 from gr_graph.atomic import atomic_write_json, read_json_or_none
 from gr_graph.experiments.cells import Cell
+from gr_graph.provenance import format_machine
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +51,7 @@ def _machine_of(result: dict[str, Any]) -> str | None:
     prov = result.get("provenance") or {}
     if not prov:
         return None
-    return (f"{(prov.get('cpu') or {}).get('model') or 'unknown CPU'}, {prov.get('cpu_count')} cores, "
-            f"{prov.get('platform')}, Python {prov.get('python')}")
+    return format_machine(prov.get("cpu") or {}, prov.get("cpu_count"), prov.get("platform"), prov.get("python"))
 
 
 def write_records(records_dir: str | Path, budget: str, cells: list[Cell], results: dict[str, dict[str, Any]],

@@ -37,7 +37,7 @@ def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[st
              f"{budget.epochs} training epochs per round"
              + (f", {budget.n_pairs} pairs per registration cell" if table == "table2" else ""),
              f"- estimated time of all cells: {est:.0f} min ({est / 60:.1f} h) on 2 cores (rough: per-frame "
-             f"costs measured on the 16-channel ablation cells); measured on the finished cells: CPU {cpu:.1f} min, "
+             f"costs measured on the Table I cells run alone); measured on the finished cells: CPU {cpu:.1f} min, "
              f"wall {wall:.1f} min"]
     missing = [f"{i} `{c.key}`" for i, c in enumerate(cells) if c.key not in results]
     if missing:
@@ -99,6 +99,38 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
         lines.append("")
         lines += _nees_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
     return lines
+
+
+def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[str]:
+    """Where the wall time of each finished SLAM cell went (``runtime_s`` of its rounds), in minutes."""
+    rows = []
+    for c in cells:
+        d = results.get(c.key)
+        if c.kind != "slam" or d is None or not d.get("rounds"):
+            continue
+        rounds = {int(k): v.get("runtime_s") or {} for k, v in d["rounds"].items()}
+        learning = [r for r in sorted(rounds) if r > 0]
+
+        def minutes(r: int, key: str) -> str:
+            v = rounds.get(r, {}).get(key)
+            return "" if v is None else f"{v / 60:.1f}"
+
+        kiss = (d.get("kiss_icp") or {}).get("wall_s")
+        peak = d.get("peak_rss_mb")
+        rows.append(f"| {c.key} | {c.frames[1] - c.frames[0]} | {d.get('wall_s', float('nan')) / 60:.1f} | "
+                    f"{minutes(0, 'total')} | {', '.join(minutes(r, 'training') for r in learning)} | "
+                    f"{', '.join(minutes(r, 'total') for r in learning)} | {'' if kiss is None else f'{kiss / 60:.1f}'} | "
+                    f"{'' if peak is None else f'{peak / 1024:.1f}'} |")
+    if not rows:
+        return []
+    return ["## Time per stage", "",
+            "Wall minutes of each finished cell on its machine (records name it): round 0 (rendering, SLAM, "
+            "memory), each learning round's training and its SLAM (rendering again, the network on every frame, "
+            "densification, SLAM; a round reusing another cell's work shows only what it ran), the KISS-ICP "
+            "baseline (rendering again); the process's peak resident memory in GiB (recorded since 2026-12-03). "
+            "Cells run beside other work are slower.", "",
+            "| cell | frames | wall | round 0 | training (rounds 1, 2, ...) | learning-round SLAM (rounds 1, 2, ...) "
+            "| KISS-ICP | peak memory [GiB] |", "|---|---|---|---|---|---|---|---|", *rows, ""]
 
 
 def _table2_md(summary: dict[str, Any]) -> list[str]:
@@ -277,6 +309,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
     else:
         summary = agg.ablation_summary(res_list)
         lines += _ablations_md(summary)
+    lines += _runtime_md(cells, results)
     figs = _figures(table, root, cells, local, summary, device)  # pictures need the cells' files
     md_dir = root / table
     pub_dir = RESULTS_DIR

@@ -257,6 +257,16 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
     return {"summary": res["summary"], "round_used": r, "note": note, "densify": stats, "source": desc}
 
 
+def peak_rss_mb() -> float | None:
+    """Peak resident memory of this process so far [MiB] (``getrusage``; None where it is not
+    available): with several cells in one process, the peak of all run so far."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
 def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "") -> dict[str, Any]:
     """Run ``cell`` under ``root`` unless it is finished; return its ``cell.json`` content."""
     root = Path(root)
@@ -275,7 +285,8 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
            "definition": cell.definition(), "device": device, "command": command,
            "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-           "est_minutes": cell.est_minutes, "git": git_state(), "machine": machine_line(), **result}
+           "est_minutes": cell.est_minutes, "peak_rss_mb": peak_rss_mb(), "git": git_state(),
+           "machine": machine_line(), **result}
     atomic_write_json(d / CELL_JSON, doc)
     return doc
 
