@@ -298,6 +298,8 @@ def test_table1_reductions_per_seed_then_mean_std():
     assert s["steps"]["raw"]["rpe300_consecutive_mean"]["mean"] == pytest.approx(np.mean([0.2, 0.4, 0.1]))
     assert s["kiss_icp"]["ate_rmse"]["mean"] == 0.5 and s["kiss_icp"]["rpe300_consecutive_mean"]["n"] == 0
     assert s["paper_reduction"] == {1: 35.6, 2: 49.5}
+    full = agg.table1_summary([_t1_result(0, rpe[0], acc[0], group="full-16ch")])["full-16ch"]
+    assert full["paper_reduction"] == {1: 35.6, 2: 49.5}  # the paper's figures are of the whole sequence
     # 2x2 count by ground truth (all-pairs RPE vs the previous round)
     assert s["acceptance_2x2"] == {"accepted_better": 4, "accepted_worse": 1, "rejected_better": 0,
                                    "rejected_worse": 1}
