@@ -55,6 +55,12 @@ def test_runtime_table_lists_each_slam_cell_stage_in_minutes():
     rows = [ln for ln in lines if ln.startswith("| ")][1:]
     assert rows == [f"| {cells[0].key} | 1500 | 40.0 | 2.0 | 10.0, 11.0 | 5.0, 5.5 | 1.5 | 3.0 |"]  # no registration cell
     assert report._runtime_md(cells, {}) == []
+    abl = {c.params["reuse"]: c for c in cells_for("ablations", "paper") if c.seed == 0}
+    rows = [ln for ln in report._runtime_md(list(abl.values()), {c.key: {"wall_s": 600.0, "rounds": rounds}
+                                                                  for c in abl.values()}) if ln.startswith("| ")][1:]
+    assert rows[0] == f"| {abl[None].key} | 600 | 10.0 | 2.0 | 10.0, 11.0 | 5.0, 5.5 |  |  |"
+    assert f"| {abl['round0'].key} | 600 | 10.0 | reused | 10.0, 11.0 |" in rows[1]
+    assert f"| {abl['round1_training'].key} | 600 | 10.0 | reused | reused, 11.0 |" in rows[2]
 
 
 @pytest.mark.parametrize("budget", sorted(BUDGETS))

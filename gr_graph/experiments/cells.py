@@ -45,15 +45,16 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # preset, by channel count: round 0 (rendering, SLAM, memory), one training epoch, a learning
 # round (rendering again, the network on every frame, densification, SLAM) and the KISS-ICP
 # baseline (rendering again + KISS-ICP). Measured on the Table I cells run alone: 16 channels
-# on full-16ch-s0 (frames 0:4541, 2026-12-03: round 0 464 s, epochs 409-414 s over 4,609 edges,
-# learning round 1,213 s), 32 channels on 32ch-s0..s2 (frames 0:1500: round 0 161 s, epochs
-# 107-111 s, learning rounds 439-447 s, KISS-ICP 227 s), 64 channels on 64ch-s0 (179 s, 110 s,
-# 581 s, 278 s). Training cost hardly depends on the channel count (the network sees a fixed
-# number of points a scan); rendering dominates round 0 and the baseline. (The 16-channel
-# window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and perhaps beside
-# other work, against 34 min by these figures: take the estimates as a lower bound.)
+# on full-16ch-s0 (frames 0:4541, 2026-12-03: round 0 464 s, epochs 409-414 s over 4,609
+# edges, learning round 1,213 s, KISS-ICP 660 s), 32 channels on 32ch-s0..s2 (frames 0:1500:
+# round 0 161 s, epochs 107-111 s, learning rounds 439-447 s, KISS-ICP 227 s), 64 channels on
+# 64ch-s0 (179 s, 110 s, 581 s, 278 s). Training cost hardly depends on the channel count (the
+# network sees a fixed number of points a scan); rendering dominates round 0 and the baseline.
+# (The 16-channel window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and
+# perhaps beside other work, against 34 min by these figures: take the estimates as a lower
+# bound.)
 _S_PER_FRAME: dict[int, dict[str, float]] = {
-    16: {"round0": 0.102, "epoch": 0.090, "round": 0.267, "kiss": 0.15},
+    16: {"round0": 0.102, "epoch": 0.090, "round": 0.267, "kiss": 0.145},
     32: {"round0": 0.107, "epoch": 0.074, "round": 0.298, "kiss": 0.151},
     64: {"round0": 0.119, "epoch": 0.074, "round": 0.387, "kiss": 0.185},
 }

@@ -117,8 +117,11 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
 
         kiss = (d.get("kiss_icp") or {}).get("wall_s")
         peak = d.get("peak_rss_mb")
+        reuse = c.params.get("reuse")  # ablations: work taken from the seed's default cell, timed there
+        round0 = "reused" if reuse else minutes(0, "total")
+        training = ["reused" if r == 1 and reuse == "round1_training" else minutes(r, "training") for r in learning]
         rows.append(f"| {c.key} | {c.frames[1] - c.frames[0]} | {d.get('wall_s', float('nan')) / 60:.1f} | "
-                    f"{minutes(0, 'total')} | {', '.join(minutes(r, 'training') for r in learning)} | "
+                    f"{round0} | {', '.join(training)} | "
                     f"{', '.join(minutes(r, 'total') for r in learning)} | {'' if kiss is None else f'{kiss / 60:.1f}'} | "
                     f"{'' if peak is None else f'{peak / 1024:.1f}'} |")
     if not rows:
@@ -126,7 +129,7 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
     return ["## Time per stage", "",
             "Wall minutes of each finished cell on its machine (records name it): round 0 (rendering, SLAM, "
             "memory), each learning round's training and its SLAM (rendering again, the network on every frame, "
-            "densification, SLAM; a round reusing another cell's work shows only what it ran), the KISS-ICP "
+            "densification, SLAM; \"reused\": taken from another cell and timed there), the KISS-ICP "
             "baseline (rendering again); the process's peak resident memory in GiB (recorded since 2026-12-03). "
             "Cells run beside other work are slower.", "",
             "| cell | frames | wall | round 0 | training (rounds 1, 2, ...) | learning-round SLAM (rounds 1, 2, ...) "
