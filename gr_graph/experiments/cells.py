@@ -145,9 +145,9 @@ def estimate_slam_minutes(frames: int, channels: int, rounds: int, epochs: int, 
     return round(s / 60.0, 1)
 
 
-def estimate_registration_minutes(n_pairs: int, channels: int, densified: bool = False) -> float:
-    """Rough wall minutes of a Table II cell on 2 cores (constants above; ``densified`` pairs
-    measured no slower than raw ones)."""
+def estimate_registration_minutes(n_pairs: int, channels: int) -> float:
+    """Rough wall minutes of a Table II cell on 2 cores, raw or densified scans alike (constants
+    above)."""
     return round((_S_TOWN + n_pairs * _S_PAIR[channels]) / 60.0, 1)
 
 
@@ -209,7 +209,7 @@ def table2_cells(budget: Budget) -> list[Cell]:
                               src.channels, src.frames, f"{src.channels}ch", source=f"table1/{src.key}",
                               params={"round": r, "n_pairs": budget.n_pairs, "max_distance": 10.0,
                                       "solvers": ["kiss_matcher", "fpfh_ransac"]},
-                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels, r > 0)))
+                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
     return cells
 
 
