@@ -29,12 +29,14 @@ def default_mode(directory: bool = False) -> int:
 
 
 @contextmanager
-def atomic_path(path: PathLike) -> Iterator[Path]:
+def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` to write; rename it onto ``path`` on success.
 
     The temporary name keeps ``path``'s suffix, so writers that pick a format from the
     suffix (``savefig``, ``np.save``) behave as for ``path`` itself. The file gets the mode
-    a plain ``open()`` would give it.
+    a plain ``open()`` would give it. ``fsync=False`` skips flushing the file to the disk
+    before the rename (for caches whose readers check what they read: after a power loss the
+    file may be empty, never half-replaced by another).
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -43,8 +45,9 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
+        if fsync:
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
         os.chmod(tmp, default_mode())  # mkstemp makes 0600; results get the usual mode
         os.replace(tmp, target)
     except BaseException:

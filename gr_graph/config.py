@@ -58,6 +58,10 @@ class DataConfig(_Section):
         "None: all the sensor's beams")
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
+    frame_cache: bool | None = Field(
+        None, description="keep every frame read in <out>/frames (uncompressed: ~1 MB a 16-channel frame, deleted "
+        "when the run ends) so that the learning rounds read it back instead of making it again; None: on for "
+        "sequences that make their frames (synthetic worlds) when learning rounds run, off for recordings")
     point_format: Literal["xyzi", "xyz"] = Field(
         "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
     )

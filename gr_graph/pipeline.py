@@ -49,6 +49,7 @@ from gr_graph.atomic import atomic_write_bytes
 from gr_graph.config import SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_cam_poses
+from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
@@ -84,10 +85,10 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     nor on output options.
     """
     if r == 0:
-        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"}, "training": True,
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
                                                  "device": True})
     else:
-        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch"},
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"},
                                                  "training": {"rounds", "convergence_delta", "acceptance",
                                                               "stop_on_reject", "weights", "fine_tune"}})
         tc = cfg.training
@@ -153,10 +154,36 @@ class SlamPipeline:
 
             sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed,
                                                                     sensor=cfg.sensor)
-        self.sequence = sequence
+        self.sequence: LidarSequence = sequence
+        self.frame_cache = self._open_frame_cache(sequence)
+        if self.frame_cache is not None:
+            self.sequence = self.frame_cache
+        self.keep_frame_cache = False  # the harness reads the frames again after run() (KISS-ICP baseline)
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
         self._raw_scans: list[np.ndarray] | None = None  # round 0's scans, for the acceptance test
+
+    def _open_frame_cache(self, sequence: LidarSequence) -> CachedFrames | None:
+        """The on-disk frame cache ``<out>/frames`` (``data.frame_cache``,
+        :mod:`gr_graph.datasets.frame_cache`), or None when it is off."""
+        use = self.cfg.data.frame_cache
+        if use is None:
+            use = self.cfg.training.rounds > 0 and makes_frames(sequence)
+        if not use:
+            return None
+        d = self.cfg.model_dump(mode="json", include={"data", "sensor", "seed"},
+                                exclude={"data": {"prefetch", "frame_cache"}})
+        from gr_graph import __version__
+
+        key = hashlib.sha256(json.dumps([d, sequence.name, len(sequence), __version__],
+                                        sort_keys=True).encode()).hexdigest()[:16]
+        return CachedFrames(sequence, self.out / "frames", key)
+
+    def remove_frame_cache(self) -> None:
+        """Delete ``<out>/frames`` (the end of :meth:`run`, unless ``keep_frame_cache``; the
+        harness calls it after its baseline read the frames)."""
+        if self.frame_cache is not None:
+            self.frame_cache.remove()
 
     def provenance(self) -> dict[str, Any]:
         """Commit, packages, seeds, threads and device of this run (``metrics.json["provenance"]``)."""
@@ -197,7 +224,11 @@ class SlamPipeline:
             if converged:
                 break
             previous_poses = poses
+        if self.frame_cache is not None:
+            metrics["frame_cache"] = self.frame_cache.stats()
         self.write_final(metrics)
+        if not self.keep_frame_cache:
+            self.remove_frame_cache()
         if self.cfg.output.plot:
             self.plot(metrics["final_round"])
             if len(metrics["rounds"]) > 1:

@@ -226,8 +226,10 @@ def test_pruning_keeps_models_and_poses_and_waits_for_reusing_cells(tmp_path, mo
     assert rc.prune_finished(tmp_path, cells) == []  # its reusing cells are not finished
     for c in reusing:
         rc.run_cell(tmp_path, c)
-    gone = rc.prune_finished(tmp_path, cells)
     slam = rc.cell_dir(tmp_path, default) / "slam"
+    (slam / "frames").mkdir()  # a frame cache left behind by an interrupted run
+    gone = rc.prune_finished(tmp_path, cells)
+    assert slam / "frames" in gone and not (slam / "frames").exists()
     assert slam / "round_0" / "memory" in gone
     assert not list(slam.glob("round_*/memory")) and not list(slam.glob("round_*/training/checkpoint.pt"))
     assert (slam / "round_1" / "training" / "model.pt").is_file() and (slam / "round_2" / "poses_kitti.txt").is_file()
@@ -577,6 +579,9 @@ def test_smoke_cell_end_to_end_through_the_cli(tmp_path, capsys):
     assert not list(slam.glob("round_*/memory"))  # pruned
     assert (slam / "round_1" / "training" / "model.pt").is_file() and (slam / "metrics.json").is_file()
     assert (slam / "round_2" / "poses_kitti.txt").is_file()
+    frames = json.loads((slam / "metrics.json").read_text())["frame_cache"]  # rounds 1, 2 read round 0's frames
+    assert frames["misses"] == 60 and frames["hits"] >= 120 and frames["unreadable"] == 0
+    assert not (slam / "frames").exists()  # removed once the KISS-ICP baseline had read the frames too
     mtime = (d / "cell.json").stat().st_mtime_ns
     assert main(["table1", "--budget", "smoke", "--root", str(root), "--cell", cell.key]) == 0
     assert (d / "cell.json").stat().st_mtime_ns == mtime  # finished: skipped

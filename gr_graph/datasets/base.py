@@ -140,19 +140,25 @@ def inherit_sweep_attributes(view: Any, parent: Any) -> None:
         view.sensor = parent.sensor
 
 
+def find_in_chain(sequence: Any, attribute: str) -> Any:
+    """The first of ``sequence``, its ``parent``, the parent's parent, ... that has a callable
+    ``attribute``, or None."""
+    seen: set[int] = set()
+    while sequence is not None and id(sequence) not in seen:
+        seen.add(id(sequence))
+        if callable(getattr(sequence, attribute, None)):
+            return sequence
+        sequence = getattr(sequence, "parent", None)
+    return None
+
+
 def release_render_cache(sequence: Any) -> bool:
     """Free what ``sequence`` (or the sequence it is a view of, through ``parent``) keeps in
     memory to make frames, e.g. the synthetic town and its ray-casting scene: the optional
     method ``release_cache()``. Frames read later are made again, identical. Returns whether
     anything was freed."""
-    seen: set[int] = set()
-    while sequence is not None and id(sequence) not in seen:
-        seen.add(id(sequence))
-        release = getattr(sequence, "release_cache", None)
-        if callable(release):
-            return bool(release())
-        sequence = getattr(sequence, "parent", None)
-    return False
+    owner = find_in_chain(sequence, "release_cache")
+    return False if owner is None else bool(owner.release_cache())
 
 
 def check_index(index: int, length: int, name: str) -> int:

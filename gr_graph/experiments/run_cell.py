@@ -186,23 +186,27 @@ def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
 
 
 def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
-    from gr_graph.datasets.registry import open_configured_sequence
     from gr_graph.pipeline import SlamPipeline
 
     cfg = _slam_config(d, cell, device)
     _require_synthetic(cfg, cell)
     reuse = _reuse(root, d, cell)
-    metrics = SlamPipeline(cfg).run()
+    kp = d / "kiss_icp.json"
+    pipeline = SlamPipeline(cfg)
+    # the baseline reads the pipeline's frames afterwards: from its frame cache, when it has one
+    pipeline.keep_frame_cache = bool(cell.params.get("kiss_icp")) and read_json_or_none(kp) is None
+    metrics = pipeline.run()
     result: dict[str, Any] = {"rounds": round_figures(metrics), "source": metrics.get("source"),
                               "provenance": metrics.get("provenance"), "reuse": reuse}
     if cell.params.get("kiss_icp"):
-        kp = d / "kiss_icp.json"
         kiss = read_json_or_none(kp)
         if kiss is None:
             from gr_graph.experiments.kiss_baseline import kiss_icp_metrics
 
-            seq, _ = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
-            kiss = kiss_icp_metrics(seq)
+            try:
+                kiss = kiss_icp_metrics(pipeline.sequence)
+            finally:
+                pipeline.remove_frame_cache()
             atomic_write_json(kp, kiss)
         result["kiss_icp"] = {"system": kiss["system"], **{k: kiss["metrics"].get(k) for k in METRIC_KEYS},
                               "wall_s": kiss["wall_s"], "cpu_s": kiss["cpu_s"]}
@@ -303,6 +307,9 @@ def prune_cell(root: str | Path, cell: Cell) -> list[Path]:
     for p in sorted(slam.glob("round_*/training/checkpoint.pt")):
         p.unlink()
         gone.append(p)
+    if (slam / "frames").is_dir():  # a frame cache left by an interrupted run (gr_graph.datasets.frame_cache)
+        shutil.rmtree(slam / "frames")
+        gone.append(slam / "frames")
     return gone
 
 

@@ -1,0 +1,156 @@
+"""``CachedFrames``: a view of a sequence that keeps every frame it reads on disk.
+
+The learning rounds read every frame again (round r >= 1 densifies the scans round 0 read, and
+recomputes the predictions of a loop's older frame), and so does the experiment harness's
+KISS-ICP baseline. A synthetic frame is made by ray casting (0.07 s a 16-channel frame of the
+``kitti`` preset on the reference machine), and once a round has freed the synthetic town
+(about 2 GB) the next read builds it again. Read back from disk a frame costs milliseconds and
+needs no town.
+
+Frames are stored as they were made, uncompressed and in their own dtypes (``frame_<i>.npz``:
+points, intensity, ring and per-point times when present, and a header of index, timestamp,
+ring count and dropped non-finite points), so a frame read back is bit-identical to the one
+first read: a run with the cache gives the same poses as a run without it
+(``tests/test_frame_cache.py``). Writes are atomic; a file that cannot be read back
+(e.g. truncated by a full disk) is logged, counted in :attr:`CachedFrames.unreadable` and made
+again from the parent. ``key`` names what the frames depend on (the pipeline passes a hash of
+the data, sensor and seed settings): a directory written under another key is emptied first.
+
+The pipeline enables the cache by default only for sequences that make their frames
+(:func:`makes_frames`: synthetic worlds) and only when learning rounds will read them again;
+real recordings are read from their files as they are (``data.frame_cache``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import threading
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gr_graph.atomic import atomic_path, atomic_write_json, read_json_or_none
+from gr_graph.datasets.base import LidarFrame, LidarSequence, check_index, find_in_chain, inherit_sweep_attributes
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CachedFrames", "makes_frames"]
+
+META = "cache.json"
+
+
+def makes_frames(sequence: Any) -> bool:
+    """Whether ``sequence`` (or a sequence it is a view of) makes its frames instead of reading
+    them from files: it has a ``release_cache()`` method (the synthetic worlds)."""
+    return find_in_chain(sequence, "release_cache") is not None
+
+
+class CachedFrames:
+    """A view of ``parent`` whose frames are read once from the parent and then from ``directory``.
+
+    Parameters
+    ----------
+    parent : LidarSequence
+        The sequence whose frames are cached.
+    directory : path
+        Where the frames go (created; emptied when it holds frames of another ``key``).
+    key : str
+        What the frames depend on; stored in ``directory/cache.json``.
+    """
+
+    def __init__(self, parent: LidarSequence, directory: str | Path, key: str) -> None:
+        self.parent = parent
+        self.directory = Path(directory)
+        self.key = str(key)
+        self.name = parent.name
+        self.timestamps = parent.timestamps
+        self.gt_poses = parent.gt_poses
+        self.T_cam_velo = parent.T_cam_velo
+        inherit_sweep_attributes(self, parent)
+        self.hits = 0  # frames read from the cache
+        self.misses = 0  # frames read from the parent (and written)
+        self.unreadable = 0  # cached files that could not be read back (made again)
+        self._lock = threading.Lock()
+        self._open_directory()
+
+    def _open_directory(self) -> None:
+        meta = read_json_or_none(self.directory / META)
+        expected = {"key": self.key, "n_frames": len(self.parent), "name": self.parent.name}
+        if meta != expected and self.directory.exists():
+            if meta is not None:
+                log.info("frame cache %s holds frames of another sequence or configuration: emptied", self.directory)
+            shutil.rmtree(self.directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        if meta != expected:
+            atomic_write_json(self.directory / META, expected)
+
+    def __len__(self) -> int:
+        return len(self.parent)
+
+    def __iter__(self) -> Iterator[LidarFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def path(self, i: int) -> Path:
+        """The file of frame position ``i``."""
+        return self.directory / f"frame_{i:06d}.npz"
+
+    def __getitem__(self, index: int) -> LidarFrame:
+        i = check_index(index, len(self), self.name)
+        p = self.path(i)
+        if p.is_file():
+            frame = self._load(p, i)
+            if frame is not None:
+                with self._lock:
+                    self.hits += 1
+                return frame
+        frame = self.parent[i]
+        self._store(p, i, frame)
+        with self._lock:
+            self.misses += 1
+        return frame
+
+    def _store(self, p: Path, i: int, frame: LidarFrame) -> None:
+        arrays: dict[str, np.ndarray] = {
+            "header": np.array([i, frame.index, frame.timestamp, frame.n_rings, frame.dropped_nonfinite], np.float64),
+            "points": frame.points, "intensity": frame.intensity}
+        if frame.ring is not None:
+            arrays["ring"] = frame.ring
+        if frame.time is not None:
+            arrays["time"] = frame.time
+        with atomic_path(p, fsync=False) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+
+    def _load(self, p: Path, i: int) -> LidarFrame | None:
+        try:
+            with np.load(p) as z:
+                header = z["header"]
+                if len(header) != 5 or int(header[0]) != i:
+                    raise ValueError(f"header {header.tolist()} is not frame position {i}'s")
+                return LidarFrame(index=int(header[1]), timestamp=float(header[2]), points=z["points"],
+                                  intensity=z["intensity"], ring=z["ring"] if "ring" in z else None,
+                                  n_rings=int(header[3]), dropped_nonfinite=int(header[4]),
+                                  time=z["time"] if "time" in z else None)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+            with self._lock:
+                self.unreadable += 1
+            log.warning("frame cache: %s cannot be read back (%s: %s); the frame is made again", p,
+                        type(exc).__name__, exc)
+            return None
+
+    def stats(self) -> dict[str, Any]:
+        """Counts of this view: frames read from the cache, made by the parent, unreadable files."""
+        with self._lock:
+            return {"directory": str(self.directory), "hits": self.hits, "misses": self.misses,
+                    "unreadable": self.unreadable}
+
+    def remove(self) -> None:
+        """Delete the cached frames (the view still works: frames are made again)."""
+        shutil.rmtree(self.directory, ignore_errors=True)
+        log.info("frame cache %s removed (%s)", self.directory, json.dumps(self.stats()))
