@@ -66,9 +66,9 @@ class DataConfig(_Section):
         "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
     )
     kitti_vertical_correction_deg: float = Field(
-        0.0, ge=-2.0, le=2.0, description="KITTI folders: raise every point's elevation by this angle (HDL-64E "
-        "vertical-angle error; KISS-ICP 1.3.0 uses 0.205, published values 0.195-0.22); 0: off (any KITTI-layout folder, "
-        "synthetic exports included, is read unchanged)"
+        0.0, ge=-2.0, le=2.0, description="KITTI folders and the synthetic sequence: raise every point's elevation "
+        "by this angle (HDL-64E vertical-angle error; KISS-ICP 1.3.0 uses 0.205, published values 0.195-0.22; the "
+        "kitti/raw presets have 0.22); 0: off (any KITTI-layout folder, synthetic exports included, is read unchanged)"
     )
     route_seed: int = Field(0, ge=0, description="synthetic sequence: seed of the generated route")
     trajectory: str | None = Field(None, description="synthetic sequence: render along this KITTI/TUM "

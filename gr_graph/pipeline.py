@@ -174,8 +174,10 @@ class SlamPipeline:
         d = self.cfg.model_dump(mode="json", include={"data", "sensor", "seed"},
                                 exclude={"data": {"prefetch", "frame_cache"}})
         from gr_graph import __version__
+        from gr_graph.provenance import git_state
 
-        key = hashlib.sha256(json.dumps([d, sequence.name, len(sequence), __version__],
+        code = [__version__, git_state()["commit"]]  # the renderer may change between commits
+        key = hashlib.sha256(json.dumps([d, sequence.name, len(sequence), code],
                                         sort_keys=True).encode()).hexdigest()[:16]
         return CachedFrames(sequence, self.out / "frames", key)
 

@@ -20,10 +20,13 @@ Output directory (``--out``)::
     round_<r>/memory/            the memory of the round (:mod:`gr_graph.memory_builder`)
     round_<r>/training/          rounds r >= 1: the trainer's model.pt, checkpoint.pt, log, summary
     round_<r>/round.json         written last: the round's summary; marks the round finished
+    frames/                  while learning rounds run on made (synthetic) frames: round 0's frames,
+                             read back by later rounds; deleted at the end (:mod:`gr_graph.datasets.frame_cache`)
 
 Every file is written atomically (temporary sibling, then rename).
 
-``metrics.json`` = ``{"source", "n_frames", "channels", "rounds": {"<r>": summary}}``; a
+``metrics.json`` = ``{"source", "n_frames", "channels", "rounds": {"<r>": summary}}`` (and
+``frame_cache``: frames read back, made, unreadable, not stored, when the cache was on); a
 round's summary (also its ``round.json``, :func:`round_summary`) holds counts (frames,
 odometry edges, flagged edges, loops, loop candidates), ``slam`` and ``odometry``
 (:func:`gr_graph.metrics.trajectory_metrics` of the optimised and the odometry-only poses

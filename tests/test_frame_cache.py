@@ -102,6 +102,21 @@ def test_unreadable_file_is_made_again_and_counted(tmp_path, damage):
     assert cache.unreadable == 1 and seq.made[1] == 2
 
 
+def test_a_frame_that_cannot_be_stored_is_returned_and_counted(tmp_path, monkeypatch, caplog):
+    seq = CountingSequence()
+    cache = CachedFrames(seq, tmp_path / "frames", key="k")
+
+    def full_disk(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(cache, "_store", full_disk)
+    with caplog.at_level("WARNING", logger="gr_graph.datasets.frame_cache"):
+        assert_same_frame(cache[2], seq.frames[2])
+        assert_same_frame(cache[2], seq.frames[2])
+    assert cache.stats()["write_errors"] == 2 and seq.made[2] == 2 and not cache.path(2).exists()
+    assert sum("not stored" in r.message for r in caplog.records) == 1  # warned once, then counted
+
+
 def test_remove_deletes_the_files_and_the_view_still_reads(tmp_path):
     seq = CountingSequence()
     cache = CachedFrames(seq, tmp_path / "frames", key="k")
@@ -143,7 +158,7 @@ def test_learning_run_with_the_cache_equals_the_run_without(tmp_path):
         runs[name] = out
     a, b = runs["cached"], runs["uncached"]
     stats = json.loads((a / "metrics.json").read_text())["frame_cache"]
-    assert stats["misses"] == 10 and stats["hits"] >= 10 and stats["unreadable"] == 0
+    assert stats["misses"] == 10 and stats["hits"] >= 10 and stats["unreadable"] == stats["write_errors"] == 0
     assert "frame_cache" not in json.loads((b / "metrics.json").read_text())
     assert not (a / "frames").exists()
     for r in ("round_0", "round_1"):

@@ -110,3 +110,25 @@ def test_synthetic_route_seed_and_trajectory(monkeypatch: pytest.MonkeyPatch, tm
     (root / "sequences" / "00" / "velodyne").mkdir(parents=True)
     with pytest.raises(DatasetError, match="cannot be combined with the KITTI root"):
         open_sequence("00", data_root=root, trajectory=f)
+
+
+def test_synthetic_vertical_correction_raises_every_point(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The synthetic presets carry KITTI's vertical-angle error: the correction applies to them
+    as to KITTI scans (same points as correcting the uncorrected frame), and the source says so."""
+    from gr_graph.datasets.base import release_render_cache
+    from gr_graph.datasets.kitti import correct_vertical_angle
+
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    plain, src_plain = open_sequence("00", frames="740:741", channels=16, synthetic_preset="clean")
+    fixed, src_fixed = open_sequence("00", frames="740:741", channels=16, synthetic_preset="clean",
+                                     kitti_vertical_correction_deg=0.22)
+    assert "vertical-angle correction" not in src_plain and "vertical-angle correction 0.22 deg" in src_fixed
+    a, b = plain[0], fixed[0]
+    np.testing.assert_array_equal(b.points, correct_vertical_angle(a.points, 0.22))
+    np.testing.assert_array_equal(b.ring, a.ring)
+    elevation = np.degrees(np.arctan2(b.points[:, 2], np.hypot(b.points[:, 0], b.points[:, 1])) -
+                           np.arctan2(a.points[:, 2], np.hypot(a.points[:, 0], a.points[:, 1])))
+    assert np.allclose(elevation, 0.22, atol=1e-9)
+    assert release_render_cache(fixed)  # the town is still reachable through the correcting view

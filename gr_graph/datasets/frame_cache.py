@@ -11,10 +11,12 @@ Frames are stored as they were made, uncompressed and in their own dtypes (``fra
 points, intensity, ring and per-point times when present, and a header of index, timestamp,
 ring count and dropped non-finite points), so a frame read back is bit-identical to the one
 first read: a run with the cache gives the same poses as a run without it
-(``tests/test_frame_cache.py``). Writes are atomic; a file that cannot be read back
-(e.g. truncated by a full disk) is logged, counted in :attr:`CachedFrames.unreadable` and made
-again from the parent. ``key`` names what the frames depend on (the pipeline passes a hash of
-the data, sensor and seed settings): a directory written under another key is emptied first.
+(``tests/test_frame_cache.py``). Writes are atomic. A file that cannot be read back (e.g.
+truncated) is logged, counted in :attr:`CachedFrames.unreadable` and made again from the
+parent; a frame that cannot be stored (e.g. a full disk) is logged, counted in
+:attr:`CachedFrames.write_errors`, and the run goes on. ``key`` names what the frames depend on
+(the pipeline passes a hash of the data, sensor and seed settings and the code's commit): a
+directory written under another key is emptied first.
 
 The pipeline enables the cache by default only for sequences that make their frames
 (:func:`makes_frames`: synthetic worlds) and only when learning rounds will read them again;
@@ -75,6 +77,7 @@ class CachedFrames:
         self.hits = 0  # frames read from the cache
         self.misses = 0  # frames read from the parent (and written)
         self.unreadable = 0  # cached files that could not be read back (made again)
+        self.write_errors = 0  # frames that could not be stored (e.g. a full disk; made again when read again)
         self._lock = threading.Lock()
         self._open_directory()
 
@@ -110,7 +113,14 @@ class CachedFrames:
                     self.hits += 1
                 return frame
         frame = self.parent[i]
-        self._store(p, i, frame)
+        try:
+            self._store(p, i, frame)
+        except OSError as exc:  # e.g. a full disk: the run goes on, this frame is made again when read again
+            with self._lock:
+                self.write_errors += 1
+                first = self.write_errors == 1
+            log.log(logging.WARNING if first else logging.DEBUG, "frame cache: frame %d not stored in %s (%s: %s)%s",
+                    i, self.directory, type(exc).__name__, exc, "; further failures are counted" if first else "")
         with self._lock:
             self.misses += 1
         return frame
@@ -148,7 +158,7 @@ class CachedFrames:
         """Counts of this view: frames read from the cache, made by the parent, unreadable files."""
         with self._lock:
             return {"directory": str(self.directory), "hits": self.hits, "misses": self.misses,
-                    "unreadable": self.unreadable}
+                    "unreadable": self.unreadable, "write_errors": self.write_errors}
 
     def remove(self) -> None:
         """Delete the cached frames (the view still works: frames are made again)."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -293,8 +294,10 @@ def open_sequence(
         Layout of the KITTI ``.bin`` files: float32 x, y, z, intensity (KITTI) or x, y, z
         (12 bytes a point). Unused by the synthetic sequence.
     kitti_vertical_correction_deg : float
-        KITTI only: elevation correction of every point (see
-        :func:`gr_graph.datasets.kitti.correct_vertical_angle`); 0 reads the scans unchanged.
+        KITTI and the synthetic sequence: raise every point's elevation by this angle (see
+        :func:`gr_graph.datasets.kitti.correct_vertical_angle`; the ``kitti`` and ``raw``
+        presets' sensors point 0.22 deg higher than their calibration says, like KITTI's
+        HDL-64E); 0 reads the scans unchanged. Other recordings ignore it.
     synthetic_preset : str, optional
         Preset of the synthetic sequence, its world and sensor effects (``clean``, ``kitti``,
         ``raw``; default: ``kitti``, see
@@ -374,9 +377,6 @@ def open_sequence(
         if point_format != "xyzi":
             log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect",
                         point_format)
-        if kitti_vertical_correction_deg:
-            log.warning("kitti_vertical_correction_deg %g concerns KITTI .bin files; without a KITTI root it has "
-                        "no effect", kitti_vertical_correction_deg)
         if sensor.model == CUSTOM:
             raise DatasetError("the synthetic sequence renders catalogue sensors only (sensor.model: "
                                "hdl64e, vlp16, os1-64), not a custom sensor")
@@ -390,6 +390,12 @@ def open_sequence(
             f"sensor effects: "
             f"{synth.effects.describe()})"
         )
+        if kitti_vertical_correction_deg:  # the presets' sensors carry KITTI's vertical-angle error too
+            from gr_graph.datasets.kitti import correct_vertical_angle
+
+            angle = float(kitti_vertical_correction_deg)
+            base = SequenceView(synth, transform=lambda f: replace(f, points=correct_vertical_angle(f.points, angle)))
+            source += f", vertical-angle correction {angle:g} deg"
     return _view(base, source, frames, sensor, n_rings)
 
 
