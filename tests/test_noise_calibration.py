@@ -288,3 +288,31 @@ def test_frame_loop_gives_loops_learned_information_and_one_scale(tmp_path):
     edges = np.array([(x.source, x.target) for x in res.edges])
     nees = edge_nees(edges, np.array([x.T for x in res.edges]), np.array([x.information for x in res.edges]), gt)
     assert np.isfinite(nees).all()
+
+
+def test_position_nees_split_into_horizontal_and_vertical():
+    """Errors drawn from the marginals give horizontal ~2 and vertical ~1 and sum to the 3-D NEES
+    when the covariances do not couple height and plane; a height drift the marginals do not
+    know shows in the vertical part only."""
+    from gr_graph.noise_consistency import position_nees_split
+
+    rng = np.random.default_rng(4)
+    K = 4000
+    cov = np.zeros((K, 3, 3))
+    cov[:, :2, :2] = np.array([[0.04, 0.01], [0.01, 0.09]])
+    cov[:, 2, 2] = 0.25
+    gt = np.tile(np.eye(4), (K, 1, 1))
+    est = gt.copy()
+    est[:, :3, 3] = rng.multivariate_normal(np.zeros(3), cov[0], size=K)
+    split = position_nees_split(est, cov, gt)
+    assert split["horizontal"]["mean"] == pytest.approx(2.0, abs=0.15)
+    assert split["vertical"]["mean"] == pytest.approx(1.0, abs=0.1)
+    assert split["horizontal"]["ideal_mean"] == 2 and split["vertical"]["ideal_mean"] == 1
+    total = position_nees(est, cov, gt)
+    assert split["horizontal"]["mean"] + split["vertical"]["mean"] == pytest.approx(float(np.mean(total)), rel=1e-9)
+    np.testing.assert_allclose(split["error_rms_xyz"], np.sqrt(np.mean(est[1:, :3, 3] ** 2, axis=0)))
+    drift = est.copy()
+    drift[:, 2, 3] += 2.0  # 2 m of height error, 4 sigma
+    bent = position_nees_split(drift, cov, gt)
+    assert bent["horizontal"]["mean"] == split["horizontal"]["mean"]
+    assert bent["vertical"]["mean"] > 15.0

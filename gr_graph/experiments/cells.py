@@ -52,7 +52,9 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # network sees a fixed number of points a scan); rendering dominates round 0 and the baseline.
 # (The 16-channel window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and
 # perhaps beside other work, against 34 min by these figures: take the estimates as a lower
-# bound.)
+# bound.) All measured before the frame cache (753ea31), since which the learning rounds and the
+# baseline read round 0's frames back instead of rendering them (benchmarks/results/frame_cache.md):
+# their figures here include the rendering.
 _S_PER_FRAME: dict[int, dict[str, float]] = {
     16: {"round0": 0.102, "epoch": 0.090, "round": 0.267, "kiss": 0.145},
     32: {"round0": 0.107, "epoch": 0.074, "round": 0.298, "kiss": 0.151},
