@@ -121,9 +121,14 @@ def axis_stats(xi: np.ndarray, information: np.ndarray) -> dict[str, Any]:
 
 def position_nees(poses: np.ndarray, position_cov_world: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """``(K - 1,)`` position NEES ``e^T Sigma^-1 e`` of poses 1..K-1 (``e = p - p_GT``, world frame)."""
-    e = poses[1:, :3, 3] - gt[1:, :3, 3]
-    S = position_cov_world[1:] + 1e-12 * np.eye(3)
+    e, S = _position_errors(poses, position_cov_world, gt)
     return np.einsum("ki,kij,kj->k", e, np.linalg.inv(S), e)
+
+
+def _position_errors(poses: np.ndarray, position_cov_world: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Errors ``p - p_GT`` ``(K - 1, 3)`` and covariances ``(K - 1, 3, 3)`` of poses 1..K-1 (the
+    first is fixed by the prior), with a tiny diagonal so a degenerate marginal stays invertible."""
+    return poses[1:, :3, 3] - gt[1:, :3, 3], position_cov_world[1:] + 1e-12 * np.eye(3)
 
 
 def position_nees_split(poses: np.ndarray, position_cov_world: np.ndarray, gt: np.ndarray) -> dict[str, Any]:
@@ -134,8 +139,7 @@ def position_nees_split(poses: np.ndarray, position_cov_world: np.ndarray, gt: n
     a sensor's vertical-angle error bending the trajectory) shows it here, where the 3-D
     position NEES mixes both.
     """
-    e = poses[1:, :3, 3] - gt[1:, :3, 3]
-    S = position_cov_world[1:] + 1e-12 * np.eye(3)
+    e, S = _position_errors(poses, position_cov_world, gt)
     horizontal = np.einsum("ki,kij,kj->k", e[:, :2], np.linalg.inv(S[:, :2, :2]), e[:, :2])
     vertical = e[:, 2] ** 2 / S[:, 2, 2]
     return {"horizontal": _stats(horizontal, 2), "vertical": _stats(vertical, 1),
