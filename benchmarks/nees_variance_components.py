@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
@@ -29,53 +30,58 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 from gtsam.symbol_shorthand import X
 
+from gr_graph.noise_calibration import between_residuals
 from gr_graph.noise_consistency import edge_nees, position_nees, position_nees_split
 from gr_graph.pose_graph import position_covariance_world
 
 
-def gaussian_graph(poses: np.ndarray, edges: np.ndarray, edge_T: np.ndarray, info: np.ndarray,
-                   prior_sigma: float) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """The round's graph without robust kernels: prior on pose 0, then one factor per edge in order."""
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for i, T in enumerate(poses):
-        values.insert(X(i), gtsam.Pose3(T))
-    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, prior_sigma)))
-    for (k, l), T, L in zip(edges, edge_T, info):
-        graph.add(gtsam.BetweenFactorPose3(X(int(l)), X(int(k)), gtsam.Pose3(T),
-                                           gtsam.noiseModel.Gaussian.Information(0.5 * (L + L.T))))
-    return graph, values
-
-
-def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    params.setRelativeErrorTol(1e-10)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    return np.stack([result.atPose3(X(i)).matrix() for i in range(values.size())])
-
-
-def group_redundancy(graph: gtsam.NonlinearFactorGraph, poses: np.ndarray, rows: np.ndarray) -> float:
-    """``len(rows) - tr(N^-1 J_rows^T J_rows)`` with ``J`` the whitened Jacobian at ``poses``."""
+def pose_values(poses: np.ndarray) -> gtsam.Values:
     values = gtsam.Values()
     for i, T in enumerate(poses):
         values.insert(X(i), gtsam.Pose3(T))
-    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, column, value); last column = rhs
+    return values
+
+
+def gaussian_graph(edges: np.ndarray, edge_T: np.ndarray, info: np.ndarray, first_pose: np.ndarray,
+                   prior_sigma: float) -> gtsam.NonlinearFactorGraph:
+    """The round's graph without robust kernels: prior on pose 0, then one factor per edge in order."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(first_pose), gtsam.noiseModel.Isotropic.Sigma(6, prior_sigma)))
+    for (k, l), T, L in zip(edges, edge_T, info):
+        graph.add(gtsam.BetweenFactorPose3(X(int(l)), X(int(k)), gtsam.Pose3(T),
+                                           gtsam.noiseModel.Gaussian.Information(0.5 * (L + L.T))))
+    return graph
+
+
+def solve(graph: gtsam.NonlinearFactorGraph, poses: np.ndarray) -> np.ndarray:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(1e-10)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, pose_values(poses), params).optimize()
+    return np.stack([result.atPose3(X(i)).matrix() for i in range(len(poses))])
+
+
+def redundancies(graph: gtsam.NonlinearFactorGraph, poses: np.ndarray, row_groups: list[np.ndarray]) -> list[float]:
+    """``len(rows) - tr(N^-1 J_rows^T J_rows)`` of each group of rows, ``J`` the whitened Jacobian
+    at ``poses`` and ``N = J^T J`` (linearised and factorised once)."""
+    ijs = graph.linearize(pose_values(poses)).sparseJacobian_()  # 1-based (row, column, value); last column = rhs
     r, c, v = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1, ijs[2]
     n = 6 * len(poses)
     keep = c < n
     J = sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(int(r.max()) + 1, n))
     lu = spl.splu((J.T @ J).tocsc())
-    Jg = J[rows].toarray()
-    return float(len(rows) - np.trace(Jg @ lu.solve(Jg.T.copy())))
+    out = []
+    for rows in row_groups:
+        Jg = J[rows].toarray()
+        out.append(float(len(rows) - np.trace(Jg @ lu.solve(Jg.T.copy()))))
+    return out
 
 
 def chi2_per_edge(poses: np.ndarray, edges: np.ndarray, edge_T: np.ndarray, info: np.ndarray) -> np.ndarray:
-    out = np.empty(len(edges))
-    for e, ((k, l), T, L) in enumerate(zip(edges, edge_T, info)):
-        rel = gtsam.Pose3(np.linalg.inv(poses[l]) @ poses[k])
-        res = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(rel))
-        out[e] = res @ (0.5 * (L + L.T)) @ res
-    return out
+    """``r^T Lambda r`` of every edge, ``r`` the pose graph's own residual (:func:`between_residuals`)."""
+    res = between_residuals(poses, [SimpleNamespace(source=int(k), target=int(l), T=T)
+                                    for (k, l), T in zip(edges, edge_T)])
+    return np.einsum("ei,eij,ej->e", res, 0.5 * (info + np.swapaxes(info, 1, 2)), res)
 
 
 def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
@@ -86,11 +92,10 @@ def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: 
     K = len(poses)
     loop_rows = np.concatenate([np.arange(6 * (e + 1), 6 * (e + 2)) for e in np.flatnonzero(kind == 1)])
     for it in range(iterations):
-        graph, values = gaussian_graph(poses, edges, edge_T, info, prior_sigma)
-        poses = solve(graph, values)
+        graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
+        poses = solve(graph, poses)
         total = 6 * len(edges) + 6 - 6 * K
-        r_loop = group_redundancy(graph, poses, loop_rows)
-        r_prior = group_redundancy(graph, poses, np.arange(6))
+        r_loop, r_prior = redundancies(graph, poses, [loop_rows, np.arange(6)])
         r_odo = total - r_loop - r_prior
         chi2 = chi2_per_edge(poses, edges, edge_T, info)
         s2 = {0: chi2[kind == 0].sum() / r_odo, 1: chi2[kind == 1].sum() / r_loop}
@@ -101,12 +106,9 @@ def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: 
             scale[g] *= s2[g]
         if max(abs(s2[0] - 1.0), abs(s2[1] - 1.0)) < 1e-3:
             break
-    graph, values = gaussian_graph(poses, edges, edge_T, info, prior_sigma)
-    poses = solve(graph, values)
-    result = gtsam.Values()
-    for i, T in enumerate(poses):
-        result.insert(X(i), gtsam.Pose3(T))
-    marginals = gtsam.Marginals(graph, result)
+    graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
+    poses = solve(graph, poses)
+    marginals = gtsam.Marginals(graph, pose_values(poses))
     cov = np.stack([marginals.marginalCovariance(X(i)) for i in range(K)])
     return {"poses": poses, "covariance": cov, "information": info, "variance": scale}
 
