@@ -46,7 +46,7 @@ def measure(frames: tuple[int, int], channels: int, repeats: int, preset: str) -
     town_s = time.perf_counter() - t0
     n = len(seq)
     make, store, load = [], [], []
-    sizes = []
+    sizes, points = [], []
     with tempfile.TemporaryDirectory() as tmp:
         cache = CachedFrames(seq, Path(tmp) / "frames", key="bench")
         for rep in range(repeats):
@@ -64,16 +64,16 @@ def measure(frames: tuple[int, int], channels: int, repeats: int, preset: str) -
                 load.append(time.perf_counter() - t0)
                 if rep == 0:
                     sizes.append(p.stat().st_size)
+                    points.append(len(frame.points))
                     if not np.array_equal(back.points, frame.points):
                         raise AssertionError(f"frame {i}: points read back differ")
-        points = int(np.mean([len(seq[i].points) for i in range(0, n, max(1, n // 10))]))
     release_render_cache(seq)
     t0 = time.perf_counter()
     seq[0]  # the build a learning round pays after the previous round freed the town
     rebuild_s = time.perf_counter() - t0
     med = {k: float(np.median(v)) for k, v in (("make", make), ("store", store), ("load", load))}
     return {"source": desc, "frames": list(frames), "channels": channels, "preset": preset, "repeats": repeats,
-            "mean_points": points, "mean_file_mb": float(np.mean(sizes)) / 1e6,
+            "mean_points": int(np.mean(points)), "mean_file_mb": float(np.mean(sizes)) / 1e6,
             "median_s": med, "mean_s": {k: float(np.mean(v)) for k, v in (("make", make), ("store", store),
                                                                             ("load", load))},
             "town_build_s": town_s, "town_rebuild_s": rebuild_s,

@@ -155,7 +155,8 @@ class CachedFrames:
             return None
 
     def stats(self) -> dict[str, Any]:
-        """Counts of this view: frames read from the cache, made by the parent, unreadable files."""
+        """Counts of this view: frames read from the cache, made by the parent, unreadable files,
+        frames that could not be stored."""
         with self._lock:
             return {"directory": str(self.directory), "hits": self.hits, "misses": self.misses,
                     "unreadable": self.unreadable, "write_errors": self.write_errors}
