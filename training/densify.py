@@ -13,15 +13,26 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["anisotropy", "densify"]
+__all__ = ["anisotropy", "densify", "symmetric_eigenvalues"]
 
 
-def anisotropy(C: np.ndarray) -> np.ndarray:
-    """``1 - lambda_min / lambda_max`` of every ``(N, 3, 3)`` SPD covariance, shape ``(N,)``."""
+def symmetric_eigenvalues(C: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` ascending eigenvalues of the symmetric parts of ``(N, 3, 3)`` matrices."""
+    C = np.asarray(C, np.float64)
+    return np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1)))
+
+
+def anisotropy(C: np.ndarray, eigenvalues: np.ndarray | None = None) -> np.ndarray:
+    """``1 - lambda_min / lambda_max`` of every ``(N, 3, 3)`` SPD covariance, shape ``(N,)``.
+
+    ``eigenvalues``: :func:`symmetric_eigenvalues` of ``C`` when the caller has them already.
+    """
     C = np.asarray(C, np.float64)
     if C.ndim != 3 or C.shape[1:] != (3, 3):
         raise ValueError(f"anisotropy: C must be (N, 3, 3), got {C.shape}")
-    w = np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1)))
+    w = symmetric_eigenvalues(C) if eigenvalues is None else np.asarray(eigenvalues, np.float64)
+    if w.shape != (len(C), 3):
+        raise ValueError(f"anisotropy: eigenvalues must be ({len(C)}, 3), got {w.shape}")
     if len(w) and w[:, 0].min() <= 0:
         raise ValueError("anisotropy: covariances must be positive definite")
     return 1.0 - w[:, 0] / w[:, 2]
@@ -34,6 +45,7 @@ def densify(
     M: int = 4,
     seed: int = 0,
     include_original: bool = False,
+    eigenvalues: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Densified scan ``S+`` of Algorithm 2.
 
@@ -51,6 +63,8 @@ def densify(
         Seed of the sampling (deterministic).
     include_original : bool
         Also keep the kept points themselves (the paper's ``S+`` holds only the samples).
+    eigenvalues : (N, 3) array, optional
+        :func:`symmetric_eigenvalues` of ``C``, when the caller computed them already.
 
     Returns
     -------
@@ -67,7 +81,7 @@ def densify(
         raise ValueError(f"densify: M must be >= 1, got {M}")
     if not (np.isfinite(x).all() and np.isfinite(C).all()):
         raise ValueError("densify: non-finite points or covariances")
-    kept = anisotropy(C) > tau_ani
+    kept = anisotropy(C, eigenvalues) > tau_ani
     xs, Cs = x[kept], C[kept]
     L = np.linalg.cholesky(0.5 * (Cs + Cs.transpose(0, 2, 1)))
     z = np.random.default_rng(seed).standard_normal((len(xs), M, 3))

@@ -74,11 +74,16 @@ def _knn(tree: cKDTree, queries: np.ndarray, k: int, n_src: int) -> tuple[np.nda
     return d, i
 
 
-def _interp(tree: cKDTree, queries: np.ndarray, n_src: int) -> tuple[np.ndarray, np.ndarray]:
-    d, i = _knn(tree, queries, 3, n_src)
+def _interp_weights(d: np.ndarray) -> np.ndarray:
+    """Inverse-distance weights (rows sum to 1, float32) of ``(M, 3)`` neighbour distances."""
     w = 1.0 / np.maximum(d, 1e-8)
     w /= w.sum(1, keepdims=True)
-    return i, w.astype(np.float32)
+    return w.astype(np.float32)
+
+
+def _interp(tree: cKDTree, queries: np.ndarray, n_src: int) -> tuple[np.ndarray, np.ndarray]:
+    d, i = _knn(tree, queries, 3, n_src)
+    return i, _interp_weights(d)
 
 
 def build_neighborhoods(
@@ -133,6 +138,9 @@ def build_neighborhoods(
     _, knn2 = _knn(tree1, x2, k2, len(x1))
     tree2 = cKDTree(x2)
     up21, w21 = _interp(tree2, x1, len(x2))
-    up10, w10 = _interp(tree1, x, len(x1))
-    _, knnw = _knn(tree1, x, kw, len(x1))
+    # one query of the input points in level 1 serves both the interpolation (3 nearest) and the
+    # wide neighbourhood (kw nearest): the k nearest come sorted by distance
+    d10, i10 = _knn(tree1, x, max(kw, 3), len(x1))
+    up10, w10 = np.ascontiguousarray(i10[:, :3]), _interp_weights(d10[:, :3])
+    knnw = np.ascontiguousarray(i10[:, :kw])
     return Neighborhoods(knn0, idx1, knn1, idx2, knn2, up21, w21, up10, w10, knnw)

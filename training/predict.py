@@ -62,7 +62,7 @@ def predict_covariances(
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad():
+        with torch.inference_mode():
             for part in np.array_split(perm, n_parts):
                 pts = x[part].astype(np.float32)
                 nb = neighborhoods_to_torch(cfg.neighborhoods(pts, start=int(rng.integers(len(pts)))), device)

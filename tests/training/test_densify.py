@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from training.densify import anisotropy, densify
+from training.densify import anisotropy, densify, symmetric_eigenvalues
 
 
 def _rot(rng, n):
@@ -21,6 +21,12 @@ def test_anisotropy_closed_form():
     np.testing.assert_allclose(anisotropy(C), [0.0, 0.99, 0.75], atol=1e-12)
     with pytest.raises(ValueError, match="positive definite"):
         anisotropy(-C)
+    # eigenvalues the caller computed already give the same filter; the wrong shape is an error
+    w = symmetric_eigenvalues(C)
+    np.testing.assert_allclose(w, np.sort(lam, 1), atol=1e-12)
+    np.testing.assert_array_equal(anisotropy(C, w), anisotropy(C))
+    with pytest.raises(ValueError, match="eigenvalues"):
+        anisotropy(C, w[:2])
 
 
 def test_densify_filters_and_samples_from_the_covariance():

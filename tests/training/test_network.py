@@ -26,6 +26,15 @@ def test_neighborhoods_match_brute_force():
         np.testing.assert_array_equal(np.sort(nb.knn1, 1), np.sort(np.argsort(D1, 1)[:, :6], 1))
         np.testing.assert_allclose(nb.w10.sum(1), 1, rtol=1e-6)
         np.testing.assert_allclose(nb.w21.sum(1), 1, rtol=1e-6)
+        # input points -> level 1: the wide neighbourhood (kw nearest) and the interpolation (3
+        # nearest, inverse-distance weights) come from one query; both against brute force
+        D01 = np.sqrt(((x[:, None] - x1[None]) ** 2).sum(-1))
+        order = np.argsort(D01, 1)
+        np.testing.assert_array_equal(np.sort(nb.knnw, 1), np.sort(order[:, :16], 1))
+        np.testing.assert_array_equal(nb.up10, order[:, :3])
+        w = 1.0 / np.maximum(np.take_along_axis(D01, order[:, :3], 1), 1e-8)  # a centroid is an input point
+        np.testing.assert_allclose(nb.w10, w / w.sum(1, keepdims=True), rtol=1e-6)
+        assert nb.knnw.flags.c_contiguous and nb.up10.flags.c_contiguous
     # farthest-point sampling: each new point is the farthest from those chosen before
     idx = farthest_point_sampling(x, 10, 0)
     for i in range(1, 10):
@@ -33,6 +42,8 @@ def test_neighborhoods_match_brute_force():
         assert dmin[idx[i]] == pytest.approx(dmin.max())
     small = build_neighborhoods(x[:5], k0=8)  # fewer points than k: padded, still valid
     assert small.knn0.shape == (5, 8) and small.knn0.max() < 5
+    assert small.up10.shape == (5, 3) and small.knnw.shape == (5, 16) and small.knnw.max() < len(small.idx1)
+    np.testing.assert_allclose(small.w10.sum(1), 1, rtol=1e-6)
 
 
 def test_cholesky_parametrisation_gives_spd_covariances():
