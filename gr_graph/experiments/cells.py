@@ -43,22 +43,25 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 
 # Wall seconds per frame on the 2-core reference machine (AMD EPYC, no other load), `kitti`
 # preset, by channel count: round 0 (rendering, SLAM, memory), one training epoch, a learning
-# round (rendering again, the network on every frame, densification, SLAM) and the KISS-ICP
-# baseline (rendering again + KISS-ICP). Measured on the Table I cells run alone: 16 channels
-# on full-16ch-s0 (frames 0:4541, 2026-12-03: round 0 464 s, epochs 409-414 s over 4,609
-# edges, learning round 1,213 s, KISS-ICP 660 s), 32 channels on 32ch-s0..s2 (frames 0:1500:
-# round 0 161 s, epochs 107-111 s, learning rounds 439-447 s, KISS-ICP 227 s), 64 channels on
-# 64ch-s0 (179 s, 110 s, 581 s, 278 s). Training cost hardly depends on the channel count (the
-# network sees a fixed number of points a scan); rendering dominates round 0 and the baseline.
-# (The 16-channel window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and
-# perhaps beside other work, against 34 min by these figures: take the estimates as a lower
-# bound.) All measured before the frame cache (753ea31), since which the learning rounds and the
-# baseline read round 0's frames back instead of rendering them (benchmarks/results/frame_cache.md):
-# their figures here include the rendering.
+# round (the network on every frame, densification, SLAM; the frames read back from the frame
+# cache) and the KISS-ICP baseline (frames from the cache + KISS-ICP). Measured on the Table I
+# cells run alone: 16 channels on full-16ch-s0 (frames 0:4541, 2026-12-03: round 0 464 s, epochs
+# 409-414 s over 4,609 edges, learning rounds 1,213 and 1,345 s before the frame cache; rerun with
+# the cache (753ea31): round 2 1,123 s, KISS-ICP 291 s against 660 s), 32 channels on
+# 32ch-s0..s2 (frames 0:1500: round 0 161 s, epochs 107-111 s, learning rounds 439-447 s and
+# KISS-ICP 227 s before the cache), 64 channels on 64ch-s0 (179 s, 110 s, 581 s, 278 s before the
+# cache). The learning-round and baseline figures are those measurements less what the cache
+# saved per frame on the 16-channel rerun (0.049 s a learning-round frame, 0.081 s a baseline
+# frame; the same 64 beams are rendered at every channel count): measured with the cache only for
+# 16 channels' round 2 and baseline. Training cost hardly depends on the channel
+# count (the network sees a fixed number of points a scan); rendering dominates round 0. (The
+# 16-channel window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and perhaps
+# beside other work, against 34 min by the figures before the cache: take the estimates as a
+# lower bound.)
 _S_PER_FRAME: dict[int, dict[str, float]] = {
-    16: {"round0": 0.102, "epoch": 0.090, "round": 0.267, "kiss": 0.145},
-    32: {"round0": 0.107, "epoch": 0.074, "round": 0.298, "kiss": 0.151},
-    64: {"round0": 0.119, "epoch": 0.074, "round": 0.387, "kiss": 0.185},
+    16: {"round0": 0.102, "epoch": 0.090, "round": 0.232, "kiss": 0.064},
+    32: {"round0": 0.107, "epoch": 0.074, "round": 0.249, "kiss": 0.070},
+    64: {"round0": 0.119, "epoch": 0.074, "round": 0.338, "kiss": 0.104},
 }
 _S_TOWN = 40.0  # building the synthetic town and importing, once a cell
 # Table II, seconds per pair (two scans rendered, and densified, + KISS-Matcher + FPFH/RANSAC)
