@@ -11,11 +11,13 @@ and loops, from the graph's residuals alone::
 This script applies it to a finished round (``round_<r>/marginals.npz`` holds every edge's
 measurement and information and the ground truth), solves the Gaussian graph again, and prints
 the NEES against ground truth before and after (edge NEES per kind, position NEES of the new
-marginals, horizontal / vertical). Nothing in SLAM uses ground truth; this only evaluates.
+marginals, horizontal / vertical) and the accuracy of the re-solved poses (ATE RMSE, mean RPE-300
+over all pairs). Nothing in SLAM uses ground truth; this only evaluates. ``--loops-only``
+estimates the loops' factor alone (the odometry edges keep the run's shared scale).
 
 Run::
 
-    python benchmarks/nees_variance_components.py RUN_DIR/round_2 [--iterations 15]
+    python benchmarks/nees_variance_components.py RUN_DIR/round_2 [--iterations 15] [--loops-only]
 """
 
 from __future__ import annotations
@@ -26,11 +28,10 @@ from types import SimpleNamespace
 
 import gtsam
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spl
 from gtsam.symbol_shorthand import X
 
-from gr_graph.noise_calibration import between_residuals
+from gr_graph.metrics import ate, rpe_translation
+from gr_graph.noise_calibration import between_residuals, factor_redundancies, loop_variance_factor
 from gr_graph.noise_consistency import edge_nees, position_nees, position_nees_split
 from gr_graph.pose_graph import position_covariance_world
 
@@ -61,22 +62,6 @@ def solve(graph: gtsam.NonlinearFactorGraph, poses: np.ndarray) -> np.ndarray:
     return np.stack([result.atPose3(X(i)).matrix() for i in range(len(poses))])
 
 
-def redundancies(graph: gtsam.NonlinearFactorGraph, poses: np.ndarray, row_groups: list[np.ndarray]) -> list[float]:
-    """``len(rows) - tr(N^-1 J_rows^T J_rows)`` of each group of rows, ``J`` the whitened Jacobian
-    at ``poses`` and ``N = J^T J`` (linearised and factorised once)."""
-    ijs = graph.linearize(pose_values(poses)).sparseJacobian_()  # 1-based (row, column, value); last column = rhs
-    r, c, v = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1, ijs[2]
-    n = 6 * len(poses)
-    keep = c < n
-    J = sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(int(r.max()) + 1, n))
-    lu = spl.splu((J.T @ J).tocsc())
-    out = []
-    for rows in row_groups:
-        Jg = J[rows].toarray()
-        out.append(float(len(rows) - np.trace(Jg @ lu.solve(Jg.T.copy()))))
-    return out
-
-
 def chi2_per_edge(poses: np.ndarray, edges: np.ndarray, edge_T: np.ndarray, info: np.ndarray) -> np.ndarray:
     """``r^T Lambda r`` of every edge, ``r`` the pose graph's own residual (:func:`between_residuals`)."""
     res = between_residuals(poses, [SimpleNamespace(source=int(k), target=int(l), T=T)
@@ -85,17 +70,18 @@ def chi2_per_edge(poses: np.ndarray, edges: np.ndarray, edge_T: np.ndarray, info
 
 
 def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
+    """Both groups (odometry, loops) estimated from the residuals, rescaled together until stable."""
     edges, kind, edge_T = z["edges"], z["edge_kind"], z["edge_T"]
     info = np.array(z["edge_information"], np.float64)
     poses = np.array(z["poses"])
     scale = {0: 1.0, 1: 1.0}
     K = len(poses)
-    loop_rows = np.concatenate([np.arange(6 * (e + 1), 6 * (e + 2)) for e in np.flatnonzero(kind == 1)])
+    loop_factors = 1 + np.flatnonzero(kind == 1)  # factor 0 is the prior
     for it in range(iterations):
         graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
         poses = solve(graph, poses)
         total = 6 * len(edges) + 6 - 6 * K
-        r_loop, r_prior = redundancies(graph, poses, [loop_rows, np.arange(6)])
+        r_loop, r_prior = factor_redundancies(graph, pose_values(poses), [loop_factors, [0]])
         r_odo = total - r_loop - r_prior
         chi2 = chi2_per_edge(poses, edges, edge_T, info)
         s2 = {0: chi2[kind == 0].sum() / r_odo, 1: chi2[kind == 1].sum() / r_loop}
@@ -106,11 +92,38 @@ def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: 
             scale[g] *= s2[g]
         if max(abs(s2[0] - 1.0), abs(s2[1] - 1.0)) < 1e-3:
             break
-    graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
+    return _solved(z, info, poses, prior_sigma, {"variance": scale})
+
+
+def loop_variance_only(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
+    """The library's loop variance component (:func:`gr_graph.noise_calibration.loop_variance_factor`)
+    on the stored graph: loops rescaled, odometry held fixed."""
+    kind = z["edge_kind"]
+    edges = [SimpleNamespace(kind="loop" if k == 1 else "odometry", information=H)
+             for k, H in zip(kind, z["edge_information"])]
+    latest = [np.array(z["poses"])]
+
+    def solve_with(informations: list[np.ndarray]) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        graph = gaussian_graph(z["edges"], z["edge_T"], np.array(informations), z["poses"][0], prior_sigma)
+        latest[0] = solve(graph, latest[0])
+        return graph, pose_values(latest[0])
+
+    lv = loop_variance_factor(solve_with, edges, max_iterations=iterations)
+    print(f"  loop variance: sigma_L^2 {[round(v, 4) for v in lv.sigma_sq]}, redundancy {lv.redundancy}, "
+          f"scale {lv.scale:.4g} ({lv.reason or 'estimated'})")
+    info = np.array(z["edge_information"], np.float64)
+    info[kind == 1] *= lv.scale
+    return _solved(z, info, latest[0], prior_sigma, {"variance": {0: 1.0, 1: 1.0 / lv.scale}})
+
+
+def _solved(z: dict[str, np.ndarray], info: np.ndarray, poses: np.ndarray, prior_sigma: float,
+            extra: dict) -> dict:
+    """Solve the graph with ``info`` from ``poses``; poses, marginal covariances, information."""
+    graph = gaussian_graph(z["edges"], z["edge_T"], info, z["poses"][0], prior_sigma)
     poses = solve(graph, poses)
     marginals = gtsam.Marginals(graph, pose_values(poses))
-    cov = np.stack([marginals.marginalCovariance(X(i)) for i in range(K)])
-    return {"poses": poses, "covariance": cov, "information": info, "variance": scale}
+    cov = np.stack([marginals.marginalCovariance(X(i)) for i in range(len(poses))])
+    return {"poses": poses, "covariance": cov, "information": info, **extra}
 
 
 def nees_row(tag: str, z: dict[str, np.ndarray], poses: np.ndarray, cov_world: np.ndarray, info: np.ndarray) -> str:
@@ -118,8 +131,13 @@ def nees_row(tag: str, z: dict[str, np.ndarray], poses: np.ndarray, cov_world: n
     ne = edge_nees(z["edges"], z["edge_T"], info, gt)
     pos = position_nees(poses, cov_world, gt)
     split = position_nees_split(poses, cov_world, gt)
+    if len(poses) > 300:
+        rpe = f"{rpe_translation(poses, gt, delta=300, all_pairs=True).mean:.3f}"
+    else:
+        rpe = "n/a"
     return (f"| {tag} | {ne[(kind == 0) & ok].mean():.3g} | {ne[(kind == 1) & ok].mean():.3g} ({int((kind == 1).sum())}) "
-            f"| {pos.mean():.3g} | {split['horizontal']['mean']:.3g} / {split['vertical']['mean']:.3g} |")
+            f"| {pos.mean():.3g} | {split['horizontal']['mean']:.3g} / {split['vertical']['mean']:.3g} "
+            f"| {ate(poses, gt, align=True).rmse:.3f} | {rpe} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,17 +145,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("round_dir", type=Path)
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--prior-sigma", type=float, default=1e-4, help="graph.prior_sigma of the run")
+    ap.add_argument("--loops-only", action="store_true",
+                    help="estimate the loops' variance factor only; the odometry edges keep the run's scale")
     args = ap.parse_args(argv)
     with np.load(args.round_dir / "marginals.npz") as f:
         z = {k: np.array(f[k]) for k in f.files}
     if not (z["edge_kind"] == 1).any():
         print(f"{args.round_dir}: no loop edges, nothing to estimate")
         return 2
-    res = variance_components(z, args.iterations, args.prior_sigma)
-    print("| graph | odometry NEES | loop NEES (n) | position NEES | horizontal / vertical |")
-    print("|---|---|---|---|---|")
+    estimate = loop_variance_only if args.loops_only else variance_components
+    res = estimate(z, args.iterations, args.prior_sigma)
+    print("| graph | odometry NEES | loop NEES (n) | position NEES | horizontal / vertical | ATE RMSE [m] "
+          "| RPE-300 all pairs [m] |")
+    print("|---|---|---|---|---|---|---|")
     print(nees_row("as run (one shared scale)", z, z["poses"], z["position_cov_world"], z["edge_information"]))
-    print(nees_row(f"two variance components (x{1 / res['variance'][0]:.3g} odometry, "
+    what = "loop variance component" if args.loops_only else "two variance components"
+    print(nees_row(f"{what} (x{1 / res['variance'][0]:.3g} odometry, "
                    f"x{1 / res['variance'][1]:.3g} loops)", z, res["poses"],
                    position_covariance_world(res["poses"], res["covariance"]), res["information"]))
     return 0

@@ -46,7 +46,7 @@ from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimu
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
-from gr_graph.noise_calibration import variance_factor
+from gr_graph.noise_calibration import loop_variance_factor, variance_factor
 from gr_graph.pose_graph import GraphResult, PoseGraph
 from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
@@ -253,6 +253,7 @@ class _FrameLoop:
         self.attempts: list[dict] = []
         self.checked = np.zeros(len(sequence), dtype=bool)
         self.n_flagged = 0
+        self.loop_variance: dict[str, Any] | None = None  # graph.loop_variance: estimated (finish)
         self.n_dropped = 0
         self.deskew_on, self.deskew_reason = deskew_enabled(cfg.odometry.deskew, sequence)
         scan_period = cfg.odometry.deskew_scan_period
@@ -407,6 +408,39 @@ class _FrameLoop:
         self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
         return self.graph.optimize(marginals=False)
 
+    def estimate_loop_variance(self, poses: np.ndarray) -> GraphResult:
+        """Divide every loop edge's information by the loops' variance factor and solve again
+        (``graph.loop_variance: estimated``, :func:`gr_graph.noise_calibration.loop_variance_factor`).
+
+        The factor is estimated on the Gaussian graph (loops without their robust kernel, started
+        from ``poses``), the odometry edges' information held fixed; the robust graph with the
+        scaled loops is then solved from that solution. Recorded in :attr:`loop_variance`.
+        """
+        gaussian_cfg = self.cfg.graph.model_copy(update={"loop_kernel": "none"})
+        latest = [np.asarray(poses)]
+
+        def solve(informations: list[np.ndarray]) -> tuple[Any, Any]:
+            graph = PoseGraph(gaussian_cfg)
+            for T in latest[0]:
+                graph.add_pose(T)
+            for e, H in zip(self.edges, informations):
+                graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
+            latest[0] = graph.optimize(marginals=False).poses
+            return graph.graph, graph.values
+
+        lv = loop_variance_factor(solve, self.edges)
+        self.loop_variance = lv.summary()
+        if lv.reason is not None:
+            log.info("loop variance: not estimated (%s); loop information left as it is", lv.reason)
+            return self.graph.optimize(marginals=False)
+        log.info("loop variance: sigma_L^2 %s over loop redundancy %.1f (%d loops): loop information x %.4g",
+                 ", ".join(f"{v:.4g}" for v in lv.sigma_sq), lv.redundancy, lv.n_loops, lv.scale)
+        for e in self.edges:
+            if e.kind == "loop":
+                e.information = lv.scale * np.asarray(e.information, np.float64)
+        self.graph = self._graph_of(latest[0], self.cfg.graph)
+        return self.graph.optimize(marginals=False)
+
     def _graph_of(self, poses: np.ndarray, graph_cfg: GraphConfig) -> PoseGraph:
         """A new pose graph with ``poses`` as estimate and every edge of the run."""
         graph = PoseGraph(graph_cfg)
@@ -428,6 +462,8 @@ class _FrameLoop:
             res = self.graph.optimize(marginals=False)
             if self.edge_noise is not None and self.edge_noise.calibrate:
                 res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
+            if self.cfg.graph.loop_variance == "estimated":
+                res = replace(self.estimate_loop_variance(res.poses), initial_error=res.initial_error)
         covs, marginals = None, None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):
@@ -451,7 +487,7 @@ class _FrameLoop:
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
                              "loop_max_rmse": self.loop_cfg.max_rmse},
-                  "marginals": marginals},
+                  "marginals": marginals, "loop_variance": self.loop_variance},
         )
 
 

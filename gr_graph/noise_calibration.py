@@ -25,21 +25,38 @@ dominate the sum. They are left out of the sum and of the redundancy, which beco
 Their information is scaled with the rest, so that it stays as weak relative to the others
 as it was (and the least-squares optimum does not move).
 
+Loop edges alone (:func:`loop_variance_factor`, ``graph.loop_variance: estimated``): a second
+variance component, for the loops only, with the odometry edges' information held fixed
+(Förstner's variance component estimation with one group estimated)::
+
+    r_loops    = 6 n_loops - tr(N^-1 N_loops)     redundancy of the loop rows (N = J^T J, whitened
+                                                  Jacobian of the Gaussian graph at its optimum)
+    sigma_L^2  = sum_{loops} chi2_e / r_loops;   Lambda_loop /= sigma_L^2;  solve again;  repeat
+
+A registration Hessian describes the random error of an alignment, not a bias such as a
+miscalibrated beam elevation that tilts every revisit of a place the same way; the loops'
+residuals against the odometry show it. Estimating both groups from residuals instead fails:
+the odometry edges' own residuals are small wherever loops are weak (their drift is not
+observable), so their factor collapses (``benchmarks/nees_variance_components.py``).
+
 Ground truth is not used; :mod:`gr_graph.noise_consistency` checks the result against it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import gtsam
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spl
 
 from gr_graph.odometry import RegistrationEdge
 
-__all__ = ["between_residuals", "VarianceFactor", "variance_factor"]
+__all__ = ["between_residuals", "VarianceFactor", "variance_factor", "LoopVarianceFactor", "loop_variance_factor",
+           "factor_redundancies"]
 
 
 def between_residuals(poses: np.ndarray, edges: Sequence[RegistrationEdge]) -> np.ndarray:
@@ -132,3 +149,106 @@ def _components(n_nodes: int, edges: Sequence[RegistrationEdge]) -> int:
         if a != b:
             parent[a] = b
     return sum(root(i) == i for i in range(n_nodes))
+
+
+def factor_redundancies(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                        factor_groups: Sequence[Sequence[int]]) -> list[float]:
+    """Redundancy ``rows_g - tr(N^-1 J_g^T J_g)`` of each group of factors of a Gaussian ``graph``.
+
+    ``J`` is the whitened Jacobian at ``values`` (rows of factor ``f`` are ``6 f .. 6 f + 5``:
+    every factor of a pose graph is 6-dimensional), ``N = J^T J``, factorised once; ``J_g`` its
+    rows of group ``g``. The redundancies of all factors add up to ``rows - unknowns``.
+    """
+    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, column, value); last column: rhs
+    r, c, v = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1, ijs[2]
+    n = int(values.size()) * 6
+    keep = c < n
+    J = sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(6 * int(graph.size()), n))
+    lu = spl.splu((J.T @ J).tocsc())
+    out = []
+    for group in factor_groups:
+        rows = (6 * np.asarray(group, np.int64)[:, None] + np.arange(6)).ravel()
+        if len(rows) == 0:
+            out.append(0.0)
+            continue
+        Jg = J[rows].toarray()
+        out.append(float(len(rows) - np.trace(Jg @ lu.solve(np.ascontiguousarray(Jg.T)))))
+    return out
+
+
+@dataclass
+class LoopVarianceFactor:
+    """Result of :func:`loop_variance_factor`.
+
+    Attributes
+    ----------
+    scale : float
+        The loops' information was multiplied by this (1: not estimated).
+    sigma_sq : list of float
+        ``sum chi2_loops / r_loops`` of every iteration (the last near 1 when it converged).
+    redundancy : float or None
+        ``r_loops`` at the last iteration.
+    n_loops : int
+    iterations : int
+    converged : bool
+    reason : str or None
+        Why nothing was estimated (no loops, no loop redundancy, zero residuals).
+    """
+
+    scale: float
+    sigma_sq: list[float]
+    redundancy: float | None
+    n_loops: int
+    iterations: int
+    converged: bool
+    reason: str | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready dict (the round summary's ``loop_variance``)."""
+        return {"method": "loop_variance_component", "scale": self.scale, "sigma_sq": self.sigma_sq,
+                "redundancy": self.redundancy, "n_loops": self.n_loops, "iterations": self.iterations,
+                "converged": self.converged, "reason": self.reason}
+
+
+def loop_variance_factor(solve: Callable[[list[np.ndarray]], tuple[gtsam.NonlinearFactorGraph, gtsam.Values]],
+                         edges: Sequence[RegistrationEdge], max_iterations: int = 10,
+                         tol: float = 1e-3) -> LoopVarianceFactor:
+    """The loops' variance factor with the odometry edges' information held fixed (module docstring).
+
+    Parameters
+    ----------
+    solve : callable
+        ``informations -> (graph, values)``: builds the Gaussian pose graph (prior first, then one
+        factor per edge of ``edges`` in order, with the given ``(6, 6)`` informations) and returns
+        it with its optimum (:meth:`gr_graph.frame_loop._FrameLoop.estimate_loop_variance`).
+    edges : sequence of RegistrationEdge
+        Every edge of the graph, with its current information (not modified).
+    max_iterations : int
+        Estimate, rescale and solve again at most this often.
+    tol : float
+        Stop when ``|sigma_L^2 - 1| < tol``.
+
+    Returns
+    -------
+    LoopVarianceFactor
+        ``scale``: the factor for every loop edge's information (the product over iterations).
+    """
+    loops = [i for i, e in enumerate(edges) if e.kind == "loop"]
+    if not loops:
+        return LoopVarianceFactor(1.0, [], None, 0, 0, False, "no loops")
+    info = [np.asarray(e.information, np.float64) for e in edges]
+    is_loop = set(loops)
+    scale, history, r_loop = 1.0, [], None
+    for it in range(max_iterations):
+        graph, values = solve([scale * h if i in is_loop else h for i, h in enumerate(info)])
+        chi2 = sum(2.0 * graph.at(1 + i).error(values) for i in loops)  # factor 0 is the prior
+        r_loop = factor_redundancies(graph, values, [[1 + i for i in loops]])[0]
+        if r_loop < 0.5 or not np.isfinite(chi2) or chi2 <= 0.0:
+            reason = "no loop redundancy" if r_loop < 0.5 else "zero or non-finite loop residuals"
+            return LoopVarianceFactor(scale, history, r_loop, len(loops), it, False, reason)
+        s2 = float(chi2 / r_loop)
+        history.append(s2)
+        scale /= s2
+        if abs(s2 - 1.0) < tol:
+            return LoopVarianceFactor(scale, history, r_loop, len(loops), it + 1, True)
+    return LoopVarianceFactor(scale, history, r_loop, len(loops), max_iterations, False)

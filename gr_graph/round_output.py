@@ -137,6 +137,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "deskew": res.info.get("deskew"),
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
+        "loop_variance": res.info.get("loop_variance"),
     }
 
 

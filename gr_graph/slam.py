@@ -113,8 +113,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="constant-velocity motion compensation of each scan to mid-sweep; auto: on for sequences "
                         f"that are not motion-compensated, off for KITTI odometry folders (default: {d.odometry.deskew})")
     p.add_argument("--kitti-vertical-correction", type=float, default=None, metavar="DEG",
-                   help="KITTI folders: raise every point's elevation by DEG degrees (KISS-ICP: 0.205) "
+                   help="KITTI folders and the synthetic sequence: raise every point's elevation by DEG degrees "
+                        "(KISS-ICP: 0.205) "
                         f"(default: {d.data.kitti_vertical_correction_deg})")
+    p.add_argument("--loop-variance", choices=("fixed", "estimated"), default=None,
+                   help="loop edges' information: as registered, or divided by the loops' variance factor "
+                        f"estimated from the graph's residuals (default: {d.graph.loop_variance})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
@@ -128,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Command-line options as a nested config override (only the options that were given)."""
-    o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}, "odometry": {}}
+    o: dict[str, Any] = {"data": {}, "output": {}, "training": {}, "loops": {}, "odometry": {}, "graph": {}}
     if args.seq is not None:
         o["data"]["seq"] = args.seq
     for key in ("path", "dataset", "topic", "timestamps", "poses"):
@@ -178,6 +182,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["odometry"]["deskew"] = args.deskew
     if args.kitti_vertical_correction is not None:
         o["data"]["kitti_vertical_correction_deg"] = args.kitti_vertical_correction
+    if args.loop_variance is not None:
+        o["graph"]["loop_variance"] = args.loop_variance
     if args.no_resume:
         o["output"]["resume"] = False
     if args.no_memory:

@@ -11,7 +11,7 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from gr_graph.config import GraphConfig, load_config
-from gr_graph.noise_calibration import between_residuals, variance_factor
+from gr_graph.noise_calibration import between_residuals, factor_redundancies, loop_variance_factor, variance_factor
 from gr_graph.noise_consistency import (
     axis_stats,
     edge_nees,
@@ -27,24 +27,27 @@ def _exp(xi: np.ndarray) -> np.ndarray:
     return gtsam.Pose3.Expmap(xi).matrix()
 
 
-def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, true_factor: float = 25.0):
+def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, true_factor: float = 25.0,
+                     loop_factor: float | None = None):
     """A closed drive (circle, 2 laps) with odometry and loop measurements whose real error
-    covariance is ``true_factor`` x the inverse of the information they carry."""
+    covariance is ``true_factor`` (loops: ``loop_factor``, default the same) x the inverse of
+    the information they carry."""
     t = np.linspace(0, 4 * np.pi, K)
     gt = np.stack([_exp(np.array([0, 0, ti, 0, 0, 0])) for ti in t])
     gt[:, :3, 3] = np.column_stack([20 * np.cos(t), 20 * np.sin(t), 0.1 * t])
     A = rng.normal(size=(6, 6))
     info = A @ A.T + np.diag([4e4, 4e4, 4e4, 400, 400, 400])  # the claimed information
     cov_true = true_factor * np.linalg.inv(info)
-    Lc = np.linalg.cholesky(cov_true)
+    chol = {"odometry": np.linalg.cholesky(cov_true),
+            "loop": np.linalg.cholesky((true_factor if loop_factor is None else loop_factor) * np.linalg.inv(info))}
     pairs = [(k + 1, k) for k in range(K - 1)]
     half = K // 2
     loops = rng.choice(np.arange(half, K), n_loops, replace=False)
     pairs += [(int(i), int(i) - half) for i in loops]  # one lap apart: the same place
     edges = []
     for k, l in pairs:
-        T = np.linalg.inv(gt[l]) @ gt[k] @ _exp(Lc @ rng.normal(size=6))
         kind = "odometry" if k == l + 1 else "loop"
+        T = np.linalg.inv(gt[l]) @ gt[k] @ _exp(chol[kind] @ rng.normal(size=6))
         edges.append(RegistrationEdge(k, l, T, info, info.copy(), 1.0, 0.0, 1, True, "", kind))
     return gt, edges, cov_true
 
@@ -110,6 +113,88 @@ def test_no_loops_no_calibration():
     vf = variance_factor(res.poses, edges)
     assert vf.sigma0_sq is None and vf.scale == 1.0 and vf.redundancy == 0
     assert vf.summary()["method"] == "graph_residuals"
+
+
+def test_factor_redundancies_closed_form():
+    """Pose 0 pinned by the prior, pose 1 measured twice with the same relative pose and
+    informations a I and b I: edge 1's redundancy is 6 b / (a + b), edge 2's 6 a / (a + b);
+    all factors together: rows - unknowns = 18 - 12."""
+    a, b = 100.0, 300.0
+    g = PoseGraph(GraphConfig(loop_kernel="none", marginals=False))
+    T01 = _exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, -0.5]))
+    g.add_pose(np.eye(4))
+    g.add_pose(T01)
+    g.add_edge(1, 0, T01, a * np.eye(6))
+    g.add_edge(1, 0, T01, b * np.eye(6), loop=True)
+    g.optimize(marginals=False)
+    r_prior, r1, r2 = factor_redundancies(g.graph, g.values, [[0], [1], [2]])
+    assert r1 == pytest.approx(6 * b / (a + b), rel=1e-5) and r2 == pytest.approx(6 * a / (a + b), rel=1e-5)
+    assert r_prior + r1 + r2 == pytest.approx(6.0, rel=1e-6)
+    assert factor_redundancies(g.graph, g.values, [[1, 2]])[0] == pytest.approx(r1 + r2, rel=1e-9)
+
+
+def _loop_solver(gt: np.ndarray, edges: list[RegistrationEdge]):
+    def solve(informations):
+        g = PoseGraph(GraphConfig(loop_kernel="none", marginals=False))
+        for T in gt:
+            g.add_pose(T @ _exp(np.full(6, 1e-3)))
+        for e, H in zip(edges, informations):
+            g.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
+        g.optimize(marginals=False)
+        return g.graph, g.values
+    return solve
+
+
+@pytest.mark.parametrize("loop_factor", [40.0, 1.0])
+def test_loop_variance_factor_finds_overconfident_loops_with_odometry_fixed(loop_factor):
+    """Odometry consistent with its information, loops' real errors ``loop_factor`` x what their
+    information claims: the loops' factor is found from the residuals alone (30 loops,
+    redundancy ~170: +-11 % at one sigma), consistent loops keep ~1; after scaling, the loops'
+    NEES against ground truth is ~6, and the odometry edges are not touched."""
+    rng = np.random.default_rng(3)
+    gt, edges, _ = _simulated_graph(rng, true_factor=1.0, loop_factor=loop_factor)
+    odometry_info = [e.information.copy() for e in edges if e.kind == "odometry"]
+    lv = loop_variance_factor(_loop_solver(gt, edges), edges)
+    assert lv.converged and lv.reason is None and lv.n_loops == 30 and abs(lv.sigma_sq[-1] - 1.0) < 1e-3
+    assert loop_factor / 1.4 < 1.0 / lv.scale < loop_factor * 1.4
+    assert 0 < lv.redundancy <= 180 and (lv.redundancy > 120 or loop_factor == 1.0)  # weak loops: ~6 each
+    for e in edges:
+        if e.kind == "loop":
+            e.information = lv.scale * e.information
+    kinds = np.array([e.kind for e in edges])
+    nees = edge_nees(np.array([(e.source, e.target) for e in edges]), np.array([e.T for e in edges]),
+                     np.array([e.information for e in edges]), gt)
+    assert 3.0 < nees[kinds == "loop"].mean() < 12.0 and 4.0 < nees[kinds == "odometry"].mean() < 9.0
+    assert all(np.array_equal(e.information, H) for e, H in zip([e for e in edges if e.kind == "odometry"],
+                                                                 odometry_info))
+    assert lv.summary()["method"] == "loop_variance_component"
+
+
+def test_loop_variance_needs_loops_and_the_frame_loop_applies_it():
+    rng = np.random.default_rng(4)
+    gt, edges, _ = _simulated_graph(rng, K=15, n_loops=0)
+    lv = loop_variance_factor(_loop_solver(gt, edges), edges)
+    assert lv.reason == "no loops" and lv.scale == 1.0 and not lv.converged
+    # the frame loop's step (graph.loop_variance: estimated): loops scaled, odometry kept, the
+    # robust graph solved again and the summary kept for round.json
+    from gr_graph.frame_loop import _FrameLoop
+
+    gt, edges, _ = _simulated_graph(rng, K=60, n_loops=12, true_factor=1.0, loop_factor=30.0)
+    before = [e.information.copy() for e in edges]
+    loop = _FrameLoop.__new__(_FrameLoop)
+    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated"}})
+    loop.edges = edges
+    loop.graph = PoseGraph(loop.cfg.graph)
+    res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
+    scale = loop.loop_variance["scale"]
+    assert loop.loop_variance["converged"] and 1 / 60 < scale < 1 / 15
+    for e, H in zip(edges, before):
+        np.testing.assert_allclose(e.information, scale * H if e.kind == "loop" else H, rtol=1e-12)
+    assert loop.graph.n_loops == 12 and len(res.poses) == 60
+    # the returned poses are the optimum of the (robust) graph with the scaled loops
+    again = loop.graph.optimize(marginals=False)
+    assert again.final_error == pytest.approx(res.final_error, rel=1e-6)
+    np.testing.assert_allclose(again.poses, res.poses, atol=1e-6)
 
 
 def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
