@@ -1,0 +1,91 @@
+"""Loop edges with a fixed weight against the loops' estimated variance component (not a test).
+
+Compares finished round-0 runs made with ``graph.loop_variance: fixed`` (the default) and
+``estimated`` on the same data (``--loop-variance estimated``; :mod:`gr_graph.noise_calibration`):
+NEES against ground truth per edge kind and of the marginal positions (horizontal / vertical),
+the trajectory's accuracy (ATE, RPE-300 over all pairs, KITTI %), and the factor the loops got.
+The runs themselves use no ground truth; this only evaluates them.
+
+Run::
+
+    python -m gr_graph.slam --frames 0:1500 --channels 16 --synthetic-preset kitti --seed S --out FIXED
+    python -m gr_graph.slam --frames 0:1500 --channels 16 --synthetic-preset kitti --seed S --out EST \\
+        --loop-variance estimated
+    python benchmarks/loop_variance_study.py LABEL FIXED EST [LABEL FIXED EST ...] [--write]
+
+``--write`` writes ``benchmarks/results/loop_variance.md`` and ``loop_variance.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gr_graph.atomic import atomic_write_json, atomic_write_text
+from gr_graph.noise_consistency import round_noise_consistency
+from gr_graph.provenance import machine_line
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def round_figures(run: Path, r: int = 0) -> dict:
+    """NEES, accuracy and the loop factor of round ``r`` of ``run``."""
+    rd = run / f"round_{r}"
+    nc = round_noise_consistency(rd)
+    summary = json.loads((rd / "round.json").read_text())
+    slam = summary.get("slam") or json.loads((run / "metrics.json").read_text())["rounds"][str(r)]["slam"]
+    lv = summary.get("loop_variance") or {}
+    return {"odometry_nees": nc["edges"]["odometry"]["mean"], "loop_nees": nc["edges"]["loop"]["mean"],
+            "n_loops": nc["edges"]["loop"]["n"], "position_nees": nc["position"]["mean"],
+            "horizontal_nees": nc["position"]["horizontal"]["mean"], "vertical_nees": nc["position"]["vertical"]["mean"],
+            "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
+            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": lv.get("scale"),
+            "loop_redundancy": lv.get("redundancy")}
+
+
+def _fmt(v: float | None) -> str:
+    """Three significant digits (NEES, factors)."""
+    return "n/a" if v is None or not np.isfinite(v) else f"{v:.3g}"
+
+
+def table(rows: list[tuple[str, dict, dict]]) -> str:
+    head = ("| run | loops | odometry NEES | loop NEES | position NEES (horizontal / vertical) | ATE RMSE [m] "
+            "| RPE-300 all pairs [m] | KITTI [%] | loop information x |")
+    lines = [head, "|" + "---|" * 9]
+    for label, fixed, est in rows:
+        for what, f in (("fixed", fixed), ("estimated", est)):
+            scale = "1" if what == "fixed" else _fmt(f["loop_scale"])
+            lines.append(f"| {label}, {what} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
+                         f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
+                         f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
+                         f"| {scale} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("triples", nargs="+", help="LABEL FIXED_RUN ESTIMATED_RUN, repeated")
+    ap.add_argument("--write", action="store_true", help="write benchmarks/results/loop_variance.md / .json")
+    args = ap.parse_args(argv)
+    if len(args.triples) % 3:
+        ap.error("give LABEL FIXED_RUN ESTIMATED_RUN triples")
+    rows = []
+    for i in range(0, len(args.triples), 3):
+        label, fixed, est = args.triples[i], Path(args.triples[i + 1]), Path(args.triples[i + 2])
+        rows.append((label, round_figures(fixed), round_figures(est)))
+    text = table(rows)
+    print(text)
+    if args.write:
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(RESULTS / "loop_variance.json", {"machine": machine_line(), "runs": [
+            {"label": label, "fixed": fixed, "estimated": est} for label, fixed, est in rows]})
+        atomic_write_text(RESULTS / "loop_variance.md", "# Loop edges: fixed weight against the estimated loop "
+                          "variance component (round 0)\n\n" + text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
