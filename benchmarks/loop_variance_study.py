@@ -13,6 +13,9 @@ Run::
         --loop-variance estimated
     python benchmarks/loop_variance_study.py LABEL FIXED EST [LABEL FIXED EST ...] [--write]
 
+``FIXED`` may also be a published cell record (``benchmarks/results/cells/paper/table1/KEY.json``)
+whose round 0 was made with the same data and the default.
+
 ``--write`` writes ``benchmarks/results/loop_variance.md`` and ``loop_variance.json``.
 """
 
@@ -31,8 +34,22 @@ from gr_graph.provenance import machine_line
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
+def record_figures(record: Path, r: int = 0) -> dict:
+    """The same figures from a published cell record (``benchmarks/results/cells/...json``: no
+    horizontal / vertical split, no loop factor), for runs whose folders are gone."""
+    rnd = json.loads(record.read_text())["rounds"][str(r)]
+    nees, slam = rnd["nees"], rnd["slam"]
+    return {"odometry_nees": nees["nees_odometry_mean"], "loop_nees": nees["nees_loop_mean"], "n_loops": rnd["n_loops"],
+            "position_nees": nees["nees_position_mean"], "horizontal_nees": None, "vertical_nees": None,
+            "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
+            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": None, "loop_redundancy": None}
+
+
 def round_figures(run: Path, r: int = 0) -> dict:
-    """NEES, accuracy and the loop factor of round ``r`` of ``run``."""
+    """NEES, accuracy and the loop factor of round ``r`` of ``run`` (a run folder, or a cell
+    record: :func:`record_figures`)."""
+    if run.suffix == ".json":
+        return record_figures(run, r)
     rd = run / f"round_{r}"
     nc = round_noise_consistency(rd)
     summary = json.loads((rd / "round.json").read_text())

@@ -82,7 +82,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     Round 0 does not depend on the ``training`` section or the device; no round depends on
     the number of rounds, the convergence threshold or the acceptance test (so ``--rounds 2``
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
-    nor on output options.
+    nor on output options. ``graph.loop_variance`` counts only when it is not the default
+    (rounds finished before the option existed stay finished).
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
@@ -97,6 +98,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
 
             d["weights_sha256"] = weights_sha256(tc.weights)
             d["fine_tune"] = tc.fine_tune
+    if cfg.graph.loop_variance == "fixed":  # the default, as before the option existed: old runs stay finished
+        d["graph"].pop("loop_variance")
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

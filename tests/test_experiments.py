@@ -556,6 +556,10 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     c = load_config(None, {"training": {"rounds": 2, "densify": False}})
     assert round_fingerprint(a, 1) == round_fingerprint(b, 1) != round_fingerprint(c, 1)
     assert round_fingerprint(a, 0) == round_fingerprint(c, 0)
+    # graph.loop_variance: the default leaves the fingerprint as it was before the option existed
+    # (the key is not hashed), the estimated variance changes every round's result
+    e = load_config(None, {"training": {"rounds": 2}, "graph": {"loop_variance": "estimated"}})
+    assert round_fingerprint(e, 0) != round_fingerprint(a, 0) and round_fingerprint(e, 1) != round_fingerprint(a, 1)
 
 
 # ----------------------------------------------------------------------------- end to end
