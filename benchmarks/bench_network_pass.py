@@ -92,8 +92,12 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     lines = ["| checkout | CPU ms per frame, mean ± std (n) |", "|---|---|"]
+    def commit(tree: Path) -> str:
+        res = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short=7", "HEAD"], capture_output=True, text=True)
+        return res.stdout.strip() or "?"
+
     for name, vals in out.items():
-        lines.append(f"| {name} ({trees[name]}) | {np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0:.1f}"
+        lines.append(f"| {name} (commit {commit(trees[name])}) | {np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0:.1f}"
                      f" ({len(vals)}) |")
     if args.compare:
         lines.append(f"\nratio this / other: {np.mean(out['this']) / np.mean(out['other']):.3f}")
