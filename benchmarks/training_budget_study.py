@@ -122,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(RESULTS / "training_budget.md", f"# Table I, 16 channels, frames 0:1500: {args.epochs} "
                           "training epoch(s) per round against the published 3\n\n"
                           f"Command: `python benchmarks/training_budget_study.py run --seed S --epochs {args.epochs} "
-                          f"--root ROOT` for S in 0 1 2, then `report`. Machine: {machine_line()}.\n\n"
+                          f"--root ROOT` for S in {' '.join(str(r['seed']) for r in rows)}, then `report`. "
+                          f"Machine: {machine_line()}.\n\n"
                           + text + "\n")
     return 0
 

@@ -254,6 +254,8 @@ def source_intensity(raw_points: np.ndarray, raw_intensity: np.ndarray | None, p
     """
     if raw_intensity is None or len(raw_points) == 0 or len(points) == 0:
         return np.zeros(len(points), np.float32)
+    if not np.isfinite(points).all():
+        raise ValueError("source_intensity: points must be finite (the preprocessed scan's)")
     import small_gicp
 
     finite = np.isfinite(raw_points).all(axis=1)

@@ -259,3 +259,6 @@ def test_source_intensity_is_the_nearest_raw_points() -> None:
     np.testing.assert_array_equal(source_intensity(raw, inten, q), inten[np.argmin(D, 1)])
     assert not source_intensity(np.full((4, 3), np.nan), inten[:4], q).any()
     assert source_intensity(raw, None, q).shape == (400,)
+    q[3] = np.nan  # a non-finite query has no nearest point: an error, not some point's intensity
+    with pytest.raises(ValueError, match="finite"):
+        source_intensity(raw, inten, q)

@@ -560,6 +560,11 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # (the key is not hashed), the estimated variance changes every round's result
     e = load_config(None, {"training": {"rounds": 2}, "graph": {"loop_variance": "estimated"}})
     assert round_fingerprint(e, 0) != round_fingerprint(a, 0) and round_fingerprint(e, 1) != round_fingerprint(a, 1)
+    import hashlib
+
+    d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
+                                           "device": True, "graph": {"loop_variance"}})
+    assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 # ----------------------------------------------------------------------------- end to end

@@ -153,8 +153,18 @@ def test_loop_variance_factor_finds_overconfident_loops_with_odometry_fixed(loop
     NEES against ground truth is ~6, and the odometry edges are not touched."""
     rng = np.random.default_rng(3)
     gt, edges, _ = _simulated_graph(rng, true_factor=1.0, loop_factor=loop_factor)
+    edges = [edges[i] for i in rng.permutation(len(edges))]  # loops interleaved with odometry edges
     odometry_info = [e.information.copy() for e in edges if e.kind == "odometry"]
+    # the first iteration's sigma_L^2, independently: loop chi2 from the residuals at the optimum of
+    # the unscaled graph over the loops' redundancy, their factors picked by edge kind
+    graph, values = _loop_solver(gt, edges)([e.information for e in edges])
+    poses = np.stack([values.atPose3(X(i)).matrix() for i in range(len(gt))])
+    loop_rows = [i for i, e in enumerate(edges) if e.kind == "loop"]
+    r = between_residuals(poses, [edges[i] for i in loop_rows])
+    chi2 = sum(float(ri @ edges[i].information @ ri) for ri, i in zip(r, loop_rows))
+    first = chi2 / factor_redundancies(graph, values, [[1 + i for i in loop_rows]])[0]
     lv = loop_variance_factor(_loop_solver(gt, edges), edges)
+    assert lv.sigma_sq[0] == pytest.approx(first, rel=1e-6)
     assert lv.converged and lv.reason is None and lv.n_loops == 30 and abs(lv.sigma_sq[-1] - 1.0) < 1e-3
     assert loop_factor / 1.4 < 1.0 / lv.scale < loop_factor * 1.4
     assert 0 < lv.redundancy <= 180 and (lv.redundancy > 120 or loop_factor == 1.0)  # weak loops: ~6 each

@@ -53,7 +53,8 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # cache). The learning-round and baseline figures are those measurements less what the cache
 # saved per frame on the 16-channel rerun (0.049 s a learning-round frame, 0.081 s a baseline
 # frame; the same 64 beams are rendered at every channel count): measured with the cache only for
-# 16 channels' round 2 and baseline. Training cost hardly depends on the channel
+# 16 channels' round 2 and baseline. The 16-channel figure is the mean of rounds 1 and 2 before the
+# cache less that saving (0.281 - 0.049 s; the rerun's round 2 alone: 0.247 s). Training cost hardly depends on the channel
 # count (the network sees a fixed number of points a scan); rendering dominates round 0. (The
 # 16-channel window cells 16ch-s0..s2 took 50-54 min on 2026-12-02, at earlier commits and perhaps
 # beside other work, against 34 min by the figures before the cache: take the estimates as a
