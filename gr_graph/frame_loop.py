@@ -408,23 +408,20 @@ class _FrameLoop:
         self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
         return self.graph.optimize(marginals=False)
 
-    def estimate_loop_variance(self, poses: np.ndarray) -> GraphResult:
+    def estimate_loop_variance(self, poses: np.ndarray) -> GraphResult | None:
         """Divide every loop edge's information by the loops' variance factor and solve again
         (``graph.loop_variance: estimated``, :func:`gr_graph.noise_calibration.loop_variance_factor`).
 
         The factor is estimated on the Gaussian graph (loops without their robust kernel, started
         from ``poses``), the odometry edges' information held fixed; the robust graph with the
         scaled loops is then solved from that solution. Recorded in :attr:`loop_variance`.
+        Returns None when nothing was estimated (the graph and its solution stay as they are).
         """
         gaussian_cfg = self.cfg.graph.model_copy(update={"loop_kernel": "none"})
         latest = [np.asarray(poses)]
 
         def solve(informations: list[np.ndarray]) -> tuple[Any, Any]:
-            graph = PoseGraph(gaussian_cfg)
-            for T in latest[0]:
-                graph.add_pose(T)
-            for e, H in zip(self.edges, informations):
-                graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
+            graph = self._graph_of(latest[0], gaussian_cfg, informations)
             latest[0] = graph.optimize(marginals=False).poses
             return graph.graph, graph.values
 
@@ -432,7 +429,7 @@ class _FrameLoop:
         self.loop_variance = lv.summary()
         if lv.reason is not None:
             log.info("loop variance: not estimated (%s); loop information left as it is", lv.reason)
-            return self.graph.optimize(marginals=False)
+            return None
         log.info("loop variance: sigma_L^2 %s over loop redundancy %.1f (%d loops): loop information x %.4g",
                  ", ".join(f"{v:.4g}" for v in lv.sigma_sq), lv.redundancy, lv.n_loops, lv.scale)
         for e in self.edges:
@@ -441,13 +438,16 @@ class _FrameLoop:
         self.graph = self._graph_of(latest[0], self.cfg.graph)
         return self.graph.optimize(marginals=False)
 
-    def _graph_of(self, poses: np.ndarray, graph_cfg: GraphConfig) -> PoseGraph:
-        """A new pose graph with ``poses`` as estimate and every edge of the run."""
+    def _graph_of(self, poses: np.ndarray, graph_cfg: GraphConfig,
+                  informations: list[np.ndarray] | None = None) -> PoseGraph:
+        """A new pose graph with ``poses`` as estimate and every edge of the run (with
+        ``informations`` in edge order instead of the edges' own, if given)."""
         graph = PoseGraph(graph_cfg)
         for T in poses:
             graph.add_pose(T)
-        for e in self.edges:
-            graph.add_edge(e.source, e.target, e.T, e.information, loop=e.kind == "loop")
+        infos = informations if informations is not None else [e.information for e in self.edges]
+        for e, H in zip(self.edges, infos, strict=True):
+            graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
         return graph
 
     def finish(self) -> SlamResult:
@@ -463,7 +463,9 @@ class _FrameLoop:
             if self.edge_noise is not None and self.edge_noise.calibrate:
                 res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
             if self.cfg.graph.loop_variance == "estimated":
-                res = replace(self.estimate_loop_variance(res.poses), initial_error=res.initial_error)
+                scaled = self.estimate_loop_variance(res.poses)
+                if scaled is not None:
+                    res = replace(scaled, initial_error=res.initial_error)
         covs, marginals = None, None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):

@@ -205,6 +205,14 @@ def test_loop_variance_needs_loops_and_the_frame_loop_applies_it():
     again = loop.graph.optimize(marginals=False)
     assert again.final_error == pytest.approx(res.final_error, rel=1e-6)
     np.testing.assert_allclose(again.poses, res.poses, atol=1e-6)
+    # without loops nothing is estimated: no new solution, the graph and the edges untouched
+    gt, edges, _ = _simulated_graph(rng, K=15, n_loops=0)
+    before = [e.information.copy() for e in edges]
+    loop.edges, graph = edges, PoseGraph(loop.cfg.graph)
+    loop.graph = graph
+    assert loop.estimate_loop_variance(gt) is None and loop.graph is graph
+    assert loop.loop_variance["reason"] == "no loops" and loop.loop_variance["scale"] == 1.0
+    assert all(np.array_equal(e.information, H) for e, H in zip(edges, before))
 
 
 def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
