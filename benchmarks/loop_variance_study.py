@@ -17,6 +17,12 @@ Run::
 whose round 0 was made with the same data and the default.
 
 ``--write`` writes ``benchmarks/results/loop_variance.md`` and ``loop_variance.json``.
+
+Any two round-0 runs of the same data compare the same way, e.g. without and with the
+vertical-angle correction (both ``--loop-variance estimated``)::
+
+    python benchmarks/loop_variance_study.py LABEL RUN_A RUN_B ... --labels "no correction" "0.22 deg" \
+        --name vertical_correction_nees --title "..." --write
 """
 
 from __future__ import annotations
@@ -68,24 +74,37 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None or not np.isfinite(v) else f"{v:.3g}"
 
 
-def table(rows: list[tuple[str, dict, dict]]) -> str:
+def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed", "estimated")) -> str:
     head = ("| run | loops | odometry NEES | loop NEES | position NEES (horizontal / vertical) | ATE RMSE [m] "
             "| RPE-300 all pairs [m] | KITTI [%] | loop information x |")
     lines = [head, "|" + "---|" * 9]
     for label, fixed, est in rows:
-        for what, f in (("fixed", fixed), ("estimated", est)):
-            scale = "1" if what == "fixed" else _fmt(f["loop_scale"])
+        for what, f in zip(labels, (fixed, est)):
+            scale = "1" if f["loop_scale"] is None else _fmt(f["loop_scale"])  # no factor: the loops as registered
             lines.append(f"| {label}, {what} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
                          f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
                          f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
                          f"| {scale} |")
+    if len(rows) >= 2:  # mean ± sample std over the triples, per run kind
+        keys = ("odometry_nees", "loop_nees", "position_nees", "ate_rmse", "rpe300_all_pairs_mean",
+                "kitti_t_err_percent")
+        for i, what in enumerate(labels):
+            v = {k: np.array([r[1 + i][k] for r in rows], float) for k in keys}
+            ms = {k: f"{x.mean():.3g} ± {x.std(ddof=1):.2g}" for k, x in v.items()}
+            lines.append(f"| mean ± std, {what} | | {ms['odometry_nees']} | {ms['loop_nees']} | {ms['position_nees']} "
+                         f"| {ms['ate_rmse']} | {ms['rpe300_all_pairs_mean']} | {ms['kitti_t_err_percent']} | |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("triples", nargs="+", help="LABEL FIXED_RUN ESTIMATED_RUN, repeated")
-    ap.add_argument("--write", action="store_true", help="write benchmarks/results/loop_variance.md / .json")
+    ap.add_argument("--write", action="store_true", help="write benchmarks/results/NAME.md / .json")
+    ap.add_argument("--labels", nargs=2, default=["fixed", "estimated"], metavar=("A", "B"),
+                    help="names of the two runs of a triple (default: fixed estimated)")
+    ap.add_argument("--name", default="loop_variance", help="results file name (default: loop_variance)")
+    ap.add_argument("--title", default="Loop edges: fixed weight against the estimated loop variance component "
+                    "(round 0)", help="the results file's heading")
     args = ap.parse_args(argv)
     if len(args.triples) % 3:
         ap.error("give LABEL FIXED_RUN ESTIMATED_RUN triples")
@@ -93,14 +112,19 @@ def main(argv: list[str] | None = None) -> int:
     for i in range(0, len(args.triples), 3):
         label, fixed, est = args.triples[i], Path(args.triples[i + 1]), Path(args.triples[i + 2])
         rows.append((label, round_figures(fixed), round_figures(est)))
-    text = table(rows)
+    a, b = args.labels
+    text = table(rows, (a, b))
     print(text)
     if args.write:
         RESULTS.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(RESULTS / "loop_variance.json", {"machine": machine_line(), "runs": [
-            {"label": label, "fixed": fixed, "estimated": est} for label, fixed, est in rows]})
-        atomic_write_text(RESULTS / "loop_variance.md", "# Loop edges: fixed weight against the estimated loop "
-                          "variance component (round 0)\n\n" + text + "\n")
+        atomic_write_json(RESULTS / f"{args.name}.json", {"machine": machine_line(), "labels": [a, b], "runs": [
+            {"label": label, a: fixed, b: est} for label, fixed, est in rows]})
+        import shlex
+        import sys
+
+        command = "python benchmarks/loop_variance_study.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        atomic_write_text(RESULTS / f"{args.name}.md", f"# {args.title}\n\nCommand: `{command}` (each run's "
+                          f"options in its `config.yaml`). Machine: {machine_line()}.\n\n" + text + "\n")
     return 0
 
 

@@ -229,6 +229,10 @@ class TrainingConfig(_Section):
     tau_ani: float = Field(0.9, ge=0.0, lt=1.0, description="anisotropy filter: keep points with 1 - l_min/l_max > tau_ani")
     samples_per_point: int = Field(4, ge=1, description="M: samples ~ N(s, C) drawn per kept point")
     keep_original: bool = Field(False, description="also keep the filtered points themselves in S+ (paper: samples only)")
+    keep_dropped: bool = Field(
+        False, description="also keep, unchanged, the points the anisotropy filter drops (paper: dropped); with "
+        "keep_original the scan keeps every point and gains the samples"
+    )
     min_kept_points: int = Field(
         200, ge=1, description="fewer points pass the filter: the frame falls back to its unfiltered points (logged)"
     )

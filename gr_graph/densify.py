@@ -18,7 +18,10 @@ cached. Same ``len``, ``timestamps``, ``gt_poses`` and ``T_cam_velo`` as the inp
    so a frame is the same whenever, and in whatever order, it is read.
 
 **The kept points themselves are not included** by default (the paper's S+ holds only the
-samples); ``training.keep_original: true`` adds them. Intensity: every output point inherits
+samples); ``training.keep_original: true`` adds them. **The points the filter drops are
+dropped** by default too (the paper's Algorithm 2); ``training.keep_dropped: true`` keeps them
+unchanged, so that with both options the scan keeps every point and gains the samples
+(densification that adds, never removes, structure). Intensity: every output point inherits
 the intensity of its source point (the raw point nearest to the downsampled point); ``ring``
 is None.
 
@@ -101,20 +104,41 @@ def _problem_and_eigenvalues(C: np.ndarray) -> tuple[str | None, np.ndarray | No
     return None, w
 
 
+# codes of surface_orientation
+NO_NORMAL, HORIZONTAL, VERTICAL, OBLIQUE = 0, 1, 2, 3
+
+
+def surface_orientation(C: np.ndarray, max_tilt_deg: float = 30.0) -> np.ndarray:
+    """``(N,)`` int8 code per covariance, from its minor axis (the surface normal) in the sensor frame.
+
+    :data:`HORIZONTAL`: the normal within ``max_tilt_deg`` of the z axis (the ground, for a
+    level-mounted sensor); :data:`VERTICAL`: within ``max_tilt_deg`` of the x-y plane (walls,
+    fronts, poles' sides); :data:`OBLIQUE`: between; :data:`NO_NORMAL`: no defined normal (the
+    smallest eigenvalue not under half the middle one: edges, corners, clutter).
+    """
+    C = np.asarray(C, np.float64)
+    out = np.full(len(C), NO_NORMAL, np.int8)
+    if len(C) == 0:
+        return out
+    w, V = np.linalg.eigh(0.5 * (C + C.transpose(0, 2, 1)))
+    nz = np.abs(V[:, 2, 0])
+    has_normal = w[:, 0] < 0.5 * w[:, 1]
+    out[has_normal] = OBLIQUE
+    out[has_normal & (nz > np.cos(np.radians(max_tilt_deg)))] = HORIZONTAL
+    out[has_normal & (nz < np.sin(np.radians(max_tilt_deg)))] = VERTICAL
+    return out
+
+
 def horizontal_surfaces(C: np.ndarray, max_tilt_deg: float = 30.0) -> np.ndarray:
     """``(N,)`` bool: covariances whose minor axis (the surface normal) is within ``max_tilt_deg``
     of the sensor's z axis, i.e. horizontal surfaces (the ground, for a level-mounted sensor).
-    Only covariances with a defined normal count (smallest eigenvalue under half the middle one).
+    Only covariances with a defined normal count (:func:`surface_orientation`).
 
     A diagnostic of what the anisotropy filter keeps (:meth:`DensifiedSequence.stats`):
     ground points move with the sensor's ring pattern and constrain neither forward motion nor
     heading, so a densified scan made mostly of them registers poorly along the direction of travel.
     """
-    C = np.asarray(C, np.float64)
-    if len(C) == 0:
-        return np.zeros(0, bool)
-    w, V = np.linalg.eigh(0.5 * (C + C.transpose(0, 2, 1)))
-    return (np.abs(V[:, 2, 0]) > np.cos(np.radians(max_tilt_deg))) & (w[:, 0] < 0.5 * w[:, 1])
+    return surface_orientation(C, max_tilt_deg) == HORIZONTAL
 
 
 def covariances_valid(C: np.ndarray) -> bool:
@@ -153,7 +177,8 @@ class DensifiedPoints:
     ----------
     points : (M, 3) float64
         The output: the samples (grouped by source point, ``samples_per_point`` consecutive
-        rows each, after the kept points themselves with ``keep_original``); with the
+        rows each, after the kept points themselves with ``keep_original``; then, with
+        ``keep_dropped``, the points the filter dropped, unchanged); with the
         ``"few_kept"`` fallback the network's input unchanged; with a covariance fallback
         empty.
     source : (M,) int64
@@ -203,7 +228,7 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     predictor : callable
         ``points (N, 3) -> C (N, 3, 3)`` (see :func:`_make_predictor`).
     cfg : TrainingConfig
-        ``tau_ani``, ``samples_per_point``, ``keep_original``, ``min_kept_points``.
+        ``tau_ani``, ``samples_per_point``, ``keep_original``, ``keep_dropped``, ``min_kept_points``.
     seed : int or sequence of int
         Seed of the sampling (the pipeline: ``[training.seed, frame index]``).
     index : int
@@ -243,6 +268,10 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     source = np.repeat(kept_rows, cfg.samples_per_point)
     if cfg.keep_original:
         source = np.concatenate([kept_rows, source])
+    if cfg.keep_dropped:
+        dropped_rows = np.flatnonzero(~kept)
+        dense = np.concatenate([dense, s[dropped_rows]])
+        source = np.concatenate([source, dropped_rows])
     return DensifiedPoints(dense, source.astype(np.int64), s, C, kept, None)
 
 
@@ -425,7 +454,7 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
         The trained f_theta (``model.pt`` from ``training.train.train_from_memory``), or a
         callable ``points (N, 3) -> (N, 3, 3)``.
     training_cfg : TrainingConfig
-        ``tau_ani``, ``samples_per_point``, ``seed``, ``keep_original``, ``min_kept_points``.
+        ``tau_ani``, ``samples_per_point``, ``seed``, ``keep_original``, ``keep_dropped``, ``min_kept_points``.
     device : str
         Device of the network.
     preprocess : PreprocessConfig
@@ -441,7 +470,8 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
 
 def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity: np.ndarray | None = None,
                   tau_ani: float | None = None, samples_per_point: int | None = None,
-                  keep_original: bool | None = None, seed: int = 0, device: str = "cpu",
+                  keep_original: bool | None = None, keep_dropped: bool | None = None, seed: int = 0,
+                  device: str = "cpu",
                   preprocess: PreprocessConfig | None = None) -> DensifiedPoints:
     """Densify one point cloud with a trained network (Algorithm 2, as the learning rounds do).
 
@@ -469,9 +499,9 @@ def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity:
         (:func:`training.trainer.load_model`).
     intensity : (N,) array, optional
         Per-point intensity; each output point gets its source point's (nearest raw point).
-    tau_ani, samples_per_point, keep_original : optional
+    tau_ani, samples_per_point, keep_original, keep_dropped : optional
         Override ``training.tau_ani``, ``training.samples_per_point`` (M),
-        ``training.keep_original`` of :class:`gr_graph.config.TrainingConfig`.
+        ``training.keep_original``, ``training.keep_dropped`` of :class:`gr_graph.config.TrainingConfig`.
     seed : int
         Seeds the network's input split and the sampling (same seed, same output).
     device : str
@@ -506,7 +536,8 @@ def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity:
     xyz = np.asarray(x[:, :3], np.float64)
     pre = preprocess or PreprocessConfig()
     updates = {k: v for k, v in (("tau_ani", tau_ani), ("samples_per_point", samples_per_point),
-                                 ("keep_original", keep_original)) if v is not None}
+                                 ("keep_original", keep_original), ("keep_dropped", keep_dropped))
+               if v is not None}
     cfg = TrainingConfig(seed=seed, **updates)  # pydantic checks the ranges (ValueError)
     scan = preprocess_scan(xyz, pre, index=0)
     if not scan.usable:

@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=None, metavar="M",
                    help=f"samples ~ N(s, C) per kept point (default: {t.samples_per_point})")
     p.add_argument("--keep-original", action="store_true", help="also write the kept points themselves")
+    p.add_argument("--keep-dropped", action="store_true",
+                   help="also write the points the anisotropy filter drops, unchanged")
     p.add_argument("--covariances", default=None, metavar="FILE.npy",
                    help="also write the (M, 3, 3) covariance of every output point [m^2]")
     p.add_argument("--ply-covariances", action="store_true",
@@ -87,7 +89,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         res = densify_cloud(points, args.weights, intensity=intensity, tau_ani=args.tau_ani,
                             samples_per_point=args.samples, keep_original=args.keep_original or None,
-                            seed=args.seed, device=args.device, preprocess=pre)
+                            keep_dropped=args.keep_dropped or None, seed=args.seed, device=args.device, preprocess=pre)
     except (ValueError, FloatingPointError) as exc:
         raise ValueError(f"{args.input}: {exc}") from None
     C = res.covariances

@@ -76,14 +76,20 @@ log = logging.getLogger(__name__)
 __all__ = ["SlamPipeline", "round_fingerprint"]
 
 
+# (section, option) -> the default it had in effect before it existed; at that value it is left out of
+# the round fingerprint
+_ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False}
+
+
 def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     """Hash of the options round ``r``'s result depends on.
 
     Round 0 does not depend on the ``training`` section or the device; no round depends on
     the number of rounds, the convergence threshold or the acceptance test (so ``--rounds 2``
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
-    nor on output options. ``graph.loop_variance`` counts only when it is not the default
-    (rounds finished before the option existed stay finished).
+    nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
+    ``graph.loop_variance``, ``training.keep_dropped``) count only when they are not at their
+    default, so that rounds finished before the option existed stay finished.
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
@@ -98,8 +104,9 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
 
             d["weights_sha256"] = weights_sha256(tc.weights)
             d["fine_tune"] = tc.fine_tune
-    if cfg.graph.loop_variance == "fixed":  # the default, as before the option existed: old runs stay finished
-        d["graph"].pop("loop_variance")
+    for (section, key), default in _ADDED_OPTIONS.items():
+        if section in d and d[section].get(key) == default:
+            d[section].pop(key)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -160,6 +160,27 @@ def test_gr_densify_pcd_to_ply_with_covariances(model_path: Path, pcd_file: Path
     np.testing.assert_array_equal(out_inten, ref.intensity)
 
 
+def test_gr_densify_keep_dropped_and_original_adds_samples_to_every_point(model_path: Path, pcd_file: Path,
+                                                                          tmp_path: Path, capsys) -> None:
+    """``--keep-original --keep-dropped``: the network's whole input comes back, plus M samples per
+    point above the anisotropy threshold (the same samples as without the flags)."""
+    pts, inten = read_cloud(pcd_file)
+    out = tmp_path / "dense.npy"
+    argv = [str(pcd_file), str(out), "--weights", str(model_path), "--tau-ani", "0.5", "--samples", "2", "--seed", "1"]
+    assert densify_main(argv + ["--keep-original", "--keep-dropped"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    plain = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.5, samples_per_point=2, seed=1)
+    n_in, n_kept = len(plain.network_input), plain.n_kept
+    assert 0 < n_kept < n_in  # the threshold splits the cloud: both branches are exercised
+    assert summary["output_points"] == n_in + 2 * n_kept
+    back, _ = read_cloud(out)
+    samples = back[n_kept: n_kept + 2 * n_kept]
+    np.testing.assert_allclose(samples, plain.points.astype(np.float32), atol=1e-6)
+    originals = np.vstack([back[:n_kept], back[3 * n_kept:]])
+    np.testing.assert_allclose(np.sort(originals, axis=0), np.sort(plain.network_input, axis=0).astype(np.float32),
+                               atol=1e-5)
+
+
 @pytest.mark.parametrize("suffix", [".pcd", ".bin", ".npy"])
 def test_gr_densify_writes_the_format_of_out(model_path: Path, pcd_file: Path, tmp_path: Path, suffix: str,
                                              capsys) -> None:

@@ -109,6 +109,8 @@ def test_ablation_overrides_reach_the_config():
     assert ab["cholesky-s0"].trainer.net.head == "cholesky" and ab["default-s0"].trainer.net.head == "geometric"
     assert ab["edge-noise-off-s0"].edge_noise == "registration" and ab["default-s0"].edge_noise == "learned"
     assert ab["densify-off-s0"].densify is False and ab["default-s0"].densify is True
+    assert ab["densify-adds-s0"].keep_original and ab["densify-adds-s0"].keep_dropped
+    assert not (ab["default-s0"].keep_original or ab["default-s0"].keep_dropped)
     smoke = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "smoke")}
     assert smoke["cholesky-s0"].trainer.net.head == "cholesky" and smoke["cholesky-s0"].trainer.net.c0 == 8
 
@@ -565,6 +567,13 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
                                            "device": True, "graph": {"loop_variance"}})
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+    # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
+    k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
+    assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
+    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "graph": {"loop_variance"},
+                                            "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
+                                                         "weights", "fine_tune", "keep_dropped"}})
+    assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]
 
 
 # ----------------------------------------------------------------------------- end to end

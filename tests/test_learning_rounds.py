@@ -90,6 +90,12 @@ def test_stats_count_the_horizontal_share_of_kept_points():
     wall = np.diag([4e-4, 0.09, 0.04])
     assert horizontal_surfaces(np.stack([wall, tilted(20), tilted(40), C_ISO, C_PLANE])).tolist() == [
         False, True, False, False, True]
+    from gr_graph.densify import HORIZONTAL, NO_NORMAL, OBLIQUE, VERTICAL, surface_orientation
+
+    # the normal tilted 20 / 40 / 70 / 85 deg from z: horizontal, oblique, vertical (within 30 deg of the x-y plane)
+    assert surface_orientation(np.stack([wall, tilted(20), tilted(40), tilted(70), tilted(85), C_ISO,
+                                         np.diag([0.05, 0.04, 0.03])])).tolist() == [
+        VERTICAL, HORIZONTAL, OBLIQUE, VERTICAL, VERTICAL, NO_NORMAL, NO_NORMAL]
     def ground_and_walls(points):  # the plane predictor, plus a wall covariance on clutter above 3 m
         return np.where((points[:, 2] > 3.0)[:, None, None], wall, plane_predictor(points))
 
@@ -144,6 +150,29 @@ def test_keep_original_prepends_kept_points():
     kept = s[np.abs(s[:, 2] - GROUND_Z) < 0.1]
     assert len(f.points) == 3 * len(kept)
     np.testing.assert_allclose(f.points[: len(kept)], kept)
+
+def test_keep_dropped_appends_the_filtered_out_points_unchanged():
+    """``keep_dropped``: the clutter the filter drops comes back unchanged after the samples;
+    with ``keep_original`` too the scan holds every preprocessed point plus the samples."""
+    seq = PlaneScenes()
+    s = preprocess_scan(seq[0].points, PRE, index=0).points
+    on_plane = np.abs(s[:, 2] - GROUND_Z) < 0.1
+    M = 2
+    f = densified_sequence(seq, plane_predictor, _cfg(keep_dropped=True, samples_per_point=M), preprocess=PRE)[0]
+    n_samples = M * on_plane.sum()
+    assert len(f.points) == n_samples + (~on_plane).sum()
+    np.testing.assert_allclose(f.points[n_samples:], s[~on_plane])  # the dropped points, in scan order
+    plain = densified_sequence(seq, plane_predictor, _cfg(samples_per_point=M), preprocess=PRE)[0]
+    np.testing.assert_array_equal(f.points[:n_samples], plain.points)  # the same samples as without the option
+    # intensity of the returned points is their own raw point's (|z| > 0.5 for the clutter)
+    assert (f.intensity[n_samples:] > 0.4).all()
+
+    both = densified_sequence(seq, plane_predictor, _cfg(keep_dropped=True, keep_original=True, samples_per_point=M),
+                              preprocess=PRE)[0]
+    assert len(both.points) == len(s) + n_samples
+    every_point = np.vstack([both.points[: on_plane.sum()], both.points[on_plane.sum() + n_samples:]])
+    np.testing.assert_allclose(np.sort(every_point, axis=0), np.sort(s, axis=0))
+
 
 
 def test_deterministic_per_seed_and_frame():

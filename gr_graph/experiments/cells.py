@@ -103,6 +103,8 @@ ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {
     "edge-noise-off": ("learned edge noise off (registration Hessian)", {"edge_noise": "registration"},
                        "round1_training"),
     "densify-off": ("densification off (raw scans, learned edge noise)", {"densify": False}, "round1_training"),
+    "densify-adds": ("densification that only adds (every point kept, samples added: training.keep_original and "
+                     "keep_dropped)", {"keep_original": True, "keep_dropped": True}, "round1_training"),
 }
 
 
