@@ -66,10 +66,10 @@ def _round(run_dir: Path, r: str) -> dict:
 
 
 def rows_of(pairs: list[tuple[Path, Path]]) -> list[dict]:
+    import yaml
+
     rows = []
     for default_run, adds_run in pairs:
-        import yaml
-
         seed = yaml.safe_load((default_run / "config.yaml").read_text()).get("seed")
         rows.append({"default_run": str(default_run), "adds_run": str(adds_run), "seed": seed,
                      "round0": _round(default_run, "0"), "default": _round(default_run, "1"),
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         from gr_graph.atomic import atomic_write_json, atomic_write_text
         from gr_graph.provenance import machine_line
 
-        command = "python benchmarks/densify_adds_study.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = shlex.join(["python", "benchmarks/densify_adds_study.py", *(sys.argv[1:] if argv is None else argv)])
         atomic_write_json(RESULTS / "densify_adds.json", {"machine": machine_line(), "rows": rows})
         atomic_write_text(RESULTS / "densify_adds.md", "# One learning round: densification that only adds against "
                           "the paper's (same round 0, same trained network)\n\n"

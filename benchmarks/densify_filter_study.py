@@ -37,7 +37,7 @@ def study(run: Path, round_index: int, n_scans: int) -> dict:
     import torch
 
     from gr_graph.config import load_config
-    from gr_graph.datasets.registry import open_sequence
+    from gr_graph.datasets.registry import open_configured_sequence
     from gr_graph.densify import surface_orientation
     from gr_graph.pca_covariances import pca_covariances
     from gr_graph.preprocess import preprocess_scan
@@ -51,12 +51,7 @@ def study(run: Path, round_index: int, n_scans: int) -> dict:
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path}: no trained network of round {round_index} in {run}")
     model = load_model(model_path)
-    d = cfg.data
-    seq, _ = open_sequence(seq=d.seq, data_root=d.data_root, channels=d.channels, frames=d.frames,
-                           synthetic_seed=cfg.seed, point_format=d.point_format,
-                           kitti_vertical_correction_deg=d.kitti_vertical_correction_deg, route_seed=d.route_seed,
-                           trajectory=d.trajectory, synthetic_preset=d.synthetic_preset, path=d.path,
-                           dataset=d.dataset, topic=d.topic, timestamps=d.timestamps, poses=d.poses)
+    seq, _ = open_configured_sequence(cfg.data, cfg.seed, cfg.sensor)
     tau = cfg.training.tau_ani
     rows = np.unique(np.linspace(0, len(seq) - 1, n_scans).round().astype(int))
     acc: dict[int, dict[str, list]] = {c: {"n": [], "net": [], "pca": [], "ratio": [], "major": [], "minor": []}
@@ -95,7 +90,7 @@ def study(run: Path, round_index: int, n_scans: int) -> dict:
     kept_net_total = sum(sum(acc[c]["net"]) for c in CLASS_NAMES)
     kept_pca_total = sum(sum(acc[c]["pca"]) for c in CLASS_NAMES)
     return {"run": str(run), "round": round_index, "model": str(model_path), "scans": [int(i) for i in rows],
-            "points": total, "tau_ani": tau, "channels": d.channels, "seed": cfg.seed, "classes": classes,
+            "points": total, "tau_ani": tau, "channels": cfg.data.channels, "seed": cfg.seed, "classes": classes,
             "kept_network": kept_net_total / max(total, 1), "kept_pca": kept_pca_total / max(total, 1),
             "horizontal_share_of_kept_network": sum(acc[1]["net"]) / max(kept_net_total, 1),
             "horizontal_share_of_kept_pca": sum(acc[1]["pca"]) / max(kept_pca_total, 1)}

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -119,10 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         RESULTS.mkdir(parents=True, exist_ok=True)
         atomic_write_json(RESULTS / f"{args.name}.json", {"machine": machine_line(), "labels": [a, b], "runs": [
             {"label": label, a: fixed, b: est} for label, fixed, est in rows]})
-        import shlex
-        import sys
-
-        command = "python benchmarks/loop_variance_study.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = shlex.join(["python", "benchmarks/loop_variance_study.py", *(sys.argv[1:] if argv is None else argv)])
         atomic_write_text(RESULTS / f"{args.name}.md", f"# {args.title}\n\nCommand: `{command}` (each run's "
                           f"options in its `config.yaml`). Machine: {machine_line()}.\n\n" + text + "\n")
     return 0
