@@ -5,6 +5,9 @@
     # a trajectory that creeps 3 cm/frame while the vehicle stands still (ground-truth speed
     # below 1 cm/frame), evaluated against the run's round 0
     python benchmarks/bench_round_acceptance.py creep RUN_DIR [--step 0.03]
+    # every learning round of finished runs judged again by the current test (the package's
+    # defaults, changed with --set KEY=VALUE), beside the verdict stored in the run
+    python benchmarks/bench_round_acceptance.py rescore RUN_DIR [RUN_DIR ...] [--set thickness_floor=0]
     # round 1 of RUN_DIR redone with a corrupted copy of its model (weights + noise of
     # --noise x each tensor's standard deviation), into OUT (round 0 copied from RUN_DIR)
     python benchmarks/bench_round_acceptance.py corrupt RUN_DIR OUT [--noise 1.0]
@@ -20,6 +23,7 @@ import json
 import shutil
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -69,15 +73,87 @@ def table(runs: list[Path]) -> int:
     return 0
 
 
-def creep(out: Path, step: float, r: int = 0) -> int:
+def acceptance_settings(out: Path | None, settings: list[str]) -> Any:
+    """The acceptance settings: the run's own (``out``'s config.yaml) or, with ``out`` None, the
+    package's defaults; each ``KEY=VALUE`` of ``settings`` overrides one (validated)."""
+    import yaml
+
+    from gr_graph.config import AcceptanceConfig, load_config
+
+    base = load_config(out / "config.yaml").training.acceptance if out is not None else AcceptanceConfig()
+    update = {}
+    for kv in settings:
+        key, sep, value = kv.partition("=")
+        if not sep or key not in AcceptanceConfig.model_fields:
+            raise SystemExit(f"--set {kv!r}: expected KEY=VALUE with KEY one of {sorted(AcceptanceConfig.model_fields)}")
+        update[key] = yaml.safe_load(value)
+    return AcceptanceConfig.model_validate({**base.model_dump(), **update})
+
+
+def gt_all_pairs_rpe300(out: Path, r: int) -> float | None:
+    """Mean all-pairs RPE over 300 frames [m] of round ``r`` (None when the run is shorter)."""
+    from gr_graph.metrics import rpe_translation
+    from gr_graph.trajectory import read_kitti_poses
+
+    gt = read_kitti_poses(out / "gt_poses_kitti.txt")
+    if len(gt) <= 300:
+        return None
+    est = read_kitti_poses(out / f"round_{r}" / "poses_kitti.txt")
+    return float(rpe_translation(est, gt, delta=300, all_pairs=True).mean)
+
+
+def rescore(runs: list[Path], settings: list[str]) -> int:
+    """Every learning round of ``runs`` judged by the current test (module docstring)."""
+    from gr_graph.round_acceptance import _raw_scans, evaluate_round
+
+    cfg = acceptance_settings(None, settings)
+    print(f"Settings: `{json.dumps(cfg.model_dump(mode='json'))}`\n")
+    rows = ["| run | round | ref | stored verdict | verdict now | mean ΔH [nats] | q0.9 window ΔH | worst standstill "
+            "creep [mm/frame] | ATE ref→round [m] | RPE100 ref→round [m] | all-pairs RPE-300 ref→round [m] | reasons now |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    count = {(m, a, w): 0 for m in ("ATE", "RPE100", "RPE300") for a in (True, False) for w in (True, False)}
+    for out in runs:
+        m = json.loads((out / "metrics.json").read_text())
+        scans = None
+        for k, s in sorted(m["rounds"].items(), key=lambda kv: int(kv[0])):
+            if "acceptance" not in s or not (out / f"round_{k}" / "poses_kitti.txt").is_file():
+                continue
+            scans = _raw_scans(out) if scans is None else scans
+            ref = s["acceptance"]["reference_round"]
+            v = evaluate_round(out, int(k), ref, m["rounds"], cfg, scans=scans)
+            (ate0, rpe0), (ate1, rpe1) = gt_errors(out, ref), gt_errors(out, int(k))
+            r300 = gt_all_pairs_rpe300(out, ref), gt_all_pairs_rpe300(out, int(k))
+            worse = {"ATE": ate1 > 1.05 * ate0, "RPE100": rpe1 > 1.05 * rpe0}
+            if r300[0] is not None:
+                worse["RPE300"] = r300[1] > 1.05 * r300[0]
+            for metric, w in worse.items():
+                count[(metric, v["accepted"], w)] += 1
+            st = v.get("standstill") or {}
+            creep_mm = "-" if not st.get("stretches") else f"{1e3 * st['worst_creep_per_frame_m']:+.2f}"
+            rpe300 = "-" if r300[0] is None else f"{r300[0]:.3f} → {r300[1]:.3f}"
+            rows.append(f"| {out} | {k} | {ref} | {'accepted' if s['accepted'] else 'rejected'} | "
+                        f"{'accepted' if v['accepted'] else 'rejected'} | {v['mean_entropy_increase']:+.4f} | "
+                        f"{v['window_entropy_increase']:+.4f} | {creep_mm} | {ate0:.3f} → {ate1:.3f} | "
+                        f"{rpe0:.3f} → {rpe1:.3f} | {rpe300} | {'; '.join(v['reasons'])} |")
+    rows += ["", "Verdict now against ground truth (worse: more than 5 % above the reference round):", "",
+             "| | ATE not worse | ATE worse | RPE100 not worse | RPE100 worse | RPE-300 not worse | RPE-300 worse |",
+             "|---|---|---|---|---|---|---|"]
+    for acc in (True, False):
+        rows.append(f"| {'accepted' if acc else 'rejected'} | " + " | ".join(
+            str(count[(m, acc, w)]) for m in ("ATE", "RPE100", "RPE300") for w in (False, True)) + " |")
+    print("\n".join(rows))
+    return 0
+
+
+def creep(out: Path, step: float, r: int = 0, settings: list[str] | None = None) -> int:
     """Round ``r``'s trajectory with a creep of ``step`` m/frame (along the vehicle's x axis) added
-    while the ground truth stands still, judged against round ``r`` itself."""
-    from gr_graph.config import load_config
+    while the ground truth stands still, judged against round ``r`` itself (the run's own
+    acceptance settings, ``settings`` overriding them)."""
     from gr_graph.round_acceptance import decide, round_figures
     from gr_graph.round_output import read_round_poses, round_dir
     from gr_graph.trajectory import read_kitti_poses
 
-    cfg = load_config(out / "config.yaml").training.acceptance
+    cfg = acceptance_settings(out, settings or [])
     gt = read_kitti_poses(out / "gt_poses_kitti.txt")
     still = np.r_[False, np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1) < 0.01]
     if not still.any():
@@ -99,7 +175,8 @@ def creep(out: Path, step: float, r: int = 0) -> int:
     print(json.dumps({"run": str(out), "still_frames": int(still.sum()), "step_m": step,
                       "accepted": v["accepted"], "reasons": v["reasons"],
                       "mean_entropy_increase": v["mean_entropy_increase"],
-                      "window_entropy_increase": v["window_entropy_increase"]}, indent=1))
+                      "window_entropy_increase": v["window_entropy_increase"],
+                      "standstill": v["standstill"], "settings": cfg.model_dump(mode="json")}, indent=1))
     return 0
 
 
@@ -145,6 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("creep")
     c.add_argument("run", type=Path)
     c.add_argument("--step", type=float, default=0.03)
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override an acceptance setting")
+    q = sub.add_parser("rescore")
+    q.add_argument("runs", nargs="+", type=Path)
+    q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override an acceptance setting")
     k = sub.add_parser("corrupt")
     k.add_argument("run", type=Path)
     k.add_argument("out", type=Path)
@@ -153,7 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.cmd == "table":
         return table(args.runs)
     if args.cmd == "creep":
-        return creep(args.run, args.step)
+        return creep(args.run, args.step, settings=args.set)
+    if args.cmd == "rescore":
+        return rescore(args.runs, args.set)
     return corrupt(args.run, args.out, args.noise)
 
 

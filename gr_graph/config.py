@@ -204,6 +204,8 @@ class AcceptanceConfig(_Section):
     radius: float = Field(0.5, gt=0.0, description="neighbourhood radius of the map entropy [m]")
     min_neighbors: int = Field(10, ge=4, description="query points with fewer map neighbours are skipped")
     max_query_points: int = Field(1500, ge=10, description="points of the centre scan queried per window")
+    thickness_floor: float = Field(
+        0.01, ge=0.0, description="sigma_f [m]: the entropy is that of Sigma + sigma_f^2 I, no surface counts as thinner")
     max_mean_entropy_increase: float = Field(
         0.02, description="reject when the mean map entropy (per window, minus the reference) rose by more [nats]")
     window_quantile: float = Field(0.9, gt=0.0, le=1.0, description="quantile of the per-window entropy increase tested")
@@ -211,6 +213,12 @@ class AcceptanceConfig(_Section):
         0.1, description="reject when that quantile of per-window entropy increases is above this [nats]")
     max_flagged_rate_increase: float = Field(
         0.02, description="reject when the fraction of failed odometry registrations rose by more")
+    standstill_step: float = Field(
+        0.005, gt=0.0, description="a frame stands still when the reference moved less than this since the last [m]")
+    min_standstill_frames: int = Field(11, ge=2, description="consecutive still frames that make a standstill")
+    max_standstill_creep: float = Field(
+        0.001, ge=0.0, description="reject when, over a standstill of the reference, the round's net displacement "
+        "exceeds the reference's by more than this per frame [m]")
 
 
 class TrainingConfig(_Section):

@@ -19,10 +19,22 @@ on figures that need no ground truth:
   edges' covariances (inverse edge information), the fraction beyond the chi-square(6) 99.9 %
   quantile, and the median translation difference (reported, not decided on).
 
+* **Creep at a standstill** (:func:`standstill_creep`): the stretches of at least
+  ``min_standstill_frames`` frames in which the reference moves less than ``standstill_step`` a
+  frame; over each, the round's net displacement (first to last frame) minus the reference's,
+  per frame. Jitter does not add up to a net displacement; a creep does.
+
+The map entropy uses a surface thickness floor ``thickness_floor`` (σ_f: the entropy of
+Σ + σ_f² I): where the reference map is sharper than any sensor's range noise (a standstill,
+where the same beams hit the same spots and every scan's downsampled points coincide to a
+millimetre), a millimetre more jitter would otherwise weigh like a smeared street. The creep
+that such a sharp stretch must still reveal is tested directly, above.
+
 A round is accepted when (:func:`decide`) every pose is finite, the mean entropy difference (round
 minus reference, per window, averaged) is at most ``max_mean_entropy_increase``, the
 ``window_quantile`` quantile of the per-window differences is at most
-``max_window_entropy_increase`` (a creep limited to a stop raises a few windows a lot), and the
+``max_window_entropy_increase`` (a creep limited to a stop raises a few windows a lot), the
+worst standstill stretch crept by at most ``max_standstill_creep`` a frame, and the
 registration-failure rate grew by at most ``max_flagged_rate_increase``. Thresholds:
 ``training.acceptance`` in :mod:`gr_graph.config`; how they were chosen: README.
 """
@@ -42,7 +54,7 @@ from gr_graph.config import AcceptanceConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["window_centres", "map_sharpness", "relative_pose_agreement", "round_figures", "decide",
+__all__ = ["window_centres", "map_sharpness", "standstill_creep", "relative_pose_agreement", "round_figures", "decide",
            "evaluate_round", "CHI2_6_999"]
 
 #: chi-square quantile, 6 degrees of freedom, 99.9 %.
@@ -65,7 +77,8 @@ def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def map_sharpness(scans: Sequence[np.ndarray], poses: np.ndarray, centres: np.ndarray, half_window: int,
-                  radius: float, min_neighbors: int, max_query_points: int) -> dict[str, np.ndarray]:
+                  radius: float, min_neighbors: int, max_query_points: int,
+                  thickness_floor: float = 0.0) -> dict[str, np.ndarray]:
     """Entropy and plane variance of local maps of ``scans`` placed with ``poses``.
 
     Parameters
@@ -84,6 +97,9 @@ def map_sharpness(scans: Sequence[np.ndarray], poses: np.ndarray, centres: np.nd
         Query points with fewer map points within ``radius`` are skipped.
     max_query_points : int
         At most this many points of the centre scan, evenly strided, are queried.
+    thickness_floor : float
+        σ_f [m]: the entropy is that of Σ + σ_f² I, so that no surface counts as thinner than
+        σ_f (0: Σ itself). The plane variance is always Σ's own.
 
     Returns
     -------
@@ -118,10 +134,56 @@ def map_sharpness(scans: Sequence[np.ndarray], poses: np.ndarray, centres: np.nd
             covs[q] = d.T @ d / len(p)
         eig = np.linalg.eigvalsh(covs)
         eig = np.maximum(eig, 1e-12)  # a perfectly flat neighbourhood: floor instead of -inf
-        entropy[w] = float(np.mean(0.5 * np.sum(np.log(2 * np.pi * np.e * eig), axis=1)))
+        entropy[w] = float(np.mean(0.5 * np.sum(np.log(2 * np.pi * np.e * (eig + thickness_floor ** 2)), axis=1)))
         plane[w] = float(np.mean(eig[:, 0]))
         n_query[w] = len(keep)
     return {"entropy": entropy, "plane_variance": plane, "n_query": n_query}
+
+
+def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, still_step: float,
+                     min_frames: int) -> dict[str, Any]:
+    """How much more a trajectory moves than the reference where the reference stands still.
+
+    Parameters
+    ----------
+    positions, reference_positions : (K, 3) arrays
+        Positions of the same frames in the round compared and in the reference.
+    still_step : float
+        A frame stands still when the reference moved less than this from the previous frame [m].
+    min_frames : int
+        Only runs of at least this many consecutive still frames count as a standstill.
+
+    Returns
+    -------
+    dict
+        ``stretches``: ``[first, last]`` frame of each standstill; ``creep_per_frame`` [m]: for
+        each, the round's net displacement from its first to its last frame minus the
+        reference's, divided by ``last - first`` (negative: the round holds still better);
+        ``worst_creep_per_frame`` [m] (0.0 without a standstill). Both net displacements are
+        distances within one trajectory, so a rigid motion of either does not change them.
+    """
+    p, q = np.asarray(positions, np.float64), np.asarray(reference_positions, np.float64)
+    if p.shape != q.shape:
+        raise ValueError(f"standstill_creep: shapes {p.shape} and {q.shape} differ")
+    still = np.r_[False, np.linalg.norm(np.diff(q, axis=0), axis=1) < still_step] if len(q) else np.zeros(0, bool)
+    # a still frame k moved little from k-1: the stretch starts at the frame before the first still one
+    stretches, creep = [], []
+    k = 0
+    while k < len(still):
+        if not still[k]:
+            k += 1
+            continue
+        start = k
+        while k < len(still) and still[k]:
+            k += 1
+        first, last = start - 1, k - 1
+        if last - first + 1 >= min_frames:
+            stretches.append([int(first), int(last)])
+            moved = np.linalg.norm(p[last] - p[first])
+            moved_ref = np.linalg.norm(q[last] - q[first])
+            creep.append(float((moved - moved_ref) / (last - first)))
+    return {"stretches": stretches, "creep_per_frame": creep,
+            "worst_creep_per_frame": max(creep) if creep else 0.0}
 
 
 def _log_se3_translation_rotation(T: np.ndarray) -> np.ndarray:
@@ -193,8 +255,8 @@ def round_figures(scans: Sequence[np.ndarray], poses: np.ndarray, rd: Path, summ
     """The GT-free figures of one round: map sharpness per window, failure and rejection rates."""
     centres = window_centres(len(poses), cfg.n_windows, cfg.half_window)
     sharp = map_sharpness(scans, poses, centres, cfg.half_window, cfg.radius, cfg.min_neighbors,
-                          cfg.max_query_points)
-    return {"centres": centres, **sharp, **_rates(rd, summary),
+                          cfg.max_query_points, cfg.thickness_floor)
+    return {"centres": centres, **sharp, **_rates(rd, summary), "positions": np.asarray(poses, np.float64)[:, :3, 3],
             "finite_poses": bool(np.all(np.isfinite(poses)))}
 
 
@@ -209,6 +271,10 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
     mean_inc = float(np.mean(d[ok])) if ok.any() else float("inf")
     window_inc = float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else float("inf")
     flagged_inc = fig["registration_failure_rate"] - ref["registration_failure_rate"]
+    creep = None
+    if (fig.get("positions") is not None and ref.get("positions") is not None and fig["finite_poses"]
+            and np.shape(fig["positions"]) == np.shape(ref["positions"])):
+        creep = standstill_creep(fig["positions"], ref["positions"], cfg.standstill_step, cfg.min_standstill_frames)
     reasons = []
     if not fig["finite_poses"]:
         reasons.append("non-finite poses")
@@ -217,6 +283,11 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
     if window_inc > cfg.max_window_entropy_increase:
         reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
                        f"{cfg.max_window_entropy_increase} nats")
+    if creep is not None and creep["worst_creep_per_frame"] > cfg.max_standstill_creep:
+        w = int(np.argmax(creep["creep_per_frame"]))
+        first, last = creep["stretches"][w]
+        reasons.append(f"crept {1e3 * creep['worst_creep_per_frame']:.2f} mm a frame more than the reference while it "
+                       f"stood still (frames {first}-{last}) > {1e3 * cfg.max_standstill_creep:g} mm")
     if flagged_inc > cfg.max_flagged_rate_increase:
         reasons.append(f"registration failures rose by {flagged_inc:.4f} > {cfg.max_flagged_rate_increase}")
     return {
@@ -234,6 +305,9 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
         "loop_rejection_rate": fig["loop_rejection_rate"],
         "reference_loop_rejection_rate": ref["loop_rejection_rate"],
         "n_windows": int(ok.sum()),
+        "standstill": None if creep is None else {
+            "stretches": creep["stretches"], "creep_per_frame_m": [round(c, 6) for c in creep["creep_per_frame"]],
+            "worst_creep_per_frame_m": round(creep["worst_creep_per_frame"], 6)},
     }
 
 

@@ -13,6 +13,7 @@ from gr_graph.round_acceptance import (
     decide,
     map_sharpness,
     relative_pose_agreement,
+    standstill_creep,
     window_centres,
 )
 
@@ -49,8 +50,9 @@ def street_scans(poses: np.ndarray, seed: int = 0, n: int = 2000, noise: float =
 def sharpness(scans, poses, cfg=CFG):
     centres = window_centres(len(poses), cfg.n_windows, cfg.half_window)
     return {"centres": centres, **map_sharpness(scans, poses, centres, cfg.half_window, cfg.radius,
-                                                cfg.min_neighbors, cfg.max_query_points),
-            "registration_failure_rate": 0.0, "loop_rejection_rate": 0.0, "finite_poses": True}
+                                                cfg.min_neighbors, cfg.max_query_points, cfg.thickness_floor),
+            "registration_failure_rate": 0.0, "loop_rejection_rate": 0.0, "finite_poses": True,
+            "positions": np.asarray(poses)[:, :3, 3]}
 
 
 def moving_then_stopped(n_move: int = 30, n_stop: int = 30, step: float = 0.8) -> np.ndarray:
@@ -101,6 +103,55 @@ def test_creeping_stopped_vehicle_is_rejected():
     jitter = poses.copy()
     jitter[:, :3, 3] += rng.normal(0, 0.001, (len(poses), 3))
     assert decide(sharpness(scans, jitter), ref, CFG)["accepted"]
+
+
+def test_standstill_creep_closed_form():
+    """A reference that drives 10 frames, stands still for 20 and drives on: a round creeping 3 mm
+    a frame during the stop crept 3 mm a frame more (the stretch is the frame before the first
+    still one to the last still one); a rigid motion of the round changes nothing; 1 mm of
+    jitter adds up to far less; a stop shorter than ``min_frames`` is not a standstill."""
+    xs = list(np.arange(10) * 0.8) + [8.0] * 20 + list(8.0 + 0.8 * np.arange(1, 11))
+    ref = np.column_stack([xs, np.zeros(len(xs)), np.zeros(len(xs))])
+    crept = ref.copy()
+    crept[10:30, 0] += 0.003 * np.arange(1, 21)
+    crept[30:, 0] += 0.06
+    c = standstill_creep(crept, ref, still_step=0.005, min_frames=11)
+    assert c["stretches"] == [[10, 29]]
+    assert c["creep_per_frame"] == [pytest.approx(0.003)] and c["worst_creep_per_frame"] == pytest.approx(0.003)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = standstill_creep(crept @ R.T + [5.0, -2.0, 1.0], ref, 0.005, 11)
+    assert moved["worst_creep_per_frame"] == pytest.approx(0.003)
+    jitter = ref + np.random.default_rng(0).normal(0, 0.001, ref.shape)
+    assert abs(standstill_creep(jitter, ref, 0.005, 11)["worst_creep_per_frame"]) < 0.0005
+    assert standstill_creep(crept, ref, 0.005, 25) == {"stretches": [], "creep_per_frame": [],
+                                                      "worst_creep_per_frame": 0.0}
+    assert standstill_creep(ref, crept, 0.002, 11)["stretches"] == []  # 3 mm a frame: not still by 2 mm
+
+
+def test_thickness_floor_ignores_jitter_at_a_razor_sharp_standstill_but_not_creep():
+    """At a standstill every scan sees the same points of razor-thin surfaces (0.2 mm of noise):
+    1 mm of pose jitter then raises the stop's map entropy by far more than the thresholds,
+    although no surface a real sensor sees is that thin. With a 1 cm floor (the thickness the
+    thresholds were derived for) the jittered round is accepted; a creep of 3 mm a frame is
+    still rejected, by the standstill test."""
+    poses = moving_then_stopped(12, 30)
+    rng = np.random.default_rng(5)
+    world = street_scans(poses[-1:], seed=6, n=24000, noise=0.0002)[0]  # sensor frame at the stop
+    scans = street_scans(poses[:12], seed=7) + [world + rng.normal(0, 0.0002, world.shape) for _ in range(30)]
+    jitter = poses.copy()
+    jitter[12:, :3, 3] += rng.normal(0, 0.001, (30, 3))
+    creep = poses.copy()
+    creep[12:, 0, 3] += 0.003 * np.arange(1, 31)
+    no_floor = CFG.model_copy(update={"thickness_floor": 0.0, "max_standstill_creep": 1.0})
+    v = decide(sharpness(scans, jitter, no_floor), sharpness(scans, poses, no_floor), no_floor)
+    assert not v["accepted"] and v["window_entropy_increase"] > 0.3
+    floor = CFG.model_copy(update={"thickness_floor": 0.01})
+    ref = sharpness(scans, poses, floor)
+    v = decide(sharpness(scans, jitter, floor), ref, floor)
+    assert v["accepted"], v["reasons"]
+    assert v["standstill"]["stretches"] == [[12, 41]] and v["standstill"]["worst_creep_per_frame_m"] < 5e-4
+    v = decide(sharpness(scans, creep, floor), ref, floor)
+    assert not v["accepted"] and any("crept 3.00 mm a frame" in r for r in v["reasons"]), v["reasons"]
 
 
 def test_more_registration_failures_or_nonfinite_poses_reject():
