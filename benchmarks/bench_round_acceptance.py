@@ -87,7 +87,10 @@ def acceptance_settings(out: Path | None, settings: list[str]) -> Any:
         if not sep or key not in AcceptanceConfig.model_fields:
             raise SystemExit(f"--set {kv!r}: expected KEY=VALUE with KEY one of {sorted(AcceptanceConfig.model_fields)}")
         update[key] = yaml.safe_load(value)
-    return AcceptanceConfig.model_validate({**base.model_dump(), **update})
+    try:
+        return AcceptanceConfig.model_validate({**base.model_dump(), **update})
+    except ValueError as exc:  # pydantic's ValidationError
+        raise SystemExit(f"--set {' '.join(settings)}: {exc}") from None
 
 
 def gt_all_pairs_rpe300(out: Path, r: int) -> float | None:
@@ -113,13 +116,22 @@ def rescore(runs: list[Path], settings: list[str]) -> int:
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     count = {(m, a, w): 0 for m in ("ATE", "RPE100", "RPE300") for a in (True, False) for w in (True, False)}
     for out in runs:
+        missing = [f for f in ("metrics.json", "gt_poses_kitti.txt", "round_0/memory") if not (out / f).exists()]
+        if missing:
+            print(f"{out}: skipped, no {', '.join(missing)} (a pruned or unfinished run?)", file=sys.stderr)
+            continue
         m = json.loads((out / "metrics.json").read_text())
         scans = None
         for k, s in sorted(m["rounds"].items(), key=lambda kv: int(kv[0])):
-            if "acceptance" not in s or not (out / f"round_{k}" / "poses_kitti.txt").is_file():
+            if "acceptance" not in s:
+                continue
+            ref = s["acceptance"]["reference_round"]
+            need = [f"round_{r}/{f}" for r in (int(k), ref) for f in ("poses_kitti.txt", "round.json", "marginals.npz")]
+            if any(not (out / f).is_file() for f in need):
+                print(f"{out}: round {k} skipped, needs {', '.join(f for f in need if not (out / f).is_file())}",
+                      file=sys.stderr)
                 continue
             scans = _raw_scans(out) if scans is None else scans
-            ref = s["acceptance"]["reference_round"]
             v = evaluate_round(out, int(k), ref, m["rounds"], cfg, scans=scans)
             (ate0, rpe0), (ate1, rpe1) = gt_errors(out, ref), gt_errors(out, int(k))
             r300 = gt_all_pairs_rpe300(out, ref), gt_all_pairs_rpe300(out, int(k))

@@ -215,7 +215,8 @@ class AcceptanceConfig(_Section):
         0.02, description="reject when the fraction of failed odometry registrations rose by more")
     standstill_step: float = Field(
         0.005, gt=0.0, description="a frame stands still when the reference moved less than this since the last [m]")
-    min_standstill_frames: int = Field(11, ge=2, description="consecutive still frames that make a standstill")
+    min_standstill_frames: int = Field(
+        11, ge=2, description="frames of a standstill stretch (the one where the vehicle stopped and the still ones after it)")
     max_standstill_creep: float = Field(
         0.001, ge=0.0, description="reject when, over a standstill of the reference, the round's net displacement "
         "exceeds the reference's by more than this per frame [m]")

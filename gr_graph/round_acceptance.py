@@ -104,7 +104,7 @@ def map_sharpness(scans: Sequence[np.ndarray], poses: np.ndarray, centres: np.nd
     Returns
     -------
     dict
-        ``entropy`` (W,) mean differential entropy ½ ln det(2πe Σ) [nats] per window,
+        ``entropy`` (W,) mean differential entropy ½ ln det(2πe (Σ + σ_f² I)) [nats] per window,
         ``plane_variance`` (W,) mean smallest eigenvalue of Σ [m²], ``n_query`` (W,) points used
         (NaN figures for a window without any).
     """
@@ -151,7 +151,9 @@ def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, sti
     still_step : float
         A frame stands still when the reference moved less than this from the previous frame [m].
     min_frames : int
-        Only runs of at least this many consecutive still frames count as a standstill.
+        A standstill stretch runs from the last frame before the still ones (where the
+        vehicle stopped) to the last still one; it counts when it holds at least this many
+        frames (``min_frames - 1`` still ones).
 
     Returns
     -------
@@ -159,7 +161,8 @@ def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, sti
         ``stretches``: ``[first, last]`` frame of each standstill; ``creep_per_frame`` [m]: for
         each, the round's net displacement from its first to its last frame minus the
         reference's, divided by ``last - first`` (negative: the round holds still better);
-        ``worst_creep_per_frame`` [m] (0.0 without a standstill). Both net displacements are
+        ``worst_creep_per_frame`` [m] (0.0 without a standstill, ``inf`` when a stretch's
+        creep is not finite: non-finite positions never pass). Both net displacements are
         distances within one trajectory, so a rigid motion of either does not change them.
     """
     p, q = np.asarray(positions, np.float64), np.asarray(reference_positions, np.float64)
@@ -182,8 +185,8 @@ def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, sti
             moved = np.linalg.norm(p[last] - p[first])
             moved_ref = np.linalg.norm(q[last] - q[first])
             creep.append(float((moved - moved_ref) / (last - first)))
-    return {"stretches": stretches, "creep_per_frame": creep,
-            "worst_creep_per_frame": max(creep) if creep else 0.0}
+    worst = 0.0 if not creep else float(np.max(creep)) if np.all(np.isfinite(creep)) else float("inf")
+    return {"stretches": stretches, "creep_per_frame": creep, "worst_creep_per_frame": worst}
 
 
 def _log_se3_translation_rotation(T: np.ndarray) -> np.ndarray:
@@ -275,6 +278,8 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
     if (fig.get("positions") is not None and ref.get("positions") is not None and fig["finite_poses"]
             and np.shape(fig["positions"]) == np.shape(ref["positions"])):
         creep = standstill_creep(fig["positions"], ref["positions"], cfg.standstill_step, cfg.min_standstill_frames)
+    elif fig["finite_poses"]:
+        log.warning("acceptance: no standstill test (the figures hold no positions of the same frames)")
     reasons = []
     if not fig["finite_poses"]:
         reasons.append("non-finite poses")
@@ -284,7 +289,7 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
         reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
                        f"{cfg.max_window_entropy_increase} nats")
     if creep is not None and creep["worst_creep_per_frame"] > cfg.max_standstill_creep:
-        w = int(np.argmax(creep["creep_per_frame"]))
+        w = int(np.argmax(np.nan_to_num(creep["creep_per_frame"], nan=np.inf)))
         first, last = creep["stretches"][w]
         reasons.append(f"crept {1e3 * creep['worst_creep_per_frame']:.2f} mm a frame more than the reference while it "
                        f"stood still (frames {first}-{last}) > {1e3 * cfg.max_standstill_creep:g} mm")

@@ -126,6 +126,12 @@ def test_standstill_creep_closed_form():
     assert standstill_creep(crept, ref, 0.005, 25) == {"stretches": [], "creep_per_frame": [],
                                                       "worst_creep_per_frame": 0.0}
     assert standstill_creep(ref, crept, 0.002, 11)["stretches"] == []  # 3 mm a frame: not still by 2 mm
+    # a stretch is the frame where the vehicle stopped and the still ones: 19 still frames make 20
+    assert standstill_creep(crept, ref, 0.005, 20)["stretches"] == [[10, 29]]
+    assert standstill_creep(crept, ref, 0.005, 21)["stretches"] == []
+    broken = crept.copy()
+    broken[29] = np.nan  # a non-finite position never passes
+    assert standstill_creep(broken, ref, 0.005, 11)["worst_creep_per_frame"] == np.inf
 
 
 def test_thickness_floor_ignores_jitter_at_a_razor_sharp_standstill_but_not_creep():
