@@ -39,6 +39,21 @@ def gt_errors(out: Path, r: int) -> tuple[float, float]:
     return float(ate(est, gt).rmse), float(rpe_translation(est, gt, delta=delta).rmse)
 
 
+def worse(before: float, after: float) -> bool:
+    """"Worse by ground truth": more than 5 % above the reference round's figure."""
+    return after > 1.05 * before
+
+
+def count_rows(count: dict[tuple[str, bool, bool], int], metrics: tuple[str, ...]) -> list[str]:
+    """The 2x2 count (accepted/rejected x not worse/worse) of each metric, as markdown rows."""
+    rows = ["| | " + " | ".join(f"{m} {w}" for m in metrics for w in ("not worse", "worse")) + " |",
+            "|---|" + "---|" * (2 * len(metrics))]
+    for acc in (True, False):
+        rows.append(f"| {'accepted' if acc else 'rejected'} | " + " | ".join(
+            str(count[(m, acc, w)]) for m in metrics for w in (False, True)) + " |")
+    return rows
+
+
 def table(runs: list[Path]) -> int:
     rows = ["| run | round | ref | accepted | mean ΔH [nats] | q0.9 window ΔH | ΔMPV [mm²] | failures | loop rej. | "
             "rel. pose d² median / >χ² | ATE ref→round [m] | RPE100 ref→round [m] | by GT | reasons |",
@@ -52,7 +67,7 @@ def table(runs: list[Path]) -> int:
             a = s["acceptance"]
             ref = a["reference_round"]
             (ate0, rpe0), (ate1, rpe1) = gt_errors(out, ref), gt_errors(out, int(k))
-            worse_ate, worse_rpe = ate1 > 1.05 * ate0, rpe1 > 1.05 * rpe0
+            worse_ate, worse_rpe = worse(ate0, ate1), worse(rpe0, rpe1)
             count[("ATE", s["accepted"], worse_ate)] += 1
             count[("RPE100", s["accepted"], worse_rpe)] += 1
             rp = a.get("relative_pose_agreement", {})
@@ -65,10 +80,7 @@ def table(runs: list[Path]) -> int:
                         f"{rp.get('fraction_beyond_chi2_999', float('nan')):.2f} | "
                         f"{ate0:.3f} → {ate1:.3f} | {rpe0:.3f} → {rpe1:.3f} | ATE {'worse' if worse_ate else 'ok'}, RPE {'worse' if worse_rpe else 'ok'} | "
                         f"{'; '.join(a['reasons'])} |")
-    rows += ["", "| | ATE not worse | ATE worse | RPE100 not worse | RPE100 worse |", "|---|---|---|---|---|"]
-    for acc in (True, False):
-        rows.append(f"| {'accepted' if acc else 'rejected'} | " + " | ".join(
-            str(count[(m, acc, w)]) for m in ("ATE", "RPE100") for w in (False, True)) + " |")
+    rows += ["", *count_rows(count, ("ATE", "RPE100"))]
     print("\n".join(rows))
     return 0
 
@@ -93,18 +105,6 @@ def acceptance_settings(out: Path | None, settings: list[str]) -> Any:
         raise SystemExit(f"--set {' '.join(settings)}: {exc}") from None
 
 
-def gt_all_pairs_rpe300(out: Path, r: int) -> float | None:
-    """Mean all-pairs RPE over 300 frames [m] of round ``r`` (None when the run is shorter)."""
-    from gr_graph.metrics import rpe_translation
-    from gr_graph.trajectory import read_kitti_poses
-
-    gt = read_kitti_poses(out / "gt_poses_kitti.txt")
-    if len(gt) <= 300:
-        return None
-    est = read_kitti_poses(out / f"round_{r}" / "poses_kitti.txt")
-    return float(rpe_translation(est, gt, delta=300, all_pairs=True).mean)
-
-
 def rescore(runs: list[Path], settings: list[str]) -> int:
     """Every learning round of ``runs`` judged by the current test (module docstring)."""
     from gr_graph.round_acceptance import _raw_scans, evaluate_round
@@ -114,7 +114,7 @@ def rescore(runs: list[Path], settings: list[str]) -> int:
     rows = ["| run | round | ref | stored verdict | verdict now | mean ΔH [nats] | q0.9 window ΔH | worst standstill "
             "creep [mm/frame] | ATE ref→round [m] | RPE100 ref→round [m] | all-pairs RPE-300 ref→round [m] | reasons now |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    count = {(m, a, w): 0 for m in ("ATE", "RPE100", "RPE300") for a in (True, False) for w in (True, False)}
+    count = {(m, a, w): 0 for m in ("ATE", "RPE100", "RPE-300") for a in (True, False) for w in (True, False)}
     for out in runs:
         missing = [f for f in ("metrics.json", "gt_poses_kitti.txt", "round_0/memory") if not (out / f).exists()]
         if missing:
@@ -134,11 +134,12 @@ def rescore(runs: list[Path], settings: list[str]) -> int:
             scans = _raw_scans(out) if scans is None else scans
             v = evaluate_round(out, int(k), ref, m["rounds"], cfg, scans=scans)
             (ate0, rpe0), (ate1, rpe1) = gt_errors(out, ref), gt_errors(out, int(k))
-            r300 = gt_all_pairs_rpe300(out, ref), gt_all_pairs_rpe300(out, int(k))
-            worse = {"ATE": ate1 > 1.05 * ate0, "RPE100": rpe1 > 1.05 * rpe0}
+            # the run's own all-pairs RPE-300 (metrics.json; None on runs of 300 frames or fewer)
+            r300 = tuple(m["rounds"][str(r)]["slam"].get("rpe300_all_pairs_mean") for r in (ref, int(k)))
+            by_gt = {"ATE": worse(ate0, ate1), "RPE100": worse(rpe0, rpe1)}
             if r300[0] is not None:
-                worse["RPE300"] = r300[1] > 1.05 * r300[0]
-            for metric, w in worse.items():
+                by_gt["RPE-300"] = worse(*r300)
+            for metric, w in by_gt.items():
                 count[(metric, v["accepted"], w)] += 1
             st = v.get("standstill") or {}
             creep_mm = "-" if not st.get("stretches") else f"{1e3 * st['worst_creep_per_frame_m']:+.2f}"
@@ -148,11 +149,7 @@ def rescore(runs: list[Path], settings: list[str]) -> int:
                         f"{v['window_entropy_increase']:+.4f} | {creep_mm} | {ate0:.3f} → {ate1:.3f} | "
                         f"{rpe0:.3f} → {rpe1:.3f} | {rpe300} | {'; '.join(v['reasons'])} |")
     rows += ["", "Verdict now against ground truth (worse: more than 5 % above the reference round):", "",
-             "| | ATE not worse | ATE worse | RPE100 not worse | RPE100 worse | RPE-300 not worse | RPE-300 worse |",
-             "|---|---|---|---|---|---|---|"]
-    for acc in (True, False):
-        rows.append(f"| {'accepted' if acc else 'rejected'} | " + " | ".join(
-            str(count[(m, acc, w)]) for m in ("ATE", "RPE100", "RPE300") for w in (False, True)) + " |")
+             *count_rows(count, ("ATE", "RPE100", "RPE-300"))]
     print("\n".join(rows))
     return 0
 

@@ -168,18 +168,11 @@ def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, sti
     p, q = np.asarray(positions, np.float64), np.asarray(reference_positions, np.float64)
     if p.shape != q.shape:
         raise ValueError(f"standstill_creep: shapes {p.shape} and {q.shape} differ")
-    still = np.r_[False, np.linalg.norm(np.diff(q, axis=0), axis=1) < still_step] if len(q) else np.zeros(0, bool)
-    # a still frame k moved little from k-1: the stretch starts at the frame before the first still one
+    # step i (frame i to i+1) is still; a run of still steps first..last-1 spans frames first..last
+    still = np.linalg.norm(np.diff(q, axis=0), axis=1) < still_step if len(q) > 1 else np.zeros(0, bool)
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(np.int8), 0]))
     stretches, creep = [], []
-    k = 0
-    while k < len(still):
-        if not still[k]:
-            k += 1
-            continue
-        start = k
-        while k < len(still) and still[k]:
-            k += 1
-        first, last = start - 1, k - 1
+    for first, last in zip(edges[::2], edges[1::2]):
         if last - first + 1 >= min_frames:
             stretches.append([int(first), int(last)])
             moved = np.linalg.norm(p[last] - p[first])
