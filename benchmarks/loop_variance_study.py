@@ -47,7 +47,8 @@ def record_figures(record: Path, r: int = 0) -> dict:
     horizontal / vertical split, no loop factor), for runs whose folders are gone."""
     rnd = json.loads(record.read_text())["rounds"][str(r)]
     nees, slam = rnd["nees"], rnd["slam"]
-    return {"odometry_nees": nees["nees_odometry_mean"], "loop_nees": nees["nees_loop_mean"], "n_loops": rnd["n_loops"],
+    return {"odometry_nees": nees["nees_odometry_mean"], "odometry_nees_median": None, "odometry_z2": None,
+            "loop_nees": nees["nees_loop_mean"], "n_loops": rnd["n_loops"],
             "position_nees": nees["nees_position_mean"], "horizontal_nees": None, "vertical_nees": None,
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
             "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": None, "loop_redundancy": None}
@@ -63,7 +64,8 @@ def round_figures(run: Path, r: int = 0) -> dict:
     summary = json.loads((rd / "round.json").read_text())
     slam = summary.get("slam") or json.loads((run / "metrics.json").read_text())["rounds"][str(r)]["slam"]
     lv = summary.get("loop_variance") or {}
-    return {"odometry_nees": nc["edges"]["odometry"]["mean"], "loop_nees": nc["edges"]["loop"]["mean"],
+    return {"odometry_nees": nc["edges"]["odometry"]["mean"], "odometry_nees_median": nc["edges"]["odometry"]["median"],
+            "odometry_z2": nc["edges"]["odometry"]["per_axis"]["z2_mean"], "loop_nees": nc["edges"]["loop"]["mean"],
             "n_loops": nc["edges"]["loop"]["n"], "position_nees": nc["position"]["mean"],
             "horizontal_nees": nc["position"]["horizontal"]["mean"], "vertical_nees": nc["position"]["vertical"]["mean"],
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
@@ -76,25 +78,38 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None or not np.isfinite(v) else f"{v:.3g}"
 
 
-def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed", "estimated")) -> str:
+def _axes(z2: list[float] | None) -> str:
+    return "n/a" if z2 is None else " / ".join(f"{v:.2g}" for v in z2)
+
+
+def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed", "estimated"),
+          axes: bool = False) -> str:
+    """Markdown table of the run pairs; ``axes`` adds the odometry edges' NEES median and per-axis z^2."""
+    extra = " odometry NEES median | odometry z² (ωx / ωy / ωz / x / y / z) |" if axes else ""
     head = ("| run | loops | odometry NEES | loop NEES | position NEES (horizontal / vertical) | ATE RMSE [m] "
-            "| RPE-300 all pairs [m] | KITTI [%] | loop information x |")
-    lines = [head, "|" + "---|" * 9]
+            "| RPE-300 all pairs [m] | KITTI [%] | loop information x |" + extra)
+    lines = [head, "|" + "---|" * (11 if axes else 9)]
     for label, fixed, est in rows:
         for what, f in zip(labels, (fixed, est)):
             scale = "1" if f["loop_scale"] is None else _fmt(f["loop_scale"])  # no factor: the loops as registered
+            more = f" {_fmt(f.get('odometry_nees_median'))} | {_axes(f.get('odometry_z2'))} |" if axes else ""
             lines.append(f"| {label}, {what} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
                          f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
                          f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
-                         f"| {scale} |")
+                         f"| {scale} |" + more)
     if len(rows) >= 2:  # mean ± sample std over the triples, per run kind
         keys = ("odometry_nees", "loop_nees", "position_nees", "ate_rmse", "rpe300_all_pairs_mean",
-                "kitti_t_err_percent")
+                "kitti_t_err_percent") + (("odometry_nees_median",) if axes else ())
         for i, what in enumerate(labels):
             v = {k: np.array([r[1 + i][k] for r in rows], float) for k in keys}
-            ms = {k: f"{x.mean():.3g} ± {x.std(ddof=1):.2g}" for k, x in v.items()}
+            ms = {k: "n/a" if np.isnan(x).any() else f"{x.mean():.3g} ± {x.std(ddof=1):.2g}" for k, x in v.items()}
+            more = ""
+            if axes:
+                z2 = [r[1 + i]["odometry_z2"] for r in rows]
+                mean_z2 = None if any(z is None for z in z2) else list(np.mean(z2, axis=0))
+                more = f" {ms['odometry_nees_median']} | {_axes(mean_z2)} (mean) |"
             lines.append(f"| mean ± std, {what} | | {ms['odometry_nees']} | {ms['loop_nees']} | {ms['position_nees']} "
-                         f"| {ms['ate_rmse']} | {ms['rpe300_all_pairs_mean']} | {ms['kitti_t_err_percent']} | |")
+                         f"| {ms['ate_rmse']} | {ms['rpe300_all_pairs_mean']} | {ms['kitti_t_err_percent']} | |" + more)
     return "\n".join(lines)
 
 
@@ -107,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default="loop_variance", help="results file name (default: loop_variance)")
     ap.add_argument("--title", default="Loop edges: fixed weight against the estimated loop variance component "
                     "(round 0)", help="the results file's heading")
+    ap.add_argument("--axes", action="store_true", help="add the odometry edges' NEES median and per-axis z^2")
+    ap.add_argument("--note", default="", help="a paragraph written under the table (how the runs were made)")
     args = ap.parse_args(argv)
     if len(args.triples) % 3:
         ap.error("give LABEL FIXED_RUN ESTIMATED_RUN triples")
@@ -115,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         label, fixed, est = args.triples[i], Path(args.triples[i + 1]), Path(args.triples[i + 2])
         rows.append((label, round_figures(fixed), round_figures(est)))
     a, b = args.labels
-    text = table(rows, (a, b))
+    text = table(rows, (a, b), args.axes)
     print(text)
     if args.write:
         RESULTS.mkdir(parents=True, exist_ok=True)
@@ -123,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
             {"label": label, a: fixed, b: est} for label, fixed, est in rows]})
         command = shlex.join(["python", "benchmarks/loop_variance_study.py", *(sys.argv[1:] if argv is None else argv)])
         atomic_write_text(RESULTS / f"{args.name}.md", f"# {args.title}\n\nCommand: `{command}` (each run's "
-                          f"options in its `config.yaml`). Machine: {machine_line()}.\n\n" + text + "\n")
+                          f"options in its `config.yaml`). Machine: {machine_line()}.\n\n" + text + "\n"
+                          + (f"\n{args.note}\n" if args.note else ""))
     return 0
 
 

@@ -165,6 +165,15 @@ class GraphConfig(_Section):
         0.1, gt=0.0, description="multiplies the variance-factor-scaled registration Hessian (correlated points)"
     )
     min_information_eigenvalue: float = Field(1e-2, gt=0.0, description="floor on information eigenvalues")
+    registration_covariance: Literal["scaled_hessian", "cluster_robust"] = Field(
+        "scaled_hessian", description="information of registered edges (odometry and loops, where no learned noise "
+        "replaces it): 'scaled_hessian' hessian_scale * H / sigma0^2; 'cluster_robust' the inverse of the sandwich "
+        "covariance H^-1 M H^-1 from the residual gradients summed over cubes of cluster_size "
+        "(gr_graph.registration_covariance; no hessian_scale)")
+    cluster_size: float = Field(12.0, gt=0.0, description="cluster_robust: side of the cubes whose residuals may be "
+                                "correlated [m]")
+    min_clusters: int = Field(20, ge=2, description="cluster_robust: fewer clusters with correspondences fall back "
+                              "to scaled_hessian (counted in the round summary)")
     fixed_sigmas: tuple[float, float, float, float, float, float] = (0.002, 0.002, 0.002, 0.05, 0.05, 0.05)
     fallback_sigmas: tuple[float, float, float, float, float, float] = (0.05, 0.05, 0.05, 1.0, 1.0, 1.0)
     loop_kernel: Literal["cauchy", "huber", "none"] = "cauchy"

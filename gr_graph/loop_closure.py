@@ -27,8 +27,9 @@ import numpy as np
 import small_gicp
 
 from gr_graph.config import GraphConfig, LoopConfig
-from gr_graph.odometry import RegistrationEdge, scaled_information
+from gr_graph.odometry import RegistrationEdge, registration_information
 from gr_graph.preprocess import Scan
+from gr_graph.registration_covariance import gicp_correspondences
 
 log = logging.getLogger(__name__)
 
@@ -259,7 +260,9 @@ def verify_loop(
     H = np.asarray(res.H, dtype=np.float64)
     if not np.all(np.isfinite(H)) or res.num_inliers < 6:
         return reject("degenerate Hessian", T, extra)
-    information = scaled_information(H, res.error, res.num_inliers, graph_cfg.hessian_scale)
+    information, model = registration_information(
+        res, T, graph_cfg, lambda: gicp_correspondences(target.cloud, target.tree, source.cloud, T,
+                                                        cfg.max_correspondence_distance))
     return RegistrationEdge(cand.query, cand.match, T, H, information, ratio,
                             float(res.error / max(res.num_inliers, 1)), int(res.iterations), True, "", "loop",
-                            {**info, **extra})
+                            {**info, **extra, "covariance": model})

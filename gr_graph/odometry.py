@@ -10,7 +10,9 @@ the previous scan alone. The result is one odometry edge ``(k+1, k)`` with
   right perturbation, so it is directly the Hessian w.r.t. T̂_{k+1,k} ∘ Exp(ξ));
 - ``information``: ``H_raw`` divided by the a-posteriori variance factor
   σ₀² = 2·error / (3·inliers − 6) (small_gicp's covariances are unit-less plane shapes, not
-  metric noise), times ``graph.hessian_scale`` (points are spatially correlated);
+  metric noise), times ``graph.hessian_scale`` (points are spatially correlated); or, with
+  ``graph.registration_covariance: cluster_robust``, the inverse of the cluster-robust covariance
+  from the registration's own residuals (:mod:`gr_graph.registration_covariance`);
 - fitness figures: inlier ratio, mean cost per inlier, iterations.
 
 A registration that returns non-finite values, has an inlier ratio below
@@ -24,6 +26,7 @@ The learned alternative to the registration information is :mod:`gr_graph.edge_n
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,6 +35,7 @@ import small_gicp
 from factors.se3 import rotation_angle
 from gr_graph.config import GraphConfig, OdometryConfig
 from gr_graph.preprocess import Scan
+from gr_graph.registration_covariance import Correspondences, cluster_robust_information, vgicp_correspondences
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +97,26 @@ def scaled_information(H: np.ndarray, error: float, num_inliers: int, scale: flo
     var = max(2.0 * float(error) / dof, 1e-12)
     Hs = 0.5 * (H + H.T)
     return scale * Hs / var
+
+
+def registration_information(res: small_gicp.RegistrationResult, T: np.ndarray, graph_cfg: GraphConfig,
+                             correspondences: Callable[[], Correspondences]) -> tuple[np.ndarray, str]:
+    """Information of a registered edge and the model that gave it (``graph.registration_covariance``).
+
+    ``T`` is the registration's result (source into target), ``correspondences`` rebuilds its
+    correspondences at ``T`` (called only for ``cluster_robust``). Returns the information and
+    ``"scaled_hessian"``, ``"cluster_robust"`` or ``"scaled_hessian_fallback"`` (the cluster-robust
+    covariance was not available: too few clusters or a singular Hessian).
+    """
+    scaled = scaled_information(np.asarray(res.H, dtype=np.float64), res.error, res.num_inliers,
+                                graph_cfg.hessian_scale)
+    if graph_cfg.registration_covariance != "cluster_robust":
+        return scaled, "scaled_hessian"
+    info, n_clusters = cluster_robust_information(T, correspondences(), graph_cfg.cluster_size, graph_cfg.min_clusters)
+    if info is None:
+        log.debug("cluster-robust covariance not available (%d clusters); scaled Hessian used", n_clusters)
+        return scaled, "scaled_hessian_fallback"
+    return info, "cluster_robust"
 
 
 def check_registration(
@@ -230,9 +254,12 @@ class VgicpOdometry:
         else:
             H = np.asarray(res.H, dtype=np.float64)
             if self.graph_cfg.odometry_noise == "hessian":
-                info = scaled_information(H, res.error, res.num_inliers, self.graph_cfg.hessian_scale)
+                target_map = self._map
+                info, model = registration_information(
+                    res, T_res, self.graph_cfg, lambda: vgicp_correspondences(
+                        target_map, scan.cloud, T_res, self.cfg.voxel_resolution, self.cfg.max_correspondence_distance))
             else:
-                info = sigmas_information(self.graph_cfg.fixed_sigmas)
+                info, model = sigmas_information(self.graph_cfg.fixed_sigmas), "fixed"
             edge = RegistrationEdge(
                 source=k,
                 target=k - 1,
@@ -243,6 +270,7 @@ class VgicpOdometry:
                 error_per_inlier=float(res.error / max(res.num_inliers, 1)),
                 iterations=int(res.iterations),
                 ok=True,
+                info={"covariance": model},
             )
             self._delta = T_rel
         T_new = T_prev @ edge.T

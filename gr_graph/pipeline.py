@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.atomic import atomic_write_bytes
-from gr_graph.config import SlamConfig, dump_config
+from gr_graph.config import GraphConfig, SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_cam_poses
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
@@ -78,7 +78,10 @@ __all__ = ["SlamPipeline", "round_fingerprint"]
 
 # (section, option) -> the default it had in effect before it existed; at that value it is left out of
 # the round fingerprint
-_ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False}
+_ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
+                                              ("graph", "registration_covariance"): "scaled_hessian",
+                                              **{("graph", k): GraphConfig.model_fields[k].default
+                                                 for k in ("cluster_size", "min_clusters")}}
 
 
 def round_fingerprint(cfg: SlamConfig, r: int) -> str:
@@ -88,7 +91,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     the number of rounds, the convergence threshold or the acceptance test (so ``--rounds 2``
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
-    ``graph.loop_variance``, ``training.keep_dropped``) count only when they are not at their
+    ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
+    options) count only when they are not at their
     default, so that rounds finished before the option existed stay finished.
     """
     if r == 0:

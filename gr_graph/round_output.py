@@ -49,6 +49,7 @@ marginals needed a fallback).
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -138,6 +139,9 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
         "loop_variance": res.info.get("loop_variance"),
+        # how the registrations' information was computed (graph.registration_covariance), per model; counts
+        # "scaled_hessian_fallback" where the cluster-robust covariance was not available
+        "registration_covariance": dict(Counter(str(e.info.get("covariance", "none")) for e in res.edges if e.ok)),
     }
 
 

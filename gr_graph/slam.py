@@ -119,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loop-variance", choices=("fixed", "estimated"), default=None,
                    help="loop edges' information: as registered, or divided by the loops' variance factor "
                         f"estimated from the graph's residuals (default: {d.graph.loop_variance})")
+    p.add_argument("--registration-covariance", choices=("scaled_hessian", "cluster_robust"), default=None,
+                   help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
+                        f"covariance from the residuals (default: {d.graph.registration_covariance})")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
@@ -184,6 +187,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["data"]["kitti_vertical_correction_deg"] = args.kitti_vertical_correction
     if args.loop_variance is not None:
         o["graph"]["loop_variance"] = args.loop_variance
+    if args.registration_covariance is not None:
+        o["graph"]["registration_covariance"] = args.registration_covariance
     if args.no_resume:
         o["output"]["resume"] = False
     if args.no_memory:

@@ -104,7 +104,7 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
                "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes", "--synthetic-preset": "noisy",
                "--preset": "noisy", "--world": "urban", "--dataset": "pcap", "--sensor": "hdl32e", "--budget": "huge",
-               "--loop-variance": "sometimes"}
+               "--loop-variance": "sometimes", "--registration-covariance": "sandwich"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 
@@ -160,6 +160,8 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"odometry": {"deskew": "on"}, "data": {"kitti_vertical_correction_deg": 0.205}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--loop-variance", "estimated"]))
     assert o == {"graph": {"loop_variance": "estimated"}}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--registration-covariance", "cluster_robust"]))
+    assert o == {"graph": {"registration_covariance": "cluster_robust"}}
     # the old spelling still works, hidden, and says which one to use
     assert slam.build_parser().parse_args(["--quiet"]).no_progress is True
     assert "--quiet is deprecated, use --no-progress" in capsys.readouterr().err

@@ -565,12 +565,21 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     import hashlib
 
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
-                                           "device": True, "graph": {"loop_variance"}})
+                                           "device": True, "graph": {"loop_variance", "registration_covariance",
+                                                                      "cluster_size", "min_clusters"}})
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+    # graph.registration_covariance likewise (its two options are hashed only away from their defaults)
+    c = load_config(None, {"training": {"rounds": 2}, "graph": {"registration_covariance": "cluster_robust"}})
+    assert round_fingerprint(c, 0) != round_fingerprint(a, 0)
+    c16 = load_config(None, {"training": {"rounds": 2}, "graph": {"registration_covariance": "cluster_robust",
+                                                                  "cluster_size": 16.0}})
+    assert round_fingerprint(c16, 0) != round_fingerprint(c, 0)
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
-    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "graph": {"loop_variance"},
+    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"},
+                                            "graph": {"loop_variance", "registration_covariance", "cluster_size",
+                                                      "min_clusters"},
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]

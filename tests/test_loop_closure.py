@@ -90,6 +90,12 @@ def test_verify_accepts_real_overlapping_pair(gicp_pair):
     et, er = loop_error(e.T, np.stack([T_ref, np.eye(4)]), 0, 1)
     assert et < 0.05 and er < 0.5
     assert e.kind == "loop" and np.all(np.linalg.eigvalsh(e.information) > 0)
+    assert e.info["covariance"] == "scaled_hessian"
+    # the cluster-robust covariance of the same registration (same pose; its own information)
+    r = verify_loop(s, t, cand, LoopConfig(), GraphConfig(registration_covariance="cluster_robust", min_clusters=10))
+    assert r.ok and r.info["covariance"] == "cluster_robust"
+    np.testing.assert_allclose(r.T, e.T)
+    assert np.all(np.linalg.eigvalsh(r.information) > 0) and not np.allclose(r.information, e.information, rtol=0.1)
 
 
 def test_verify_rejects_pair_far_apart(gicp_pair, kitti0):
