@@ -83,8 +83,9 @@ def _axes(z2: list[float] | None) -> str:
 
 
 def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed", "estimated"),
-          axes: bool = False) -> str:
-    """Markdown table of the run pairs; ``axes`` adds the odometry edges' NEES median and per-axis z^2."""
+          axes: bool = False, summary: bool = True) -> str:
+    """Markdown table of the run pairs; ``axes`` adds the odometry edges' NEES median and per-axis z^2;
+    ``summary`` the mean ± std rows over the pairs (off when the pairs are not seeds of one setting)."""
     extra = " odometry NEES median | odometry z² (ωx / ωy / ωz / x / y / z) |" if axes else ""
     head = ("| run | loops | odometry NEES | loop NEES | position NEES (horizontal / vertical) | ATE RMSE [m] "
             "| RPE-300 all pairs [m] | KITTI [%] | loop information x |" + extra)
@@ -97,7 +98,7 @@ def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed"
                          f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
                          f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
                          f"| {scale} |" + more)
-    if len(rows) >= 2:  # mean ± sample std over the triples, per run kind
+    if summary and len(rows) >= 2:  # mean ± sample std over the triples, per run kind
         keys = ("odometry_nees", "loop_nees", "position_nees", "ate_rmse", "rpe300_all_pairs_mean",
                 "kitti_t_err_percent") + (("odometry_nees_median",) if axes else ())
         for i, what in enumerate(labels):
@@ -123,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--title", default="Loop edges: fixed weight against the estimated loop variance component "
                     "(round 0)", help="the results file's heading")
     ap.add_argument("--axes", action="store_true", help="add the odometry edges' NEES median and per-axis z^2")
+    ap.add_argument("--no-summary", action="store_true",
+                    help="no mean ± std rows (the triples are not seeds of one setting, e.g. a parameter sweep)")
     ap.add_argument("--note", default="", help="a paragraph written under the table (how the runs were made)")
     args = ap.parse_args(argv)
     if len(args.triples) % 3:
@@ -132,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         label, fixed, est = args.triples[i], Path(args.triples[i + 1]), Path(args.triples[i + 2])
         rows.append((label, round_figures(fixed), round_figures(est)))
     a, b = args.labels
-    text = table(rows, (a, b), args.axes)
+    text = table(rows, (a, b), args.axes, not args.no_summary)
     print(text)
     if args.write:
         RESULTS.mkdir(parents=True, exist_ok=True)

@@ -172,8 +172,9 @@ class GraphConfig(_Section):
         "(gr_graph.registration_covariance; no hessian_scale)")
     cluster_size: float = Field(12.0, gt=0.0, description="cluster_robust: side of the cubes whose residuals may be "
                                 "correlated [m]")
-    min_clusters: int = Field(20, ge=2, description="cluster_robust: fewer clusters with correspondences fall back "
-                              "to scaled_hessian (counted in the round summary)")
+    min_clusters: int = Field(20, ge=7, description="cluster_robust: fewer clusters with correspondences fall back "
+                              "to scaled_hessian (counted in the round summary); at least 7, the 6x6 spread of the "
+                              "cluster sums has rank at most their number")
     fixed_sigmas: tuple[float, float, float, float, float, float] = (0.002, 0.002, 0.002, 0.05, 0.05, 0.05)
     fallback_sigmas: tuple[float, float, float, float, float, float] = (0.05, 0.05, 0.05, 1.0, 1.0, 1.0)
     loop_kernel: Literal["cauchy", "huber", "none"] = "cauchy"

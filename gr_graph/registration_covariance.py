@@ -117,7 +117,8 @@ def cluster_robust_covariance(H: np.ndarray, gradients: np.ndarray, labels: np.n
         Cluster of each correspondence, ``0 .. n_clusters - 1``.
     n_clusters : int
     min_clusters : int
-        Fewer clusters than this give ``None`` (the 6x6 ``M`` is not estimable from a handful).
+        Fewer clusters than this give ``None`` (the 6x6 ``M`` is not estimable from a handful; it
+        has rank at most the number of clusters).
 
     Returns
     -------
@@ -136,7 +137,10 @@ def cluster_robust_covariance(H: np.ndarray, gradients: np.ndarray, labels: np.n
     H_inv = np.linalg.inv(L).T @ np.linalg.inv(L)
     cov = H_inv @ M @ H_inv
     cov = 0.5 * (cov + cov.T)
-    if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov)[0] <= 0:
+    if not np.all(np.isfinite(cov)):
+        return None
+    eigenvalues = np.linalg.eigvalsh(cov)
+    if eigenvalues[0] <= 1e-9 * eigenvalues[-1]:  # M of rank < 6 (few clusters): singular to round-off
         return None
     return cov
 
@@ -162,14 +166,20 @@ _READ_RESOLUTION = 1e-3
 
 
 def _cloud(cloud: small_gicp.PointCloud) -> tuple[np.ndarray, np.ndarray]:
-    """A cloud's points ``(N, 3)`` and covariances ``(N, 3, 3)`` (in voxel order, not the cloud's).
+    """A cloud's points ``(N, 3)`` and covariances ``(N, 3, 3)``, in the cloud's order.
 
     ``PointCloud.covs()`` returns a Python list of N 4x4 arrays (tens of ms a scan); a Gaussian voxel
-    map of the cloud at :data:`_READ_RESOLUTION` returns the same Gaussians as two arrays.
+    map of the cloud at :data:`_READ_RESOLUTION` returns the same Gaussians as two arrays, one voxel
+    a point in insertion order. Where that does not hold (two points in one voxel, another
+    order), checked against the cloud's points, the covariances are read the slow way.
     """
+    points = np.asarray(cloud.points())[:, :3]
     voxels = small_gicp.GaussianVoxelMap(_READ_RESOLUTION)
     voxels.insert(cloud)
-    return _gaussians(voxels)
+    voxel_points, voxel_covs = _gaussians(voxels)
+    if voxel_points.shape == points.shape and np.array_equal(voxel_points, points):
+        return points, voxel_covs
+    return points, np.asarray(cloud.covs()).reshape(-1, 4, 4)[:, :3, :3]
 
 
 def _gaussians(voxels: small_gicp.GaussianVoxelMap) -> tuple[np.ndarray, np.ndarray]:
@@ -212,7 +222,7 @@ def gicp_correspondences(target: small_gicp.PointCloud, target_tree: small_gicp.
                          T: np.ndarray, max_distance: float) -> Correspondences:
     """GICP's correspondences at ``T``: each source point with its nearest target point within ``max_distance``."""
     p, cov_p = _cloud(source)
-    q_all, cov_q_all = _cloud(target)
+    q_all, cov_q_all = _cloud(target)  # the tree's indices are in the target cloud's order
     idx, d2 = target_tree.batch_nearest_neighbor_search(p @ T[:3, :3].T + T[:3, 3])
     idx, d2 = np.asarray(idx, np.int64), np.asarray(d2)
     i = np.nonzero((d2 < max_distance**2) & (idx >= 0) & (idx < len(q_all)))[0]
@@ -242,5 +252,8 @@ def cluster_robust_information(T: np.ndarray, corr: Correspondences, cluster_siz
     cov = cluster_robust_covariance(H, point_gradients(T, p, q, info), labels, n_clusters, min_clusters)
     if cov is None:
         return None, n_clusters
-    information = np.linalg.inv(cov)
+    try:
+        information = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        return None, n_clusters
     return 0.5 * (information + information.T), n_clusters

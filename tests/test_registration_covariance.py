@@ -225,3 +225,27 @@ def test_round_summary_counts_the_models_of_accepted_registrations():
                           info={"n_flagged_odometry": 1})
     summary = round_summary(0, res, "abc", 100.0)
     assert summary["registration_covariance"] == {"cluster_robust": 2, "scaled_hessian_fallback": 1, "fixed": 1}
+
+
+def test_cloud_gaussians_come_in_the_clouds_order_even_with_duplicate_points():
+    """The fast read (a fine voxel map) must give each point its own covariance in the cloud's
+    order; a duplicate point would merge two voxels and shift the rows: then the slow read."""
+    from gr_graph.registration_covariance import _cloud
+
+    rng = np.random.default_rng(4)
+    pts = street(rng, n=4000)
+    for points in (pts, np.insert(pts, 100, pts[50], axis=0)):  # second: point 50 twice
+        cloud = small_gicp.PointCloud(points)
+        small_gicp.estimate_covariances(cloud, small_gicp.KdTree(cloud), num_neighbors=10)
+        p, cov = _cloud(cloud)
+        np.testing.assert_array_equal(p, np.asarray(cloud.points())[:, :3])
+        np.testing.assert_allclose(cov, np.asarray(cloud.covs())[:, :3, :3], atol=1e-15)
+
+
+def test_few_clusters_give_no_covariance_and_the_config_refuses_fewer_than_seven():
+    rng = np.random.default_rng(5)
+    g = rng.normal(size=(40, 6))
+    g -= g.mean(0)
+    assert cluster_robust_covariance(np.eye(6), g, np.arange(40) % 4, 4) is None  # rank(M) <= 4
+    with pytest.raises(ValueError, match="min_clusters"):
+        GraphConfig(min_clusters=5)
