@@ -139,9 +139,12 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
         "loop_variance": res.info.get("loop_variance"),
-        # how the registrations' information was computed (graph.registration_covariance), per model; counts
-        # "scaled_hessian_fallback" where the cluster-robust covariance was not available
-        "registration_covariance": dict(Counter(str(e.info.get("covariance", "none")) for e in res.edges if e.ok)),
+        # the information each accepted edge entered the graph with: the registration's model
+        # (graph.registration_covariance; "scaled_hessian_fallback" where the cluster-robust covariance was not
+        # available) or "learned" where the learned edge noise replaced it
+        "registration_covariance": dict(Counter(
+            "learned" if e.info.get("edge_noise") == "learned" else str(e.info.get("covariance", "none"))
+            for e in res.edges if e.ok)),
     }
 
 

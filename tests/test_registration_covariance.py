@@ -209,7 +209,7 @@ def test_odometry_edges_carry_the_model_and_fall_back_with_too_few_clusters(scan
     assert not np.allclose(edges["robust"].information, e.information, rtol=0.1)
 
 
-def test_round_summary_counts_the_models_of_accepted_registrations():
+def test_round_summary_counts_the_information_each_accepted_edge_entered_the_graph_with():
     from types import SimpleNamespace
 
     from gr_graph.odometry import RegistrationEdge
@@ -220,11 +220,14 @@ def test_round_summary_counts_the_models_of_accepted_registrations():
         return RegistrationEdge(1, 0, np.eye(4), np.eye(6), np.eye(6), 1.0, 0.1, 3, ok, "", kind, info)
 
     edges = [edge("cluster_robust"), edge("cluster_robust", kind="loop"), edge("scaled_hessian_fallback"),
-             edge(None, ok=False), edge("fixed")]
+             edge(None, ok=False), edge("fixed"), edge("cluster_robust"), edge("scaled_hessian")]
+    edges[-2].info["edge_noise"] = "learned"  # the learned edge noise replaced its information
+    edges[-1].info["edge_noise"] = "registration (no correspondences)"  # a learned-noise fallback keeps it
     res = SimpleNamespace(poses=np.zeros((6, 4, 4)), edges=edges, loops=[edges[1]], loop_attempts=[], graph_error=(1.0, 0.5),
                           info={"n_flagged_odometry": 1})
     summary = round_summary(0, res, "abc", 100.0)
-    assert summary["registration_covariance"] == {"cluster_robust": 2, "scaled_hessian_fallback": 1, "fixed": 1}
+    assert summary["registration_covariance"] == {"cluster_robust": 2, "scaled_hessian_fallback": 1, "fixed": 1,
+                                                  "learned": 1, "scaled_hessian": 1}
 
 
 def test_cloud_gaussians_come_in_the_clouds_order_even_with_duplicate_points():
