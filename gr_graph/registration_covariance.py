@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
-from factors.wls import wls_cost_gradient_hessian
+from factors.wls import _components, _inv3_spd, _matrices, _rotate_covariances, _spd_flags, wls_cost_gradient_hessian
 
 __all__ = ["point_gradients", "cube_labels", "cluster_robust_covariance", "Correspondences", "vgicp_correspondences",
            "gicp_correspondences", "cluster_robust_information"]
@@ -84,23 +84,6 @@ def cube_labels(points: np.ndarray, size: float) -> tuple[np.ndarray, int]:
     _, labels = np.unique(keys, return_inverse=True)
     labels = labels.ravel()
     return labels, int(labels.max()) + 1 if len(labels) else 0
-
-
-def _inverse_spd3(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverses of symmetric 3x3 matrices ``(N, 3, 3)`` in closed form (adjugate / determinant) and
-    the mask of those that are positive definite (Sylvester's criterion: leading minors > 0)."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    det = a * A + b * B + c * C
-    ok = (a > 0) & (a * d - b * b > 0) & (det > 0) & np.isfinite(det)
-    det = np.where(ok, det, 1.0)
-    inv = np.empty_like(S)
-    inv[:, 0, 0], inv[:, 1, 1], inv[:, 2, 2] = A / det, (a * f - c * c) / det, (a * d - b * b) / det
-    inv[:, 0, 1] = inv[:, 1, 0] = B / det
-    inv[:, 0, 2] = inv[:, 2, 0] = C / det
-    inv[:, 1, 2] = inv[:, 2, 1] = (b * c - a * e) / det
-    return inv, ok
 
 
 def cluster_robust_covariance(H: np.ndarray, gradients: np.ndarray, labels: np.ndarray, n_clusters: int,
@@ -200,19 +183,15 @@ def vgicp_correspondences(voxel_map: small_gicp.GaussianVoxelMap, cloud: small_g
     """
     p, cov_p = _cloud(cloud)
     mu, cov_mu = _gaussians(voxel_map)
+    if len(mu) == 0:
+        return Correspondences(p[:0], mu, cov_p[:0], cov_mu)
     voxel_keys = _pack(np.floor(mu / resolution).astype(np.int64))
     order = np.argsort(voxel_keys)
     sorted_keys = voxel_keys[order]
     point_keys = _pack(np.floor((p @ T[:3, :3].T + T[:3, 3]) / resolution).astype(np.int64))
-    pos = np.clip(np.searchsorted(sorted_keys, point_keys), 0, max(len(sorted_keys) - 1, 0))
-    if len(sorted_keys) == 0:
-        hit = np.zeros(len(p), bool)
-        idx = np.zeros(len(p), np.int64)
-    else:
-        hit = sorted_keys[pos] == point_keys
-        idx = order[pos]
-    i = np.nonzero(hit)[0]
-    j = idx[i]
+    pos = np.minimum(np.searchsorted(sorted_keys, point_keys), len(sorted_keys) - 1)
+    i = np.nonzero(sorted_keys[pos] == point_keys)[0]
+    j = order[pos[i]]
     keep = _within(p[i], mu[j], T, max_distance)
     i, j = i[keep], j[keep]
     return Correspondences(p[i], mu[j], cov_p[i], cov_mu[j])
@@ -240,11 +219,12 @@ def cluster_robust_information(T: np.ndarray, corr: Correspondences, cluster_siz
     """
     if len(corr.p) < 6:
         return None, 0
-    R = T[:3, :3]
-    S = corr.cov_q + (corr.cov_p.reshape(-1, 9) @ np.kron(R, R).T).reshape(-1, 3, 3)  # + R C_p R^T
+    # GICP residual information (C_q + R C_p R^T)^-1, in factors.wls's (9, N) layout; pairs whose sum is
+    # not positive definite are left out (residual_information would raise on them)
+    S = _components(corr.cov_q) + _rotate_covariances(_components(corr.cov_p), T[:3, :3])
     with np.errstate(all="ignore"):
-        info, ok = _inverse_spd3(0.5 * (S + S.transpose(0, 2, 1)))
-    p, q, info = corr.p[ok], corr.q[ok], info[ok]
+        ok = np.isfinite(S).all(axis=0) & _spd_flags(S)
+    p, q, info = corr.p[ok], corr.q[ok], _matrices(_inv3_spd(S[:, ok]))
     if len(p) < 6:
         return None, 0
     _, _, H = wls_cost_gradient_hessian(T, p, q, info)
