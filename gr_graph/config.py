@@ -58,6 +58,10 @@ class DataConfig(_Section):
         "None: all the sensor's beams")
     frames: tuple[int, int] | None = Field(None, description="half-open frame range [A, B)")
     prefetch: int = Field(4, ge=0, description="frames read (rendered) ahead in a worker thread; 0: none")
+    read_threads: int = Field(
+        2, ge=1, description="worker threads reading ahead where a sequence's frames can be made concurrently (the "
+        "densified scans of the learning rounds: the network pass of each frame); other sequences read in one. "
+        "Changes no result (each frame's densification is seeded by its index)")
     frame_cache: bool | None = Field(
         None, description="keep every frame read in <out>/frames (uncompressed: ~1 MB a 16-channel frame, deleted "
         "when the run ends) so that the learning rounds read it back instead of making it again; None: on for "

@@ -158,7 +158,7 @@ def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
     if isinstance(checkpoint, CovarianceNet):
         from training.predict import predict_covariances
 
-        model = checkpoint
+        model = checkpoint.eval()  # once: predict_covariances then never switches modes (reader threads share it)
 
         def predict(points: np.ndarray) -> np.ndarray:
             return predict_covariances(model, points, device=device, seed=seed)
@@ -297,7 +297,15 @@ def source_intensity(raw_points: np.ndarray, raw_intensity: np.ndarray | None, p
 
 
 class DensifiedSequence:
-    """Lazy view of ``parent`` whose frames are the densified scans S+_k (module docstring)."""
+    """Lazy view of ``parent`` whose frames are the densified scans S+_k (module docstring).
+
+    Frames may be read from several threads at once (``concurrent_reads``; the SLAM reader's
+    ``data.read_threads``): the parent is read under a lock, each frame's split and sampling
+    are seeded by its index alone, and the counters are locked, so a frame is the same
+    whatever thread reads it and in whatever order.
+    """
+
+    concurrent_reads = True
 
     def __init__(self, parent: LidarSequence, predictor: Predictor, training_cfg: TrainingConfig,
                  preprocess: PreprocessConfig | None = None, keep_predictions: int = 16) -> None:

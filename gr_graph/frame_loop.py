@@ -1,7 +1,7 @@
 """F_SLAM over one sequence: the frame loop (one round of :mod:`gr_graph.pipeline`).
 
-:func:`run_slam` reads (renders) the frames one at a time in a worker thread
-(:func:`prefetch_frames`), and for each frame
+:func:`run_slam` reads (renders) the frames ahead in a worker thread, two for the densified
+scans of the learning rounds (``data.read_threads``; :func:`prefetch_frames`), and for each frame
 
 0. deskews it when ``odometry.deskew`` says so (:class:`FrameDeskewer`): every raw point
    is moved to the sensor frame at mid-sweep, assuming the sensor keeps the velocity of the
@@ -72,18 +72,24 @@ class StageTimer:
             self.seconds[name] += time.perf_counter() - t0
 
 
-def prefetch_frames(sequence: LidarSequence, ahead: int = 4) -> Iterator[LidarFrame]:
-    """Yield ``sequence[0..K-1]`` in order while a worker thread reads (renders) the next ones.
+def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -> Iterator[LidarFrame]:
+    """Yield ``sequence[0..K-1]`` in order while worker threads read (render) the next ones.
 
-    Reading/rendering (file I/O, open3d ray casting, numpy) releases the GIL, so it overlaps
-    with registration. ``ahead=0`` reads in the calling thread. Errors surface in order.
+    Reading/rendering (file I/O, open3d ray casting, numpy, torch) releases the GIL, so it
+    overlaps with registration. ``ahead=0`` reads in the calling thread. Errors surface in order.
+    ``threads`` workers read at once only from a sequence whose ``concurrent_reads`` attribute
+    is true (its ``__getitem__`` is thread-safe and a frame does not depend on the order frames
+    are read in: :class:`gr_graph.densify.DensifiedSequence`); any other sequence is read by one.
+    At least as many frames as workers are read ahead.
     """
     K = len(sequence)
     if ahead <= 0:
         for i in range(K):
             yield sequence[i]
         return
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gr_graph-read") as pool:
+    workers = max(1, int(threads)) if getattr(sequence, "concurrent_reads", False) else 1
+    ahead = max(ahead, workers)
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gr_graph-read") as pool:
         queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
         nxt = len(queue)
         while queue:
@@ -271,7 +277,7 @@ class _FrameLoop:
 
     def run(self, desc: str) -> SlamResult:
         K = len(self.sequence)
-        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch)
+        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
         bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
                    mininterval=1.0)
         for i in bar:

@@ -76,6 +76,8 @@ log = logging.getLogger(__name__)
 __all__ = ["SlamPipeline", "round_fingerprint"]
 
 
+#: ``data`` options that change how frames are read, never what is read: in no fingerprint or cache key.
+READ_OPTIONS = {"prefetch", "frame_cache", "read_threads"}
 # (section, option) -> the default it had in effect before it existed; at that value it is left out of
 # the round fingerprint
 _ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
@@ -96,10 +98,10 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     default, so that rounds finished before the option existed stay finished.
     """
     if r == 0:
-        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": READ_OPTIONS, "training": True,
                                                  "device": True})
     else:
-        d = cfg.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"},
+        d = cfg.model_dump(mode="json", exclude={"output": True, "data": READ_OPTIONS,
                                                  "training": {"rounds", "convergence_delta", "acceptance",
                                                               "stop_on_reject", "weights", "fine_tune"}})
         tc = cfg.training
@@ -186,7 +188,7 @@ class SlamPipeline:
         if not use:
             return None
         d = self.cfg.model_dump(mode="json", include={"data", "sensor", "seed"},
-                                exclude={"data": {"prefetch", "frame_cache"}})
+                                exclude={"data": READ_OPTIONS})
         from gr_graph import __version__
         from gr_graph.provenance import git_state
 

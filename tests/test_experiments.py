@@ -564,7 +564,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     assert round_fingerprint(e, 0) != round_fingerprint(a, 0) and round_fingerprint(e, 1) != round_fingerprint(a, 1)
     import hashlib
 
-    d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"}, "training": True,
+    d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
                                                                       "cluster_size", "min_clusters"}})
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
@@ -577,12 +577,15 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
-    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache"},
+    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
                                                       "min_clusters"},
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]
+    # how frames are read (data.read_threads, like prefetch) is in no fingerprint
+    t = load_config(None, {"training": {"rounds": 2}, "data": {"read_threads": 1, "prefetch": 2}})
+    assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]
 
 
 # ----------------------------------------------------------------------------- end to end

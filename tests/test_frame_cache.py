@@ -141,7 +141,8 @@ def test_synthetic_views_make_frames_and_release_through_the_cache(tmp_path):
 @pytest.mark.slow
 def test_learning_run_with_the_cache_equals_the_run_without(tmp_path):
     """Round 0 fills the cache, round 1 reads every frame back; the results are identical to a
-    run that makes every frame again, and the cache is gone at the end."""
+    run that makes every frame again and to one whose densified frames one thread reads
+    (``data.read_threads``), and the cache is gone at the end."""
     from gr_graph.slam import main
 
     config = {"training": {"epochs": 1, "trainer": {
@@ -149,9 +150,9 @@ def test_learning_run_with_the_cache_equals_the_run_without(tmp_path):
         "net": {"n_points": 512, "k0": 8, "k1": 8, "k2": 8, "c0": 16, "c1": 32, "c2": 32, "kw": 8}}},
         "output": {"plot": False}}
     runs = {}
-    for name, use in (("cached", None), ("uncached", False)):
+    for name, data in (("cached", {}), ("uncached", {"frame_cache": False}), ("one_reader", {"read_threads": 1})):
         cfg = tmp_path / f"{name}.yaml"
-        cfg.write_text(yaml.safe_dump({**config, "data": {"frame_cache": use}}))
+        cfg.write_text(yaml.safe_dump({**config, "data": data}))
         out = tmp_path / name
         assert main(["--frames", "740:750", "--channels", "16", "--rounds", "1", "--synthetic-preset", "clean",
                      "--out", str(out), "--config", str(cfg), "--quiet"]) == 0
@@ -161,7 +162,8 @@ def test_learning_run_with_the_cache_equals_the_run_without(tmp_path):
     assert stats["misses"] == 10 and stats["hits"] >= 10 and stats["unreadable"] == stats["write_errors"] == 0
     assert "frame_cache" not in json.loads((b / "metrics.json").read_text())
     assert not (a / "frames").exists()
-    for r in ("round_0", "round_1"):
-        with np.load(a / r / "marginals.npz") as za, np.load(b / r / "marginals.npz") as zb:
-            for key in ("poses", "covariance", "edge_information"):
-                np.testing.assert_array_equal(za[key], zb[key], err_msg=f"{r}: {key}")
+    for other in (b, runs["one_reader"]):  # the densified frames read by two threads (the default) or one
+        for r in ("round_0", "round_1"):
+            with np.load(a / r / "marginals.npz") as za, np.load(other / r / "marginals.npz") as zb:
+                for key in ("poses", "covariance", "edge_information"):
+                    np.testing.assert_array_equal(za[key], zb[key], err_msg=f"{other.name} {r}: {key}")

@@ -48,3 +48,40 @@ def test_prefetch_yields_in_order_and_raises_in_order(ahead):
         for x in prefetch_frames(_Numbers(7, bad=3), ahead):
             got.append(x)
     assert got == [0, 1, 2]
+
+
+class _ThreadRecordingNumbers(_Numbers):
+    """Numbers that record which thread made each one (and take a moment, so reads overlap)."""
+
+    concurrent_reads = True
+
+    def __init__(self, n: int, bad: int = -1) -> None:
+        super().__init__(n, bad)
+        self.threads: set[str] = set()
+
+    def __getitem__(self, i: int) -> int:
+        import threading
+        import time
+
+        self.threads.add(threading.current_thread().name)
+        time.sleep(0.01)
+        return super().__getitem__(i)
+
+
+def test_concurrent_reads_use_the_threads_and_keep_the_order():
+    seq = _ThreadRecordingNumbers(12)
+    assert list(prefetch_frames(seq, ahead=1, threads=2)) == list(range(12))  # ahead is raised to the workers
+    assert len(seq.threads) == 2 and all(t.startswith("gr_graph-read") for t in seq.threads)
+    bad = _ThreadRecordingNumbers(12, bad=5)
+    got = []
+    with pytest.raises(OSError, match="frame 5"):
+        for x in prefetch_frames(bad, ahead=4, threads=2):
+            got.append(x)
+    assert got == [0, 1, 2, 3, 4]
+
+
+def test_sequences_that_do_not_say_so_are_read_by_one_thread():
+    seq = _ThreadRecordingNumbers(12)
+    seq.concurrent_reads = False
+    assert list(prefetch_frames(seq, ahead=4, threads=2)) == list(range(12))
+    assert len(seq.threads) == 1

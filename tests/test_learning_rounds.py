@@ -188,6 +188,32 @@ def test_deterministic_per_seed_and_frame():
     assert not np.allclose(a[1].points[: 100], a[2].points[: 100])  # frames get different streams
 
 
+def test_frames_read_by_two_threads_equal_frames_read_in_order():
+    """The SLAM reader's ``data.read_threads``: a real network (random weights) and the
+    sampling give every frame bit for bit whatever thread reads it, in whatever order."""
+    import torch
+
+    from gr_graph.frame_loop import prefetch_frames
+    from training.config import NetConfig
+    from training.network import CovarianceNet
+
+    torch.manual_seed(0)
+    net = CovarianceNet(NetConfig(n_points=512, k0=8, k1=8, k2=8, c0=16, c1=32, c2=32, kw=8))
+    seq = PlaneScenes(n=6)
+    serial = densified_sequence(seq, net, _cfg(), preprocess=PRE)
+    expected = [serial[i] for i in range(len(seq))]
+    view = densified_sequence(seq, net, _cfg(), preprocess=PRE)
+    assert view.concurrent_reads
+    got = list(prefetch_frames(view, ahead=4, threads=2))
+    assert [f.index for f in got] == list(range(len(seq)))
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+    assert view.stats() == serial.stats()
+    for i in range(len(seq)):
+        np.testing.assert_array_equal(view.predicted(i)[1], serial.predicted(i)[1])
+
+
 def test_fallbacks_are_counted():
     seq = PlaneScenes(n=5, clutter_only=(2,), tiny=(4,))
     state = {"nan": False}
