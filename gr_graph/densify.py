@@ -353,7 +353,7 @@ class DensifiedSequence:
             n = np.array(list(self._n_points.values()), dtype=np.float64).reshape(-1, 6)
             return {
                 "frames": len(n),
-                "fallbacks": dict(Counter(self.fallbacks.values())),
+                "fallbacks": dict(sorted(Counter(self.fallbacks.values()).items())),  # not in reading order
                 "fallback_frames": sorted(self.fallbacks),
                 "mean_preprocessed_points": float(n[:, 0].mean()) if len(n) else 0.0,
                 "mean_kept_points": float(n[:, 1].mean()) if len(n) else 0.0,
@@ -392,13 +392,14 @@ class DensifiedSequence:
         with self._parent_lock:
             raw = self.parent[position]
         scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
-        self.n_recomputed += 1
+        C, problem = self._predict(scan.points) if scan.usable else (None, "unusable_scan")
+        failed = problem is not None or C.shape != (len(scan.points), 3, 3)
+        with self._lock:
+            self.n_recomputed += 1
+            self.recomputed_failures += int(failed)
         if not scan.usable:
-            self.recomputed_failures += 1
             return None
-        C, problem = self._predict(scan.points)
-        if C.shape != (len(scan.points), 3, 3) or problem is not None:
-            self.recomputed_failures += 1
+        if failed:
             log.warning("frame %d: recomputed covariances are not finite and positive definite", index)
             return None
         return scan.points, C

@@ -372,6 +372,11 @@ class SlamPipeline:
     def round_dir(self, r: int) -> Path:
         return round_dir(self.out, r)
 
+    def kept_predictions(self) -> int:
+        """How many frames' covariances a densified view keeps for the learned edge noise: more
+        than the SLAM reader can have read ahead (``data.prefetch``, at least ``data.read_threads``)."""
+        return max(16, max(self.cfg.data.prefetch, self.cfg.data.read_threads) + 8)
+
     def densified_scans(self, r: int, resume_training: bool) -> DensifiedSequence:
         """Algorithm 3, one iteration, up to the SLAM call: train f_θ on the memory of round
         r−1 (Algorithm 1), then densify every scan with it (Algorithm 2, lines 3-9).
@@ -390,7 +395,7 @@ class SlamPipeline:
 
             pca = PcaCovariances(self.cfg.preprocess.num_neighbors, tc.trainer.net.eps)
             return densified_sequence(self.sequence, pca, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
-                                      keep_predictions=max(16, self.cfg.data.prefetch + 8))
+                                      keep_predictions=self.kept_predictions())
         init = None
         if r == 1 and tc.weights is not None:
             from gr_graph.pretrained import resolve_weights
@@ -400,7 +405,7 @@ class SlamPipeline:
             if not tc.fine_tune:  # --densify: the given weights as they are
                 return densified_sequence(self.sequence, init, tc, device=self.cfg.device,
                                           preprocess=self.cfg.preprocess,
-                                          keep_predictions=max(16, self.cfg.data.prefetch + 8))
+                                          keep_predictions=self.kept_predictions())
         if r >= 2 and tc.warm_start:
             init = self.round_dir(r - 1) / "training" / "model.pt"
             if not init.is_file():
@@ -416,7 +421,7 @@ class SlamPipeline:
             ckpt = train_from_memory(memory, train_dir, train_cfg, resume=False)
         # predictions are kept longer than the reader runs ahead, for the learned edge noise
         return densified_sequence(self.sequence, ckpt, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
-                                  keep_predictions=max(16, self.cfg.data.prefetch + 8))
+                                  keep_predictions=self.kept_predictions())
 
     def slam_round(self, r: int, densified: DensifiedSequence | None = None,
                    train_seconds: float | None = None) -> dict[str, Any]:
