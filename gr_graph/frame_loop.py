@@ -54,7 +54,8 @@ log = logging.getLogger(__name__)
 
 MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
 
-__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "prefetch_frames", "run_slam"]
+__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "frames_read_ahead", "prefetch_frames",
+           "run_slam"]
 
 
 class StageTimer:
@@ -70,6 +71,11 @@ class StageTimer:
             yield
         finally:
             self.seconds[name] += time.perf_counter() - t0
+
+
+def frames_read_ahead(ahead: int, threads: int) -> int:
+    """How many frames :func:`prefetch_frames` reads ahead at most: ``ahead``, at least one a worker."""
+    return max(ahead, max(1, int(threads)))
 
 
 def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -> Iterator[LidarFrame]:
@@ -88,7 +94,7 @@ def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -
             yield sequence[i]
         return
     workers = max(1, int(threads)) if getattr(sequence, "concurrent_reads", False) else 1
-    ahead = max(ahead, workers)
+    ahead = frames_read_ahead(ahead, workers)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gr_graph-read") as pool:
         queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
         nxt = len(queue)

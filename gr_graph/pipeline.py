@@ -52,7 +52,7 @@ from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
-from gr_graph.frame_loop import SlamResult, StageTimer, run_slam
+from gr_graph.frame_loop import SlamResult, StageTimer, frames_read_ahead, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
 from gr_graph.noise_consistency import round_noise_consistency
@@ -374,8 +374,8 @@ class SlamPipeline:
 
     def kept_predictions(self) -> int:
         """How many frames' covariances a densified view keeps for the learned edge noise: more
-        than the SLAM reader can have read ahead (``data.prefetch``, at least ``data.read_threads``)."""
-        return max(16, max(self.cfg.data.prefetch, self.cfg.data.read_threads) + 8)
+        than the SLAM reader can have read ahead (:func:`gr_graph.frame_loop.frames_read_ahead`)."""
+        return max(16, frames_read_ahead(self.cfg.data.prefetch, self.cfg.data.read_threads) + 8)
 
     def densified_scans(self, r: int, resume_training: bool) -> DensifiedSequence:
         """Algorithm 3, one iteration, up to the SLAM call: train f_θ on the memory of round
