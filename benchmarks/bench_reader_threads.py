@@ -1,18 +1,21 @@
-"""Wall time of a learning round with one or two reader threads (``data.read_threads``; not a test).
+"""Wall time of a learning round under two thread settings (not a test).
 
-Runs ``python -m gr_graph.slam --frames A:B --channels C --synthetic-preset kitti --weights
-pretrained --densify`` (round 0 on the raw frames, then one learning round that densifies every
-frame with the shipped weights, without training) once per thread count and repeat, the thread
-counts interleaved, each in a fresh process, and compares: round 1's wall time and its ``read``
-stage (waiting for densified frames), and whether rounds 0 and 1 are bit-identical between
-thread counts (poses, marginal covariances, edge information in ``marginals.npz``).
+``--setting reader_threads`` (default) compares one and two reader threads (``data.read_threads``);
+``--setting blas_threads`` compares numpy's BLAS held to one thread during SLAM
+(``gr_graph.frame_loop.SLAM_BLAS_THREADS``, the default) with OpenBLAS's own team (the limit
+lifted in the benchmark's process). Each run is ``python -m gr_graph.slam --frames A:B --channels
+C --synthetic-preset kitti --weights pretrained --densify`` (round 0 on the raw frames, then one
+learning round that densifies every frame with the shipped weights, without training), the
+settings interleaved, each run in a fresh process. Compared: round 1's wall time and its ``read``
+stage (waiting for densified frames), and whether rounds 0 and 1 are bit-identical between the
+settings (poses, marginal covariances, edge information in ``marginals.npz``).
 
 Run::
 
-    python benchmarks/bench_reader_threads.py --work DIR [--frames 0:600] [--repeats 2] [--write]
+    python benchmarks/bench_reader_threads.py --work DIR [--setting blas_threads] [--frames 0:600] [--repeats 2] [--write]
 
-Finished runs in ``DIR`` (``t<threads>_<repeat>/metrics.json``) are not run again. Writes
-``benchmarks/results/reader_threads.md`` and ``.json`` with ``--write``.
+Finished runs in ``DIR`` (``<variant>_<repeat>/metrics.json``) are not run again. Writes
+``benchmarks/results/<setting>.md`` and ``.json`` with ``--write``.
 """
 
 from __future__ import annotations
@@ -21,26 +24,46 @@ import argparse
 import json
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
 HERE = Path(__file__).resolve().parents[1]
-THREADS = (2, 1)
 
 
-def run_one(work: Path, threads: int, rep: int, frames: str, channels: int) -> Path:
-    """The run with ``threads`` reader threads, repeat ``rep`` (skipped when finished)."""
-    out = work / f"t{threads}_{rep}"
+@dataclass(frozen=True)
+class Variant:
+    """One setting of a comparison: its label (also its run directories' prefix), its
+    ``data.read_threads`` and numpy's BLAS threads during SLAM (None: OpenBLAS's own team)."""
+
+    label: str
+    read_threads: int = 2
+    blas_threads: int | None = 1
+
+
+SETTINGS: dict[str, tuple[str, str, tuple[Variant, Variant]]] = {
+    "reader_threads": ("Reader threads of a learning round (`data.read_threads`)", "reader threads",
+                       (Variant("t2", read_threads=2), Variant("t1", read_threads=1))),
+    "blas_threads": ("numpy's BLAS threads during SLAM (`gr_graph.frame_loop.SLAM_BLAS_THREADS`)",
+                     "numpy BLAS threads during SLAM",
+                     (Variant("blas1", blas_threads=1), Variant("blasteam", blas_threads=None))),
+}
+
+
+def run_one(work: Path, variant: Variant, rep: int, frames: str, channels: int) -> Path:
+    """The run of ``variant``, repeat ``rep`` (skipped when finished)."""
+    out = work / f"{variant.label}_{rep}"
     if (out / "metrics.json").is_file():
         return out
-    cfg = work / f"t{threads}.yaml"
-    cfg.write_text(f"data:\n  read_threads: {threads}\noutput:\n  plot: false\n")
-    cmd = [sys.executable, "-m", "gr_graph.slam", "--frames", frames, "--channels", str(channels),
-           "--synthetic-preset", "kitti", "--weights", "pretrained", "--densify", "--config", str(cfg),
-           "--out", str(out), "--no-progress"]
-    subprocess.run(cmd, cwd=HERE, check=True)
+    cfg = work / f"{variant.label}.yaml"
+    cfg.write_text(f"data:\n  read_threads: {variant.read_threads}\noutput:\n  plot: false\n")
+    argv = ["--frames", frames, "--channels", str(channels), "--synthetic-preset", "kitti", "--weights", "pretrained",
+            "--densify", "--config", str(cfg), "--out", str(out), "--no-progress"]
+    code = ("import sys, gr_graph.frame_loop as f; from gr_graph.slam import main; "
+            f"f.SLAM_BLAS_THREADS = {variant.blas_threads!r}; raise SystemExit(main(sys.argv[1:]))")
+    subprocess.run([sys.executable, "-c", code, *argv], cwd=HERE, check=True)
     return out
 
 
@@ -56,50 +79,54 @@ def same_rounds(a: Path, b: Path) -> bool:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, required=True, help="directory of the runs (kept; reruns skip finished ones)")
+    ap.add_argument("--setting", choices=sorted(SETTINGS), default="reader_threads")
     ap.add_argument("--frames", default="0:600")
     ap.add_argument("--channels", type=int, default=16, choices=(16, 32, 64))
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
+    title, column, variants = SETTINGS[args.setting]
     args.work.mkdir(parents=True, exist_ok=True)
-    runs: dict[int, list[Path]] = {t: [] for t in THREADS}
+    runs: dict[str, list[Path]] = {v.label: [] for v in variants}
     for rep in range(args.repeats):
-        for t in THREADS:
-            runs[t].append(run_one(args.work, t, rep, args.frames, args.channels))
-            print(f"repeat {rep}: {t} thread(s) done", flush=True)
+        for v in variants:
+            runs[v.label].append(run_one(args.work, v, rep, args.frames, args.channels))
+            print(f"repeat {rep}: {v.label} done", flush=True)
     stats: dict[str, dict[str, list[float]]] = {}
-    for t, outs in runs.items():
+    for label, outs in runs.items():
         rounds = [json.loads((o / "metrics.json").read_text())["rounds"] for o in outs]
-        stats[str(t)] = {"round1_total_s": [r["1"]["runtime_s"]["total"] for r in rounds],
-                         "round1_read_s": [r["1"]["runtime_s"]["read"] for r in rounds],
-                         "round0_total_s": [r["0"]["runtime_s"]["total"] for r in rounds]}
-    identical = all(same_rounds(runs[THREADS[0]][0], o) for outs in runs.values() for o in outs)
+        stats[label] = {"round1_total_s": [r["1"]["runtime_s"]["total"] for r in rounds],
+                        "round1_read_s": [r["1"]["runtime_s"]["read"] for r in rounds],
+                        "round0_total_s": [r["0"]["runtime_s"]["total"] for r in rounds]}
+    first = variants[0].label
+    identical = all(same_rounds(runs[first][0], o) for outs in runs.values() for o in outs)
 
     def cell(vals: list[float]) -> str:
         return f"{np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0.0:.1f}"
 
-    lines = ["| reader threads | round 1 wall [s] | waiting for densified frames [s] | round 0 wall [s] | runs |",
+    lines = [f"| {column} | round 1 wall [s] | waiting for densified frames [s] | round 0 wall [s] | runs |",
              "|---|---|---|---|---|"]
-    for t in THREADS:
-        s = stats[str(t)]
-        lines.append(f"| {t} | {cell(s['round1_total_s'])} | {cell(s['round1_read_s'])} | {cell(s['round0_total_s'])} "
-                     f"| {len(s['round1_total_s'])} |")
-    ratio = np.mean(stats["2"]["round1_total_s"]) / np.mean(stats["1"]["round1_total_s"])
-    lines += ["", f"ratio of round 1's wall time, 2 threads / 1: {ratio:.3f}",
+    for v in variants:
+        s = stats[v.label]
+        setting = v.read_threads if args.setting == "reader_threads" else (v.blas_threads or "OpenBLAS's team")
+        lines.append(f"| {setting} | {cell(s['round1_total_s'])} | {cell(s['round1_read_s'])} "
+                     f"| {cell(s['round0_total_s'])} | {len(s['round1_total_s'])} |")
+    a, b = (np.mean(stats[v.label]["round1_total_s"]) for v in variants)
+    lines += ["", f"ratio of round 1's wall time, {variants[0].label} / {variants[1].label}: {a / b:.3f}",
               f"rounds 0 and 1 bit-identical across all runs (poses, covariances, edge information): {identical}"]
     print("\n".join(lines))
     if args.write:
         from gr_graph.atomic import atomic_write_json, atomic_write_text
         from gr_graph.provenance import machine_line
 
-        atomic_write_json(RESULTS / "reader_threads.json", {"machine": machine_line(), "frames": args.frames,
-                                                            "channels": args.channels, "runs": stats,
-                                                            "identical": identical})
-        atomic_write_text(RESULTS / "reader_threads.md", "# Reader threads of a learning round (`data.read_threads`)\n\n"
+        atomic_write_json(RESULTS / f"{args.setting}.json", {"machine": machine_line(), "frames": args.frames,
+                                                             "channels": args.channels, "runs": stats,
+                                                             "identical": identical})
+        atomic_write_text(RESULTS / f"{args.setting}.md", f"# {title}\n\n"
                           f"Frames {args.frames} of the `kitti` preset at {args.channels} channels; round 1 densifies "
                           "every frame with the shipped weights (no training); machine: " + machine_line() + "\n\n"
                           + "\n".join(lines) + "\n\nCommand: `python benchmarks/bench_reader_threads.py --work DIR "
-                          f"--frames {args.frames} --repeats {args.repeats} --write`\n")
+                          f"--setting {args.setting} --frames {args.frames} --repeats {args.repeats} --write`\n")
     return 0
 
 

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
@@ -52,10 +53,17 @@ from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
 
+# numpy's BLAS (OpenBLAS) threads while several threads read a round's frames (the learning rounds'
+# network pass, data.read_threads). Its products there are thin (N x 3, N x 6) and gain nothing
+# from a team, whose threads spin on the cores the readers and the SLAM thread need: a 600-frame
+# 16-channel learning round on 2 cores took 74.9 +- 1.4 s with one thread against 89.6 +- 3.8 s with
+# OpenBLAS's team, bit-identical (benchmarks/results/blas_threads.md). Round 0 (one reader, the
+# renderer) keeps the team: it was not faster with one thread (117 +- 6 against 111 +- 1 s).
+SLAM_BLAS_THREADS = 1
 MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
 
-__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "frames_read_ahead", "prefetch_frames",
-           "run_slam"]
+__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "frame_readers", "frames_read_ahead",
+           "prefetch_frames", "run_slam"]
 
 
 class StageTimer:
@@ -78,6 +86,12 @@ def frames_read_ahead(ahead: int, threads: int) -> int:
     return max(ahead, max(1, int(threads)))
 
 
+def frame_readers(sequence: LidarSequence, threads: int) -> int:
+    """How many worker threads :func:`prefetch_frames` reads ``sequence`` with: ``threads`` for a
+    sequence whose ``concurrent_reads`` attribute is true, else one."""
+    return max(1, int(threads)) if getattr(sequence, "concurrent_reads", False) else 1
+
+
 def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -> Iterator[LidarFrame]:
     """Yield ``sequence[0..K-1]`` in order while worker threads read (render) the next ones.
 
@@ -93,7 +107,7 @@ def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -
         for i in range(K):
             yield sequence[i]
         return
-    workers = max(1, int(threads)) if getattr(sequence, "concurrent_reads", False) else 1
+    workers = frame_readers(sequence, threads)
     ahead = frames_read_ahead(ahead, workers)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gr_graph-read") as pool:
         queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
@@ -283,22 +297,24 @@ class _FrameLoop:
 
     def run(self, desc: str) -> SlamResult:
         K = len(self.sequence)
-        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
-        bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
-                   mininterval=1.0)
-        for i in bar:
-            with self.timer("read"):  # time spent waiting for the reader thread
-                frame = next(frames)
-            if self.deskew_on:
-                frame = self.deskew(i, frame)
-            scan = self.preprocess(frame)
-            self.add_odometry(i, scan)
-            if self.loop_cfg.enabled:
-                with self.timer("loops"):
-                    self.look_for_loop(i, scan)
-            bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
-        bar.close()
-        return self.finish()
+        several_readers = frame_readers(self.sequence, self.cfg.data.read_threads) > 1
+        with threadpool_limits(SLAM_BLAS_THREADS if several_readers else None, user_api="blas"):
+            frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
+            bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
+                       mininterval=1.0)
+            for i in bar:
+                with self.timer("read"):  # time spent waiting for the reader thread
+                    frame = next(frames)
+                if self.deskew_on:
+                    frame = self.deskew(i, frame)
+                scan = self.preprocess(frame)
+                self.add_odometry(i, scan)
+                if self.loop_cfg.enabled:
+                    with self.timer("loops"):
+                        self.look_for_loop(i, scan)
+                bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
+            bar.close()
+            return self.finish()
 
     def deskew(self, i: int, frame: LidarFrame) -> LidarFrame:
         """Frame ``i`` (position in the run) moved to mid-sweep with the odometry's last increment.

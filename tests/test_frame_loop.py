@@ -85,3 +85,51 @@ def test_sequences_that_do_not_say_so_are_read_by_one_thread():
     seq.concurrent_reads = False
     assert list(prefetch_frames(seq, ahead=4, threads=2)) == list(range(12))
     assert len(seq.threads) == 1
+
+
+
+def _blas_threads() -> set[int]:
+    from threadpoolctl import threadpool_info
+
+    return {int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"}
+
+
+@pytest.mark.slow
+def test_several_readers_run_numpy_blas_on_one_thread_without_changing_results(monkeypatch):
+    """While several threads read a round's frames, numpy's BLAS runs one thread in them and in
+    the SLAM thread (``frame_loop.SLAM_BLAS_THREADS``) and its team is set back afterwards; the
+    poses and marginal covariances are the ones a team of two gives, bit for bit. A sequence
+    read by one thread (round 0's renderer) keeps the team."""
+    from threadpoolctl import threadpool_limits
+
+    from gr_graph.config import load_config
+    from gr_graph.datasets.synthetic import SyntheticSequence
+    from gr_graph.frame_loop import run_slam
+    from slam_support import FrameSubset
+
+    class Recording(FrameSubset):
+        """Frames made once, then read back from any thread; records the BLAS team of every read."""
+
+        def __init__(self, parent, indices: np.ndarray) -> None:
+            super().__init__(parent, indices, "blas")
+            self.frames = [super(Recording, self).__getitem__(i) for i in range(len(indices))]
+            self.teams: set[int] = set()
+
+        def __getitem__(self, i: int):
+            self.teams.update(_blas_threads())
+            return self.frames[i]
+
+    seq = Recording(SyntheticSequence(seed=0, preset="clean"), np.arange(100, 115))
+    cfg = load_config(overrides={"loops": {"enabled": False}, "output": {"progress": False},
+                                 "data": {"read_threads": 2}})
+    results = {}
+    with threadpool_limits(2, user_api="blas"):
+        assert _blas_threads() == {2}
+        for concurrent, team in ((True, 1), (True, 2), (False, 1)):
+            seq.concurrent_reads, seq.teams = concurrent, set()
+            monkeypatch.setattr("gr_graph.frame_loop.SLAM_BLAS_THREADS", team)
+            results[concurrent, team] = run_slam(seq, cfg)
+            assert seq.teams == ({team} if concurrent else {2}) and _blas_threads() == {2}  # the caller's team is back
+    for other in ((True, 2), (False, 1)):
+        np.testing.assert_array_equal(results[True, 1].poses, results[other].poses)
+        np.testing.assert_array_equal(results[True, 1].covariances, results[other].covariances)
