@@ -296,25 +296,30 @@ class _FrameLoop:
         return sum(e.kind == "loop" for e in self.edges)
 
     def run(self, desc: str) -> SlamResult:
-        K = len(self.sequence)
+        """SLAM over the sequence; numpy's BLAS on ``SLAM_BLAS_THREADS`` while several threads read."""
         several_readers = frame_readers(self.sequence, self.cfg.data.read_threads) > 1
         with threadpool_limits(SLAM_BLAS_THREADS if several_readers else None, user_api="blas"):
-            frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
-            bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
-                       mininterval=1.0)
-            for i in bar:
-                with self.timer("read"):  # time spent waiting for the reader thread
-                    frame = next(frames)
-                if self.deskew_on:
-                    frame = self.deskew(i, frame)
-                scan = self.preprocess(frame)
-                self.add_odometry(i, scan)
-                if self.loop_cfg.enabled:
-                    with self.timer("loops"):
-                        self.look_for_loop(i, scan)
-                bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
-            bar.close()
-            return self.finish()
+            return self.run_frames(desc)
+
+    def run_frames(self, desc: str) -> SlamResult:
+        """Read, register and look for loops frame by frame, then :meth:`finish`."""
+        K = len(self.sequence)
+        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
+        bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
+                   mininterval=1.0)
+        for i in bar:
+            with self.timer("read"):  # time spent waiting for the reader thread
+                frame = next(frames)
+            if self.deskew_on:
+                frame = self.deskew(i, frame)
+            scan = self.preprocess(frame)
+            self.add_odometry(i, scan)
+            if self.loop_cfg.enabled:
+                with self.timer("loops"):
+                    self.look_for_loop(i, scan)
+            bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
+        bar.close()
+        return self.finish()
 
     def deskew(self, i: int, frame: LidarFrame) -> LidarFrame:
         """Frame ``i`` (position in the run) moved to mid-sweep with the odometry's last increment.

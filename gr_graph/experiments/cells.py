@@ -61,9 +61,13 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # lower bound.) The 16-channel learning round since the two reader threads (data.read_threads):
 # 16ch-s0 rerun alone on 2026-12-04 (frames 0:1500; rounds 1 and 2 240 and 294 s, i.e. 0.178 s a
 # frame, against 526 and 686 s in its record before the cache; the cell 29.9 min, every figure
-# equal to the record's); the other channel counts keep their figures (not rerun).
+# equal to the record's), and again with numpy's BLAS on one thread while the readers run
+# (frame_loop.SLAM_BLAS_THREADS; rerun alone on 2026-12-04: rounds 1 and 2 181 and 220 s, i.e.
+# 0.134 s a frame; the cell 25.0 min, every figure equal to the record's; its training, unchanged
+# code, was 15 % faster than the run before: part of the gain is the machine's). The other channel
+# counts keep their figures (not rerun).
 _S_PER_FRAME: dict[int, dict[str, float]] = {
-    16: {"round0": 0.102, "epoch": 0.090, "round": 0.178, "kiss": 0.064},
+    16: {"round0": 0.102, "epoch": 0.090, "round": 0.134, "kiss": 0.064},
     32: {"round0": 0.107, "epoch": 0.074, "round": 0.249, "kiss": 0.070},
     64: {"round0": 0.119, "epoch": 0.074, "round": 0.338, "kiss": 0.104},
 }
