@@ -14,8 +14,10 @@ Run::
 
     python benchmarks/bench_reader_threads.py --work DIR [--setting blas_threads] [--frames 0:600] [--repeats 2] [--write]
 
-Finished runs in ``DIR`` (``<variant>_<repeat>/metrics.json``) are not run again. Writes
-``benchmarks/results/<setting>.md`` and ``.json`` with ``--write``.
+Finished runs in ``DIR`` (``<variant>_<repeat>/metrics.json``) are not run again: use a new
+``DIR`` after a code change (``t2``, two readers, runs with the BLAS limit since it landed, as
+shipped; the published ``reader_threads.md`` predates it). Writes ``benchmarks/results/<setting>.md``
+and ``.json`` with ``--write`` (notes added below the table by hand are overwritten).
 """
 
 from __future__ import annotations

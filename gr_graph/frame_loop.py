@@ -32,7 +32,7 @@ import time
 from collections import defaultdict, deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -53,12 +53,10 @@ from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
 
-# numpy's BLAS (OpenBLAS) threads while several threads read a round's frames (the learning rounds'
-# network pass, data.read_threads). Its products there are thin (N x 3, N x 6) and gain nothing
-# from a team, whose threads spin on the cores the readers and the SLAM thread need: a 600-frame
-# 16-channel learning round on 2 cores took 74.9 +- 1.4 s with one thread against 89.6 +- 3.8 s with
-# OpenBLAS's team, bit-identical (benchmarks/results/blas_threads.md). Round 0 (one reader, the
-# renderer) keeps the team: it was not faster with one thread (117 +- 6 against 111 +- 1 s).
+# BLAS threads (numpy's and scipy's OpenBLAS) while several threads read a round's frames (the
+# learning rounds' network pass, data.read_threads): the products there are thin (N x 3, N x 6) and
+# OpenBLAS's team only spun on the cores the readers and the SLAM thread need. A learning round
+# 0.84x the time, bit-identical; round 0 (one reader) keeps the team (benchmarks/results/blas_threads.md).
 SLAM_BLAS_THREADS = 1
 MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
 
@@ -86,9 +84,12 @@ def frames_read_ahead(ahead: int, threads: int) -> int:
     return max(ahead, max(1, int(threads)))
 
 
-def frame_readers(sequence: LidarSequence, threads: int) -> int:
-    """How many worker threads :func:`prefetch_frames` reads ``sequence`` with: ``threads`` for a
-    sequence whose ``concurrent_reads`` attribute is true, else one."""
+def frame_readers(sequence: LidarSequence, ahead: int, threads: int) -> int:
+    """How many worker threads :func:`prefetch_frames` reads ``sequence`` with: none when it does
+    not read ahead (``ahead <= 0``: the calling thread reads), ``threads`` for a sequence whose
+    ``concurrent_reads`` attribute is true, else one."""
+    if ahead <= 0:
+        return 0
     return max(1, int(threads)) if getattr(sequence, "concurrent_reads", False) else 1
 
 
@@ -107,7 +108,7 @@ def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -
         for i in range(K):
             yield sequence[i]
         return
-    workers = frame_readers(sequence, threads)
+    workers = frame_readers(sequence, ahead, threads)
     ahead = frames_read_ahead(ahead, workers)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gr_graph-read") as pool:
         queue: deque = deque(pool.submit(sequence.__getitem__, i) for i in range(min(ahead, K)))
@@ -297,27 +298,28 @@ class _FrameLoop:
 
     def run(self, desc: str) -> SlamResult:
         """SLAM over the sequence; numpy's BLAS on ``SLAM_BLAS_THREADS`` while several threads read."""
-        several_readers = frame_readers(self.sequence, self.cfg.data.read_threads) > 1
+        several_readers = frame_readers(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads) > 1
         with threadpool_limits(SLAM_BLAS_THREADS if several_readers else None, user_api="blas"):
             return self.run_frames(desc)
 
     def run_frames(self, desc: str) -> SlamResult:
         """Read, register and look for loops frame by frame, then :meth:`finish`."""
         K = len(self.sequence)
-        frames = prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)
         bar = tqdm(range(K), desc=f"slam{desc}", unit="frame", disable=not self.cfg.output.progress,
                    mininterval=1.0)
-        for i in bar:
-            with self.timer("read"):  # time spent waiting for the reader thread
-                frame = next(frames)
-            if self.deskew_on:
-                frame = self.deskew(i, frame)
-            scan = self.preprocess(frame)
-            self.add_odometry(i, scan)
-            if self.loop_cfg.enabled:
-                with self.timer("loops"):
-                    self.look_for_loop(i, scan)
-            bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
+        # closed on an error too: the readers stop before the caller's BLAS team is back
+        with closing(prefetch_frames(self.sequence, self.cfg.data.prefetch, self.cfg.data.read_threads)) as frames:
+            for i in bar:
+                with self.timer("read"):  # time spent waiting for the reader thread
+                    frame = next(frames)
+                if self.deskew_on:
+                    frame = self.deskew(i, frame)
+                scan = self.preprocess(frame)
+                self.add_odometry(i, scan)
+                if self.loop_cfg.enabled:
+                    with self.timer("loops"):
+                        self.look_for_loop(i, scan)
+                bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
         bar.close()
         return self.finish()
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from factors.se3 import exp_se3
-from gr_graph.frame_loop import LoopCorrectedEstimate, prefetch_frames
+from gr_graph.frame_loop import LoopCorrectedEstimate, frame_readers, prefetch_frames
 
 
 def test_estimate_is_optimised_prefix_then_corrected_odometry():
@@ -82,10 +82,11 @@ def test_concurrent_reads_use_the_threads_and_keep_the_order():
 
 def test_sequences_that_do_not_say_so_are_read_by_one_thread():
     seq = _ThreadRecordingNumbers(12)
+    assert (frame_readers(seq, 4, 2), frame_readers(seq, 0, 2)) == (2, 0)  # prefetch 0: the caller reads
     seq.concurrent_reads = False
+    assert frame_readers(seq, 4, 2) == 1
     assert list(prefetch_frames(seq, ahead=4, threads=2)) == list(range(12))
     assert len(seq.threads) == 1
-
 
 
 def _blas_threads() -> set[int]:
