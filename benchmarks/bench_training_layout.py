@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                                                              "steps": args.steps, "runs": runs})
         atomic_write_text(RESULTS / "training_layout.md", "# Training throughput of two process layouts\n\n"
                           f"{args.steps} steps of the trainer (default 16-channel configuration, one pair a step) on "
-                          f"the memory `{args.memory.name}` of {args.memory.parent.parent.name}; machine: "
+                          f"the {args.memory.parent.name} memory of `{args.memory.parent.parent.name}`; machine: "
                           + machine_line() + "\n\n" + "\n".join(lines) + "\n\nCommand: `python "
                           f"benchmarks/bench_training_layout.py --memory RUN/round_0/memory --steps {args.steps} "
                           f"--threads {n} --repeats {args.repeats} --write`\n")
