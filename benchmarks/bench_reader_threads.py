@@ -37,20 +37,22 @@ HERE = Path(__file__).resolve().parents[1]
 
 @dataclass(frozen=True)
 class Variant:
-    """One setting of a comparison: its label (also its run directories' prefix), its
-    ``data.read_threads`` and numpy's BLAS threads during SLAM (None: OpenBLAS's own team)."""
+    """One setting of a comparison: its label (also its run directories' prefix), how the table
+    names it, its ``data.read_threads`` and numpy's BLAS threads during SLAM (None: OpenBLAS's own
+    team)."""
 
     label: str
+    shown: str
     read_threads: int = 2
     blas_threads: int | None = 1
 
 
 SETTINGS: dict[str, tuple[str, str, tuple[Variant, Variant]]] = {
     "reader_threads": ("Reader threads of a learning round (`data.read_threads`)", "reader threads",
-                       (Variant("t2", read_threads=2), Variant("t1", read_threads=1))),
+                       (Variant("t2", "2", read_threads=2), Variant("t1", "1", read_threads=1))),
     "blas_threads": ("numpy's BLAS threads during SLAM (`gr_graph.frame_loop.SLAM_BLAS_THREADS`)",
                      "numpy BLAS threads during SLAM",
-                     (Variant("blas1", blas_threads=1), Variant("blasteam", blas_threads=None))),
+                     (Variant("blas1", "1", blas_threads=1), Variant("blasteam", "OpenBLAS's team", blas_threads=None))),
 }
 
 
@@ -87,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
+    from gr_graph.experiments.aggregate import fmt_ms, mean_std
+
     title, column, variants = SETTINGS[args.setting]
     args.work.mkdir(parents=True, exist_ok=True)
     runs: dict[str, list[Path]] = {v.label: [] for v in variants}
@@ -104,14 +108,13 @@ def main(argv: list[str] | None = None) -> int:
     identical = all(same_rounds(runs[first][0], o) for outs in runs.values() for o in outs)
 
     def cell(vals: list[float]) -> str:
-        return f"{np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0.0:.1f}"
+        return fmt_ms(mean_std(vals), "{:.1f}")
 
     lines = [f"| {column} | round 1 wall [s] | waiting for densified frames [s] | round 0 wall [s] | runs |",
              "|---|---|---|---|---|"]
     for v in variants:
         s = stats[v.label]
-        setting = v.read_threads if args.setting == "reader_threads" else (v.blas_threads or "OpenBLAS's team")
-        lines.append(f"| {setting} | {cell(s['round1_total_s'])} | {cell(s['round1_read_s'])} "
+        lines.append(f"| {v.shown} | {cell(s['round1_total_s'])} | {cell(s['round1_read_s'])} "
                      f"| {cell(s['round0_total_s'])} | {len(s['round1_total_s'])} |")
     a, b = (np.mean(stats[v.label]["round1_total_s"]) for v in variants)
     lines += ["", f"ratio of round 1's wall time, {variants[0].label} / {variants[1].label}: {a / b:.3f}",

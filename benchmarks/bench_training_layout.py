@@ -91,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         print(json.dumps(time_steps(args.memory, args.out, args.threads, args.steps)))
         return 0
+    from gr_graph.experiments.aggregate import fmt_ms, mean_std
+
     n = args.threads
     layouts = {"one process": (1, n), "processes side by side": (n, 1)}
     runs: dict[str, list[list[dict[str, float]]]] = {k: [] for k in layouts}
@@ -106,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         steps_ms = [[r["median_step_s"] * 1e3 for r in rep] for rep in runs[name]]
         rates[name] = [sum(1e3 / s for s in rep) for rep in steps_ms]
         lines.append(f"| {name} | {procs} x {threads} | {'; '.join(', '.join(f'{s:.0f}' for s in rep) for rep in steps_ms)} "
-                     f"| {np.mean(rates[name]):.1f} ± {np.std(rates[name], ddof=1) if len(rates[name]) > 1 else 0.0:.1f} |")
+                     f"| {fmt_ms(mean_std(rates[name]), '{:.1f}')} |")
     ratio = np.mean(rates["processes side by side"]) / np.mean(rates["one process"])
     lines += ["", f"pairs a second, processes side by side / one process: {ratio:.2f}"]
     print("\n".join(lines))
