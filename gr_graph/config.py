@@ -112,6 +112,15 @@ class OdometryConfig(_Section):
     )
     voxel_resolution: float = Field(1.0, gt=0.0, description="VGICP voxel size of the target map [m]")
     map_horizon: int = Field(20, ge=1, description="'map' mode: voxels unseen for this many scans are dropped")
+    map_keyframe_translation: float = Field(
+        0.0, ge=0.0, description="'map' mode: a scan enters the target map only when it moved at least this far "
+        "[m] or turned at least map_keyframe_rotation_deg since the last scan that entered; 0 and 0: every scan "
+        "(a stopped vehicle then fills the map with one ring pattern, which holds the registrations at motion "
+        "start back: README, odometry)"
+    )
+    map_keyframe_rotation_deg: float = Field(
+        0.0, ge=0.0, description="'map' mode: see map_keyframe_translation [deg]"
+    )
     max_correspondence_distance: float = Field(1.0, gt=0.0)
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1)

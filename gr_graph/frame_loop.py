@@ -521,6 +521,7 @@ class _FrameLoop:
             runtime=dict(self.timer.seconds),
             graph_error=(res.initial_error, res.final_error),
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
+                  "scans_left_out_of_map": self.odometry.scans_left_out_of_map,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
                              "loop_max_rmse": self.loop_cfg.max_rmse},

@@ -15,6 +15,13 @@ the previous scan alone. The result is one odometry edge ``(k+1, k)`` with
   from the registration's own residuals (:mod:`gr_graph.registration_covariance`);
 - fitness figures: inlier ratio, mean cost per inlier, iterations.
 
+In ``"map"`` mode every scan enters the map at its pose by default. With
+``map_keyframe_translation`` / ``map_keyframe_rotation_deg`` a scan enters only after the
+vehicle moved or turned that much since the last scan that entered (:meth:`VgicpOdometry.
+enters_map`): a stopped vehicle otherwise fills the map with one ring pattern, repeated scan after
+scan, and the registrations at motion start follow that pattern rather than the world (the car's
+pitch as it pulls away is missed: README, odometry).
+
 A registration that returns non-finite values, has an inlier ratio below
 ``min_inlier_ratio``, or ends further than ``max_deviation_*`` from the constant-velocity
 guess is *flagged* (``ok=False``, ``reason`` says why), logged, and replaced by the guess
@@ -159,6 +166,8 @@ class VgicpOdometry:
         self._delta = np.eye(4)
         self._map: small_gicp.GaussianVoxelMap | None = None
         self._prev: Scan | None = None
+        self._last_map_pose: np.ndarray | None = None  # pose of the last scan that entered the map
+        self.scans_left_out_of_map = 0
 
     @property
     def last_increment(self) -> np.ndarray:
@@ -173,6 +182,8 @@ class VgicpOdometry:
         if len(scans) > len(self.poses):
             raise ValueError(f"rebuild_map: {len(scans)} scans for {len(self.poses)} poses")
         self._map = None
+        self._last_map_pose = None
+        self.scans_left_out_of_map = 0
         for scan, T in zip(scans, self.poses):
             self._insert(scan, T)
         if scans and len(scans) == len(self.poses):
@@ -184,13 +195,27 @@ class VgicpOdometry:
         vm.set_lru(horizon=self.cfg.map_horizon, clear_cycle=max(1, min(10, self.cfg.map_horizon)))
         return vm
 
+    def enters_map(self, T: np.ndarray) -> bool:
+        """Whether a scan at pose ``T`` enters the ``"map"`` mode's map: always for the first one
+        and with both keyframe thresholds 0, else when it is at least ``map_keyframe_translation``
+        or ``map_keyframe_rotation_deg`` away from the last scan that entered."""
+        if self._last_map_pose is None:
+            return True
+        step = np.linalg.inv(self._last_map_pose) @ T
+        return bool(np.linalg.norm(step[:3, 3]) >= self.cfg.map_keyframe_translation
+                    or np.degrees(rotation_angle(step[:3, :3])) >= self.cfg.map_keyframe_rotation_deg)
+
     def _insert(self, scan: Scan, T: np.ndarray) -> None:
         if not scan.usable:
             return
         if self.cfg.mode == "map":
+            if not self.enters_map(T):
+                self.scans_left_out_of_map += 1
+                return
             if self._map is None:
                 self._map = self._new_map()
             self._map.insert(scan.cloud, T)
+            self._last_map_pose = np.array(T, dtype=np.float64)
         else:
             vm = small_gicp.GaussianVoxelMap(self.cfg.voxel_resolution)
             vm.insert(scan.cloud)

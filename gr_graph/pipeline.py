@@ -83,7 +83,9 @@ READ_OPTIONS = {"prefetch", "frame_cache", "read_threads"}
 _ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
                                               ("graph", "registration_covariance"): "scaled_hessian",
                                               **{("graph", k): GraphConfig.model_fields[k].default
-                                                 for k in ("cluster_size", "min_clusters")}}
+                                                 for k in ("cluster_size", "min_clusters")},
+                                              ("odometry", "map_keyframe_translation"): 0.0,
+                                              ("odometry", "map_keyframe_rotation_deg"): 0.0}
 
 
 def round_fingerprint(cfg: SlamConfig, r: int) -> str:
@@ -94,7 +96,7 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
-    options) count only when they are not at their
+    options, ``odometry.map_keyframe_*``) count only when they are not at their
     default, so that rounds finished before the option existed stay finished.
     """
     if r == 0:

@@ -139,6 +139,8 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
         "loop_variance": res.info.get("loop_variance"),
+        # usable scans that did not enter the odometry's map (odometry.map_keyframe_*; 0 by default)
+        "scans_left_out_of_map": res.info.get("scans_left_out_of_map"),
         # the information each accepted edge entered the graph with: the registration's model
         # (graph.registration_covariance; "scaled_hessian_fallback" where the cluster-robust covariance was not
         # available) or "learned" where the learned edge noise replaced it

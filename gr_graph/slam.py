@@ -122,6 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration-covariance", choices=("scaled_hessian", "cluster_robust"), default=None,
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")
+    p.add_argument("--map-keyframe", type=float, nargs=2, default=None, metavar=("M", "DEG"),
+                   help="odometry map: a scan enters it only after moving M metres or turning DEG degrees since the "
+                        "last one that entered, e.g. 0.1 1 (default: "
+                        f"{d.odometry.map_keyframe_translation} {d.odometry.map_keyframe_rotation_deg}: every scan)")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
@@ -189,6 +193,10 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["graph"]["loop_variance"] = args.loop_variance
     if args.registration_covariance is not None:
         o["graph"]["registration_covariance"] = args.registration_covariance
+    if args.map_keyframe is not None:
+        translation, rotation_deg = args.map_keyframe
+        o["odometry"]["map_keyframe_translation"] = translation
+        o["odometry"]["map_keyframe_rotation_deg"] = rotation_deg
     if args.no_resume:
         o["output"]["resume"] = False
     if args.no_memory:

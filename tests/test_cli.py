@@ -162,6 +162,8 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"graph": {"loop_variance": "estimated"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--registration-covariance", "cluster_robust"]))
     assert o == {"graph": {"registration_covariance": "cluster_robust"}}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--map-keyframe", "0.1", "1"]))
+    assert o == {"odometry": {"map_keyframe_translation": 0.1, "map_keyframe_rotation_deg": 1.0}}
     # the old spelling still works, hidden, and says which one to use
     assert slam.build_parser().parse_args(["--quiet"]).no_progress is True
     assert "--quiet is deprecated, use --no-progress" in capsys.readouterr().err

@@ -564,9 +564,11 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     assert round_fingerprint(e, 0) != round_fingerprint(a, 0) and round_fingerprint(e, 1) != round_fingerprint(a, 1)
     import hashlib
 
+    keyframes = {"map_keyframe_translation", "map_keyframe_rotation_deg"}
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
-                                                                      "cluster_size", "min_clusters"}})
+                                                                      "cluster_size", "min_clusters"},
+                                           "odometry": keyframes})
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
     # graph.registration_covariance likewise (its two options are hashed only away from their defaults)
     c = load_config(None, {"training": {"rounds": 2}, "graph": {"registration_covariance": "cluster_robust"}})
@@ -574,12 +576,15 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     c16 = load_config(None, {"training": {"rounds": 2}, "graph": {"registration_covariance": "cluster_robust",
                                                                   "cluster_size": 16.0}})
     assert round_fingerprint(c16, 0) != round_fingerprint(c, 0)
+    # odometry.map_keyframe_* likewise (every round registers with the odometry)
+    m = load_config(None, {"training": {"rounds": 2}, "odometry": {"map_keyframe_translation": 0.1}})
+    assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
     d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
-                                                      "min_clusters"},
+                                                      "min_clusters"}, "odometry": keyframes,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]

@@ -58,13 +58,22 @@ def _digest(f) -> str:
     return h.hexdigest()
 
 
+#: Digests of frames 0 and 1500 of the render before sensor effects existed (commit 577d39b, open3d/numpy
+#: of the project's environment), per processor: open3d's ray casting (Embree) picks its kernels by
+#: instruction set, so the last bits of a hit differ between machines (deterministic on each).
+CLEAN_RENDER_DIGESTS = {
+    ("41b147dd0709e06a3c2be6413512465f2b3fee7a", "0826430dc1710a2186a4edc76063894764f7beff"): "AMD EPYC, AVX2",
+    ("6670b85760f14a4d8bd0ec1d51a001dc0bd435bf", "b52a7bd8d5b55de133722f3920549c9ec162d98a"): "Intel Xeon, AVX-512",
+}
+
+
 def test_clean_preset_is_bit_identical_to_the_renderer_before_the_effects():
-    """Digests of the render before sensor effects existed (commit 577d39b, open3d/numpy of the
-    project's environment): the clean preset must not change a bit."""
+    """The clean preset must not change a bit of the render before the effects (on the processors of
+    :data:`CLEAN_RENDER_DIGESTS`; on another one, add its digests after checking them at 577d39b)."""
     seq = SyntheticSequence(seed=0, n_rings=16, nthreads=1, preset="clean")
     assert seq.preset == "clean" and seq.effects.is_clean
-    assert _digest(seq[0]) == "41b147dd0709e06a3c2be6413512465f2b3fee7a"
-    assert _digest(seq[1500]) == "0826430dc1710a2186a4edc76063894764f7beff"
+    digests = (_digest(seq[0]), _digest(seq[1500]))
+    assert digests in CLEAN_RENDER_DIGESTS, f"{digests}: not a digest of the render at 577d39b on a known processor"
     assert seq[0].time is None
 
 
