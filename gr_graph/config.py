@@ -111,12 +111,13 @@ class OdometryConfig(_Section):
         "map", description="'map': new scan onto a sliding local voxel map; 'scan': onto the previous scan only"
     )
     voxel_resolution: float = Field(1.0, gt=0.0, description="VGICP voxel size of the target map [m]")
-    map_horizon: int = Field(20, ge=1, description="'map' mode: voxels unseen for this many scans are dropped")
+    map_horizon: int = Field(20, ge=1, description="'map' mode: voxels unseen for this many map insertions are "
+                             "dropped (every scan is one, unless map keyframes leave scans out)")
     map_keyframe_translation: float = Field(
         0.0, ge=0.0, description="'map' mode: a scan enters the target map only when it moved at least this far "
-        "[m] or turned at least map_keyframe_rotation_deg since the last scan that entered; 0 and 0: every scan "
-        "(a stopped vehicle then fills the map with one ring pattern, which holds the registrations at motion "
-        "start back: README, odometry)"
+        "[m] or turned at least map_keyframe_rotation_deg since the last scan that entered; a threshold of 0 is "
+        "not used, 0 and 0: every scan (a stopped vehicle then fills the map with one ring pattern, which holds "
+        "the registrations at motion start back: README, Odometry at motion start)"
     )
     map_keyframe_rotation_deg: float = Field(
         0.0, ge=0.0, description="'map' mode: see map_keyframe_translation [deg]"

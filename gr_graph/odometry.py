@@ -198,12 +198,14 @@ class VgicpOdometry:
     def enters_map(self, T: np.ndarray) -> bool:
         """Whether a scan at pose ``T`` enters the ``"map"`` mode's map: always for the first one
         and with both keyframe thresholds 0, else when it is at least ``map_keyframe_translation``
-        or ``map_keyframe_rotation_deg`` away from the last scan that entered."""
-        if self._last_map_pose is None:
+        metres or ``map_keyframe_rotation_deg`` degrees away from the last scan that entered (a
+        threshold of 0 is not used: ``0.1`` and ``0`` let a scan in after 0.1 m, whatever it turned)."""
+        min_translation, min_rotation_deg = self.cfg.map_keyframe_translation, self.cfg.map_keyframe_rotation_deg
+        if self._last_map_pose is None or (min_translation == 0.0 and min_rotation_deg == 0.0):
             return True
         step = np.linalg.inv(self._last_map_pose) @ T
-        return bool(np.linalg.norm(step[:3, 3]) >= self.cfg.map_keyframe_translation
-                    or np.degrees(rotation_angle(step[:3, :3])) >= self.cfg.map_keyframe_rotation_deg)
+        return bool((min_translation > 0.0 and np.linalg.norm(step[:3, 3]) >= min_translation)
+                    or (min_rotation_deg > 0.0 and np.degrees(rotation_angle(step[:3, :3])) >= min_rotation_deg))
 
     def _insert(self, scan: Scan, T: np.ndarray) -> None:
         if not scan.usable:

@@ -123,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")
     p.add_argument("--map-keyframe", type=float, nargs=2, default=None, metavar=("M", "DEG"),
-                   help="odometry map: a scan enters it only after moving M metres or turning DEG degrees since the "
-                        "last one that entered, e.g. 0.1 1 (default: "
+                   help="odometry map ('map' mode): a scan enters it only after moving M metres or turning DEG "
+                        "degrees since the last one that entered, e.g. 0.1 1; 0 leaves that test out (default: "
                         f"{d.odometry.map_keyframe_translation} {d.odometry.map_keyframe_rotation_deg}: every scan)")
     p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")

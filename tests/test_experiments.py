@@ -577,7 +577,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                                   "cluster_size": 16.0}})
     assert round_fingerprint(c16, 0) != round_fingerprint(c, 0)
     # odometry.map_keyframe_* likewise (every round registers with the odometry)
-    m = load_config(None, {"training": {"rounds": 2}, "odometry": {"map_keyframe_translation": 0.1}})
+    m = load_config(None, {"training": {"rounds": 2}, "odometry": {"map_keyframe_translation": 0.1,
+                                                                   "map_keyframe_rotation_deg": 1.0}})
     assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})

@@ -177,8 +177,26 @@ def test_map_keyframe_thresholds_decide_which_scans_enter_the_map():
             entered[name].append(odo.scans_left_out_of_map == before)
     assert entered["every"] == [True] * 7
     assert entered["keyframes"] == [True, False, False, True, False, False, True]
-    odo.rebuild_map([scan] * 0)  # a rebuilt map starts counting again
-    assert odo.scans_left_out_of_map == 0 and odo.enters_map(pose(0.19, 1.2))
+    odo.poses = poses  # a rebuilt map counts again, from its first scan
+    odo.rebuild_map([scan] * len(poses))
+    assert odo.scans_left_out_of_map == 4
+    np.testing.assert_array_equal(odo._last_map_pose, poses[-1])
+    # one threshold 0: that test is left out, the other decides alone
+    for t, r, expected in ((0.1, 0.0, [True, False, False, True, False, False, False]),
+                           (0.0, 1.0, [True, False, False, False, False, False, True])):
+        odo = VgicpOdometry(OdometryConfig(map_keyframe_translation=t, map_keyframe_rotation_deg=r), GraphConfig())
+        got = []
+        for T in poses:
+            before = odo.scans_left_out_of_map
+            odo._insert(scan, T)
+            got.append(odo.scans_left_out_of_map == before)
+        assert got == expected, (t, r)
+    # 'scan' mode keeps only the previous scan: nothing is left out
+    odo = VgicpOdometry(OdometryConfig(mode="scan", map_keyframe_translation=0.1, map_keyframe_rotation_deg=1.0),
+                        GraphConfig())
+    for T in poses:
+        odo._insert(scan, T)
+    assert odo.scans_left_out_of_map == 0
 
 
 def test_map_keyframes_follow_the_pitch_at_motion_start():
