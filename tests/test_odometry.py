@@ -167,16 +167,20 @@ def test_map_keyframe_thresholds_decide_which_scans_enter_the_map():
 
     # stand, creep 5 cm, 12 cm (>= 0.1 m from 0: in), stand, 0.19 m (0.07 from 0.12: out), turn 1.2 deg (in)
     poses = [pose(0), pose(0), pose(0.05), pose(0.12), pose(0.12), pose(0.19), pose(0.19, 1.2)]
-    entered = {"every": [], "keyframes": []}
-    for name, cfg in (("every", OdometryConfig()),
-                      ("keyframes", OdometryConfig(map_keyframe_translation=0.1, map_keyframe_rotation_deg=1.0))):
+
+    def entered(cfg):
+        """The odometry after inserting the scan at every pose, and whether each insertion entered the map."""
         odo = VgicpOdometry(cfg, GraphConfig())
+        got = []
         for T in poses:
             before = odo.scans_left_out_of_map
             odo._insert(scan, T)
-            entered[name].append(odo.scans_left_out_of_map == before)
-    assert entered["every"] == [True] * 7
-    assert entered["keyframes"] == [True, False, False, True, False, False, True]
+            got.append(odo.scans_left_out_of_map == before)
+        return odo, got
+
+    assert entered(OdometryConfig())[1] == [True] * 7
+    odo, got = entered(OdometryConfig(map_keyframe_translation=0.1, map_keyframe_rotation_deg=1.0))
+    assert got == [True, False, False, True, False, False, True]
     odo.poses = poses  # a rebuilt map counts again, from its first scan
     odo.rebuild_map([scan] * len(poses))
     assert odo.scans_left_out_of_map == 4
@@ -184,18 +188,9 @@ def test_map_keyframe_thresholds_decide_which_scans_enter_the_map():
     # one threshold 0: that test is left out, the other decides alone
     for t, r, expected in ((0.1, 0.0, [True, False, False, True, False, False, False]),
                            (0.0, 1.0, [True, False, False, False, False, False, True])):
-        odo = VgicpOdometry(OdometryConfig(map_keyframe_translation=t, map_keyframe_rotation_deg=r), GraphConfig())
-        got = []
-        for T in poses:
-            before = odo.scans_left_out_of_map
-            odo._insert(scan, T)
-            got.append(odo.scans_left_out_of_map == before)
-        assert got == expected, (t, r)
+        assert entered(OdometryConfig(map_keyframe_translation=t, map_keyframe_rotation_deg=r))[1] == expected, (t, r)
     # 'scan' mode keeps only the previous scan: nothing is left out
-    odo = VgicpOdometry(OdometryConfig(mode="scan", map_keyframe_translation=0.1, map_keyframe_rotation_deg=1.0),
-                        GraphConfig())
-    for T in poses:
-        odo._insert(scan, T)
+    odo, _ = entered(OdometryConfig(mode="scan", map_keyframe_translation=0.1, map_keyframe_rotation_deg=1.0))
     assert odo.scans_left_out_of_map == 0
 
 
