@@ -69,8 +69,18 @@ def round_figures(run: Path, r: int = 0) -> dict:
             "n_loops": nc["edges"]["loop"]["n"], "position_nees": nc["position"]["mean"],
             "horizontal_nees": nc["position"]["horizontal"]["mean"], "vertical_nees": nc["position"]["vertical"]["mean"],
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
-            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": lv.get("scale"),
+            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": _loop_scale(lv),
+            "loop_z2": (nc["edges"]["loop"].get("per_axis") or {}).get("z2_mean"),
             "loop_redundancy": lv.get("redundancy")}
+
+
+def _loop_scale(lv: dict) -> float | list[float] | None:
+    """The factor the loops' information got (``round.json``'s ``loop_variance``): one number, or
+    six (one per axis) when the per-axis stage of ``estimated_axes`` scaled them further."""
+    axes = lv.get("axes") or {}
+    if axes.get("reason") is None and axes.get("axis_scale") is not None:
+        return [lv["scale"] * a for a in axes["axis_scale"]]
+    return lv.get("scale")
 
 
 def _fmt(v: float | None) -> str:
@@ -86,14 +96,17 @@ def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed"
           axes: bool = False, summary: bool = True) -> str:
     """Markdown table of the run pairs; ``axes`` adds the odometry edges' NEES median and per-axis z^2;
     ``summary`` the mean ± std rows over the pairs (off when the pairs are not seeds of one setting)."""
-    extra = " odometry NEES median | odometry z² (ωx / ωy / ωz / x / y / z) |" if axes else ""
+    extra = (" odometry NEES median | odometry z² (ωx / ωy / ωz / x / y / z) | loop z² (ωx / ωy / ωz / x / y / z) |"
+             if axes else "")
     head = ("| run | loops | odometry NEES | loop NEES | position NEES (horizontal / vertical) | ATE RMSE [m] "
             "| RPE-300 all pairs [m] | KITTI [%] | loop information x |" + extra)
-    lines = [head, "|" + "---|" * (11 if axes else 9)]
+    lines = [head, "|" + "---|" * (12 if axes else 9)]
     for label, fixed, est in rows:
         for what, f in zip(labels, (fixed, est)):
-            scale = "1" if f["loop_scale"] is None else _fmt(f["loop_scale"])  # no factor: the loops as registered
-            more = f" {_fmt(f.get('odometry_nees_median'))} | {_axes(f.get('odometry_z2'))} |" if axes else ""
+            scale = ("1" if f["loop_scale"] is None else _axes(f["loop_scale"]) if isinstance(f["loop_scale"], list)
+                     else _fmt(f["loop_scale"]))  # no factor: the loops as registered; a list: one per axis
+            more = (f" {_fmt(f.get('odometry_nees_median'))} | {_axes(f.get('odometry_z2'))} | "
+                    f"{_axes(f.get('loop_z2'))} |" if axes else "")
             lines.append(f"| {label}, {what} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
                          f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
                          f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
@@ -106,9 +119,11 @@ def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed"
             ms = {k: "n/a" if np.isnan(x).any() else f"{x.mean():.3g} ± {x.std(ddof=1):.2g}" for k, x in v.items()}
             more = ""
             if axes:
-                z2 = [r[1 + i]["odometry_z2"] for r in rows]
-                mean_z2 = None if any(z is None for z in z2) else list(np.mean(z2, axis=0))
-                more = f" {ms['odometry_nees_median']} | {_axes(mean_z2)} (mean) |"
+                means = []
+                for kind in ("odometry_z2", "loop_z2"):
+                    z2 = [r[1 + i].get(kind) for r in rows]
+                    means.append(None if any(z is None for z in z2) else list(np.mean(z2, axis=0)))
+                more = f" {ms['odometry_nees_median']} | {_axes(means[0])} (mean) | {_axes(means[1])} (mean) |"
             lines.append(f"| mean ± std, {what} | | {ms['odometry_nees']} | {ms['loop_nees']} | {ms['position_nees']} "
                          f"| {ms['ate_rmse']} | {ms['rpe300_all_pairs_mean']} | {ms['kitti_t_err_percent']} | |" + more)
     return "\n".join(lines)
@@ -123,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", default="loop_variance", help="results file name (default: loop_variance)")
     ap.add_argument("--title", default="Loop edges: fixed weight against the estimated loop variance component "
                     "(round 0)", help="the results file's heading")
-    ap.add_argument("--axes", action="store_true", help="add the odometry edges' NEES median and per-axis z^2")
+    ap.add_argument("--axes", action="store_true",
+                    help="add the odometry edges' NEES median and the odometry and loop edges' per-axis z^2")
     ap.add_argument("--no-summary", action="store_true",
                     help="no mean ± std rows (the triples are not seeds of one setting, e.g. a parameter sweep)")
     ap.add_argument("--note", default="", help="a paragraph written under the table (how the runs were made)")

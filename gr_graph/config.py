@@ -193,9 +193,11 @@ class GraphConfig(_Section):
     fallback_sigmas: tuple[float, float, float, float, float, float] = (0.05, 0.05, 0.05, 1.0, 1.0, 1.0)
     loop_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
     loop_kernel_k: float = Field(2.3849, gt=0.0, description="kernel threshold in whitened units")
-    loop_variance: Literal["fixed", "estimated"] = Field(
+    loop_variance: Literal["fixed", "estimated", "estimated_axes"] = Field(
         "fixed", description="loop edges' information: 'fixed' as registered (and calibrated); 'estimated' divided "
-        "by the loops' variance factor from the graph's residuals, odometry held fixed (gr_graph.noise_calibration)")
+        "by the loops' variance factor from the graph's residuals, odometry held fixed; 'estimated_axes' that, then "
+        "one more factor per tangent axis (roll, pitch, yaw, x, y, z) shared by all loops that only weakens them "
+        "where an axis' residuals need it (gr_graph.noise_calibration)")
     max_iterations: int = Field(100, ge=1)
     relative_error_tol: float = Field(1e-6, gt=0.0)
     marginals: bool = True

@@ -47,7 +47,13 @@ from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimu
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
-from gr_graph.noise_calibration import loop_variance_factor, variance_factor
+from gr_graph.noise_calibration import (
+    LoopAxisVarianceFactors,
+    LoopVarianceFactor,
+    loop_axis_variance_factors,
+    loop_variance_factor,
+    variance_factor,
+)
 from gr_graph.pose_graph import GraphResult, PoseGraph
 from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
@@ -443,9 +449,18 @@ class _FrameLoop:
         self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
         return self.graph.optimize(marginals=False)
 
+    def _scale_loops(self, factors: LoopVarianceFactor | LoopAxisVarianceFactors) -> None:
+        """Apply ``factors`` to every loop edge's information."""
+        for e in self.edges:
+            if e.kind == "loop":
+                e.information = factors.scaled_information(e.information)
+
     def estimate_loop_variance(self, poses: np.ndarray) -> GraphResult | None:
         """Divide every loop edge's information by the loops' variance factor and solve again
         (``graph.loop_variance: estimated``, :func:`gr_graph.noise_calibration.loop_variance_factor`).
+        ``estimated_axes``: then, on the scaled loops, one more factor per tangent axis that only
+        weakens (:func:`~gr_graph.noise_calibration.loop_axis_variance_factors`), recorded under
+        ``"axes"`` in :attr:`loop_variance`.
 
         The factor is estimated on the Gaussian graph (loops without their robust kernel, started
         from ``poses``), the odometry edges' information held fixed; the robust graph with the
@@ -467,9 +482,16 @@ class _FrameLoop:
             return None
         log.info("loop variance: sigma_L^2 %s over loop redundancy %.1f (%d loops): loop information x %.4g",
                  ", ".join(f"{v:.4g}" for v in lv.sigma_sq), lv.redundancy, lv.n_loops, lv.scale)
-        for e in self.edges:
-            if e.kind == "loop":
-                e.information = lv.scale * np.asarray(e.information, np.float64)
+        self._scale_loops(lv)
+        if self.cfg.graph.loop_variance == "estimated_axes":  # then per axis, only where an axis needs more
+            axes = loop_axis_variance_factors(solve, self.edges)
+            self.loop_variance["axes"] = axes.summary()
+            if axes.reason is None:
+                log.info("loop variance per axis (roll, pitch, yaw, x, y, z): loop information x %s",
+                         ", ".join(f"{v:.4g}" for v in axes.axis_scale))
+                self._scale_loops(axes)
+            else:
+                log.info("loop variance per axis: not estimated (%s)", axes.reason)
         self.graph = self._graph_of(latest[0], self.cfg.graph)
         return self.graph.optimize(marginals=False)
 
@@ -497,7 +519,7 @@ class _FrameLoop:
             res = self.graph.optimize(marginals=False)
             if self.edge_noise is not None and self.edge_noise.calibrate:
                 res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
-            if self.cfg.graph.loop_variance == "estimated":
+            if self.cfg.graph.loop_variance != "fixed":
                 scaled = self.estimate_loop_variance(res.poses)
                 if scaled is not None:
                     res = replace(scaled, initial_error=res.initial_error)

@@ -35,7 +35,13 @@ variance component, for the loops only, with the odometry edges' information hel
 
 A registration Hessian describes the random error of an alignment, not a bias such as a
 miscalibrated beam elevation that tilts every revisit of a place the same way; the loops'
-residuals against the odometry show it. Estimating both groups from residuals instead fails:
+residuals against the odometry show it.
+
+Then per axis (:func:`loop_axis_variance_factors`, ``graph.loop_variance: estimated_axes``): the
+common factor weakens every axis of a loop alike, while a 16-ring scan pair misses part of a
+pitch or roll difference (``benchmarks/ring_pattern_study.py``) and is precise in the other axes.
+On the loops scaled by the common factor, six more factors (one per tangent axis, shared by all
+loops) are estimated from the same residuals split by axis, and only ever weaken a loop. Estimating both groups from residuals instead fails:
 the odometry edges' own residuals are small wherever loops are weak (their drift is not
 observable), so their factor collapses (``benchmarks/nees_variance_components.py``).
 
@@ -56,7 +62,7 @@ import scipy.sparse.linalg as spl
 from gr_graph.odometry import RegistrationEdge
 
 __all__ = ["between_residuals", "VarianceFactor", "variance_factor", "LoopVarianceFactor", "loop_variance_factor",
-           "factor_redundancies"]
+           "LoopAxisVarianceFactors", "loop_axis_variance_factors", "factor_redundancies"]
 
 
 def between_residuals(poses: np.ndarray, edges: Sequence[RegistrationEdge]) -> np.ndarray:
@@ -159,12 +165,7 @@ def factor_redundancies(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     every factor of a pose graph is 6-dimensional), ``N = J^T J``, factorised once; ``J_g`` its
     rows of group ``g``. The redundancies of all factors add up to ``rows - unknowns``.
     """
-    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, column, value); last column: rhs
-    r, c, v = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1, ijs[2]
-    n = int(values.size()) * 6
-    keep = c < n
-    J = sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(6 * int(graph.size()), n))
-    lu = spl.splu((J.T @ J).tocsc())
+    J, lu = _whitened_jacobian(graph, values)
     out = []
     for group in factor_groups:
         rows = (6 * np.asarray(group, np.int64)[:, None] + np.arange(6)).ravel()
@@ -174,6 +175,18 @@ def factor_redundancies(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         Jg = J[rows].toarray()
         out.append(float(len(rows) - np.trace(Jg @ lu.solve(np.ascontiguousarray(Jg.T)))))
     return out
+
+
+def _whitened_jacobian(graph: gtsam.NonlinearFactorGraph,
+                       values: gtsam.Values) -> tuple[sp.csr_matrix, spl.SuperLU]:
+    """The whitened Jacobian ``J`` of a pose graph at ``values`` (factor ``f``'s rows ``6 f .. 6 f + 5``)
+    and the LU factorisation of ``N = J^T J`` (RuntimeError when ``N`` is singular)."""
+    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, column, value); last column: rhs
+    r, c, v = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1, ijs[2]
+    n = int(values.size()) * 6
+    keep = c < n
+    J = sp.csr_matrix((v[keep], (r[keep], c[keep])), shape=(6 * int(graph.size()), n))
+    return J, spl.splu((J.T @ J).tocsc())
 
 
 @dataclass
@@ -202,6 +215,10 @@ class LoopVarianceFactor:
     iterations: int
     converged: bool
     reason: str | None = None
+
+    def scaled_information(self, information: np.ndarray) -> np.ndarray:
+        """A loop edge's ``(6, 6)`` information with the factor applied."""
+        return self.scale * np.asarray(information, np.float64)
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready dict (the round summary's ``loop_variance``)."""
@@ -258,3 +275,119 @@ def loop_variance_factor(solve: Callable[[list[np.ndarray]], tuple[gtsam.Nonline
         if abs(s2 - 1.0) < tol:
             return LoopVarianceFactor(scale, history, r_loop, len(loops), it + 1, True)
     return LoopVarianceFactor(scale, history, r_loop, len(loops), max_iterations, False)
+
+
+@dataclass
+class LoopAxisVarianceFactors:
+    """Result of :func:`loop_axis_variance_factors`.
+
+    Attributes
+    ----------
+    axis_scale : list of float
+        ``d``: six factors, one per axis of a loop edge's tangent space ([omega, v], gtsam order),
+        applied as ``Lambda' = diag(sqrt d) Lambda diag(sqrt d)`` (all 1 when nothing was estimated).
+    sigma_sq : list of list of float
+        The six ``sigma_j^2`` of every iteration (all near 1 at the last when it converged).
+    redundancy : list of float or None
+        ``r_j`` at the last iteration (they add up to the loops' redundancy).
+    n_loops, iterations, converged, reason
+        As :class:`LoopVarianceFactor`.
+    """
+
+    axis_scale: list[float]
+    sigma_sq: list[list[float]]
+    redundancy: list[float] | None
+    n_loops: int
+    iterations: int
+    converged: bool
+    reason: str | None = None
+
+    def scaled_information(self, information: np.ndarray) -> np.ndarray:
+        """A loop edge's ``(6, 6)`` information with the six factors applied."""
+        root = np.sqrt(np.asarray(self.axis_scale, np.float64))
+        return root[:, None] * np.asarray(information, np.float64) * root[None, :]
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready dict (the round summary's ``loop_variance``)."""
+        return {"method": "loop_axis_variance_components", "axis_scale": self.axis_scale,
+                "sigma_sq": self.sigma_sq, "redundancy": self.redundancy, "n_loops": self.n_loops,
+                "iterations": self.iterations, "converged": self.converged, "reason": self.reason}
+
+
+def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.NonlinearFactorGraph, gtsam.Values]],
+                               edges: Sequence[RegistrationEdge], max_iterations: int = 20,
+                               tol: float = 1e-2, inflate_only: bool = True) -> LoopAxisVarianceFactors:
+    """Six variance factors of the loops, one per tangent axis, the odometry held fixed (the second
+    stage of ``graph.loop_variance: estimated_axes``, applied to the loops :func:`loop_variance_factor`
+    has scaled).
+
+    The model: every loop edge's covariance is ``S Sigma_e S`` with ``S = diag(sigma_1 .. sigma_6)``
+    shared by all loops, e.g. a registration whose pitch error is larger than its Hessian says (a
+    16-ring scan pair misses part of a pitch difference: ``benchmarks/ring_pattern_study.py``) while
+    its translation is conservative. With ``v_e`` a loop's residual at the optimum,
+    ``Lambda_e`` its information and ``R_e = I - J_e N^-1 J_e^T Lambda_e`` its block of the
+    redundancy matrix (unwhitened; ``N`` the normal matrix of the whole graph)::
+
+        sigma_j^2 = sum_loops v_ej (Lambda_e v_e)_j / sum_loops (R_e)_jj
+
+    (unbiased for ``sigma_j^2`` when the model holds: ``E[v_e v_e^T] Lambda_e = R_e``; summed over ``j``
+    it is :func:`loop_variance_factor`'s estimate). ``Lambda_e`` is rescaled by ``1 / sigma_j``
+    on both sides of axis ``j``, the graph solved again, until every ``|sigma_j^2 - 1| < tol``.
+
+    ``inflate_only`` (default): a factor never exceeds 1, i.e. a loop is never made more certain
+    on an axis than its registration claims (the claim is a floor: biases only add to it). Without
+    this, an axis on which the loops are far more precise than the odometry between them collapses:
+    a stronger loop leaves itself less redundancy and a smaller residual, so its factor grows
+    without bound (seen on the 16-channel full route: yaw and x/y redundancies 0.4-0.6 after three
+    iterations). An axis whose redundancy is under 0.5 is left as it is.
+
+    Parameters and the dense Jacobian block as :func:`loop_variance_factor`.
+
+    Returns
+    -------
+    LoopAxisVarianceFactors
+        All factors 1 with ``reason`` set when they cannot be estimated (no loops, no axis with
+        redundancy and a positive residual sum, a singular normal matrix).
+    """
+    ones = [1.0] * 6
+    loops = [i for i, e in enumerate(edges) if e.kind == "loop"]
+    if not loops:
+        return LoopAxisVarianceFactors(ones, [], None, 0, 0, False, "no loops")
+    info = [np.asarray(e.information, np.float64) for e in edges]
+    is_loop = set(loops)
+    d = np.ones(6)
+    history: list[list[float]] = []
+    r_axes: list[float] | None = None
+    for it in range(max_iterations):
+        root = np.sqrt(d)
+        current = [root[:, None] * h * root[None, :] if i in is_loop else h for i, h in enumerate(info)]
+        graph, values = solve(current)
+        try:
+            J, lu = _whitened_jacobian(graph, values)
+        except RuntimeError as exc:  # splu: a singular normal matrix (a pose no factor constrains)
+            return LoopAxisVarianceFactors(ones, history, None, len(loops), it, False,
+                                           f"singular normal matrix ({exc})")
+        rows = (6 * (1 + np.asarray(loops, np.int64))[:, None] + np.arange(6)).ravel()  # factor 0: the prior
+        J_loops = J[rows].toarray()
+        X = lu.solve(np.ascontiguousarray(J_loops.T))
+        quadratic, redundancy = np.zeros(6), np.zeros(6)
+        for n, i in enumerate(loops):
+            lam = 0.5 * (current[i] + current[i].T)
+            block = slice(6 * n, 6 * n + 6)
+            hat_whitened = J_loops[block] @ X[:, block]
+            upper = np.linalg.cholesky(lam).T  # upper^T upper = lam: any whitening gives the same R_e
+            redundancy += 1.0 - np.diag(np.linalg.solve(upper, hat_whitened @ upper))
+            v = np.asarray(graph.at(1 + i).unwhitenedError(values), np.float64)
+            quadratic += v * (lam @ v)
+        r_axes = redundancy.tolist()
+        estimable = (redundancy >= 0.5) & np.isfinite(quadratic) & (quadratic > 0.0)
+        if not estimable.any():
+            return LoopAxisVarianceFactors(ones, history, r_axes, len(loops), it, False,
+                                           "no loop redundancy or no loop residuals on any axis")
+        s2 = np.where(estimable, quadratic / np.where(estimable, redundancy, 1.0), 1.0)
+        history.append(s2.tolist())
+        d = np.minimum(d / s2, 1.0) if inflate_only else d / s2
+        settled = (np.abs(s2 - 1.0) < tol) | ((d == 1.0) & (s2 < 1.0)) if inflate_only else np.abs(s2 - 1.0) < tol
+        if np.all(settled):
+            return LoopAxisVarianceFactors(d.tolist(), history, r_axes, len(loops), it + 1, True)
+    return LoopAxisVarianceFactors(d.tolist(), history, r_axes, len(loops), max_iterations, False)

@@ -116,9 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="KITTI folders and the synthetic sequence: raise every point's elevation by DEG degrees "
                         "(KISS-ICP: 0.205) "
                         f"(default: {d.data.kitti_vertical_correction_deg})")
-    p.add_argument("--loop-variance", choices=("fixed", "estimated"), default=None,
-                   help="loop edges' information: as registered, or divided by the loops' variance factor "
-                        f"estimated from the graph's residuals (default: {d.graph.loop_variance})")
+    p.add_argument("--loop-variance", choices=("fixed", "estimated", "estimated_axes"), default=None,
+                   help="loop edges' information: as registered, divided by the loops' variance factor estimated "
+                        "from the graph's residuals, or that and then weakened per axis where an axis needs it "
+                        f"(default: {d.graph.loop_variance})")
     p.add_argument("--registration-covariance", choices=("scaled_hessian", "cluster_robust"), default=None,
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")

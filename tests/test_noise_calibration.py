@@ -11,7 +11,13 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from gr_graph.config import GraphConfig, load_config
-from gr_graph.noise_calibration import between_residuals, factor_redundancies, loop_variance_factor, variance_factor
+from gr_graph.noise_calibration import (
+    between_residuals,
+    factor_redundancies,
+    loop_axis_variance_factors,
+    loop_variance_factor,
+    variance_factor,
+)
 from gr_graph.noise_consistency import (
     axis_stats,
     edge_nees,
@@ -28,10 +34,11 @@ def _exp(xi: np.ndarray) -> np.ndarray:
 
 
 def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, true_factor: float = 25.0,
-                     loop_factor: float | None = None):
+                     loop_factor: float | None = None, loop_axes: np.ndarray | None = None):
     """A closed drive (circle, 2 laps) with odometry and loop measurements whose real error
     covariance is ``true_factor`` (loops: ``loop_factor``, default the same) x the inverse of
-    the information they carry."""
+    the information they carry; ``loop_axes`` (6 standard-deviation factors) makes the loops'
+    real covariance ``S (loop_factor Sigma) S`` with ``S = diag(loop_axes)``."""
     t = np.linspace(0, 4 * np.pi, K)
     gt = np.stack([_exp(np.array([0, 0, ti, 0, 0, 0])) for ti in t])
     gt[:, :3, 3] = np.column_stack([20 * np.cos(t), 20 * np.sin(t), 0.1 * t])
@@ -39,7 +46,8 @@ def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, 
     info = A @ A.T + np.diag([4e4, 4e4, 4e4, 400, 400, 400])  # the claimed information
     cov_true = true_factor * np.linalg.inv(info)
     chol = {"odometry": np.linalg.cholesky(cov_true),
-            "loop": np.linalg.cholesky((true_factor if loop_factor is None else loop_factor) * np.linalg.inv(info))}
+            "loop": np.linalg.cholesky((true_factor if loop_factor is None else loop_factor)
+                                       * _axes_scaled(np.linalg.inv(info), loop_axes))}
     pairs = [(k + 1, k) for k in range(K - 1)]
     half = K // 2
     loops = rng.choice(np.arange(half, K), n_loops, replace=False)
@@ -50,6 +58,13 @@ def _simulated_graph(rng: np.random.Generator, K: int = 120, n_loops: int = 30, 
         T = np.linalg.inv(gt[l]) @ gt[k] @ _exp(chol[kind] @ rng.normal(size=6))
         edges.append(RegistrationEdge(k, l, T, info, info.copy(), 1.0, 0.0, 1, True, "", kind))
     return gt, edges, cov_true
+
+
+def _axes_scaled(cov: np.ndarray, sd_factors: np.ndarray | None) -> np.ndarray:
+    """``S cov S`` with ``S = diag(sd_factors)`` (``cov`` itself without factors)."""
+    if sd_factors is None:
+        return cov
+    return np.asarray(sd_factors)[:, None] * cov * np.asarray(sd_factors)[None, :]
 
 
 def _solve(gt: np.ndarray, edges: list[RegistrationEdge], marginals: bool = False):
@@ -213,6 +228,97 @@ def test_loop_variance_needs_loops_and_the_frame_loop_applies_it():
     assert loop.estimate_loop_variance(gt) is None and loop.graph is graph
     assert loop.loop_variance["reason"] == "no loops" and loop.loop_variance["scale"] == 1.0
     assert all(np.array_equal(e.information, H) for e, H in zip(edges, before))
+
+
+def _loop_z2(edges: list[RegistrationEdge], gt: np.ndarray) -> np.ndarray:
+    """Mean squared error per axis of the loop edges against ground truth, in units of the
+    standard deviations their information claims (1 each when consistent)."""
+    from gr_graph.noise_consistency import edge_errors, gt_relative_poses
+
+    loops = [e for e in edges if e.kind == "loop"]
+    xi = edge_errors(np.array([e.T for e in loops]), gt_relative_poses(np.array([(e.source, e.target) for e in loops]), gt))
+    sd = np.sqrt(np.diagonal(np.linalg.inv(np.array([e.information for e in loops])), axis1=1, axis2=2))
+    return ((xi / sd) ** 2).mean(axis=0)
+
+
+def test_loop_axis_variance_factors_find_the_axis_the_loops_err_on():
+    """Loops whose pitch error is 3x what their information claims and whose other axes are as
+    claimed (odometry consistent): the per-axis factors, from residuals alone, weaken pitch by
+    ~1/9 and leave the rest at 1 (inflate only); the loops' pitch z^2 against ground truth drops
+    from ~9 to ~1. The first iteration's sigma_j^2 adds up, weighted by the axes' redundancies,
+    to the common factor's chi2 (the same residuals split by axis)."""
+    rng = np.random.default_rng(11)
+    axes_sd = np.array([1.0, 3.0, 1.0, 1.0, 1.0, 1.0])
+    gt, edges, _ = _simulated_graph(rng, K=240, n_loops=80, true_factor=1.0, loop_factor=1.0, loop_axes=axes_sd)
+    before = _loop_z2(edges, gt)
+    assert before[1] > 5.0 and np.all(before[[0, 2, 3, 4, 5]] < 2.0)  # the simulated over-confidence
+    la = loop_axis_variance_factors(_loop_solver(gt, edges), edges)
+    assert la.converged and la.reason is None and la.n_loops == 80
+    scale = np.array(la.axis_scale)
+    assert 1 / 9 / 1.6 < scale[1] < 1 / 9 * 1.6
+    assert np.all(scale[[0, 2, 3, 4, 5]] > 0.6) and np.all(scale <= 1.0)
+    # sum_j sigma_j^2 r_j of the first iteration = the loops' chi2 at the unscaled optimum
+    graph, values = _loop_solver(gt, edges)([e.information for e in edges])
+    chi2 = sum(2.0 * graph.at(1 + i).error(values) for i, e in enumerate(edges) if e.kind == "loop")
+    r = factor_redundancies(graph, values, [[1 + i for i, e in enumerate(edges) if e.kind == "loop"]])[0]
+    first = loop_axis_variance_factors(_loop_solver(gt, edges), edges, max_iterations=1)
+    assert first.redundancy is not None and sum(first.redundancy) == pytest.approx(r, rel=1e-6)
+    assert float(np.dot(first.sigma_sq[0], first.redundancy)) == pytest.approx(chi2, rel=1e-6)
+    for e in edges:
+        if e.kind == "loop":
+            e.information = la.scaled_information(e.information)
+    after = _loop_z2(edges, gt)
+    assert 0.5 < after[1] < 1.8 and np.all(after < 2.0)
+    assert la.summary()["method"] == "loop_axis_variance_components"
+
+
+def test_loop_axis_variance_factors_leave_consistent_loops_and_never_strengthen():
+    """Loops as good as claimed: every factor stays near 1 (80 loops, ~30 redundancy per axis: the
+    first iteration's sigma_j^2 is 1 +- 0.26, and the iterations to the fixed point amplify a
+    deviation, measured down to 0.47 on one axis over five simulated graphs; a 3x pitch error gives
+    0.11). Loops 4x better than claimed on
+    every axis: inflate-only leaves them all at exactly 1; without it the factors grow (the
+    loops strengthened). No loops: nothing estimated."""
+    rng = np.random.default_rng(12)
+    gt, edges, _ = _simulated_graph(rng, K=240, n_loops=80, true_factor=1.0, loop_factor=1.0)
+    la = loop_axis_variance_factors(_loop_solver(gt, edges), edges)
+    scale = np.array(la.axis_scale)
+    assert la.reason is None and np.all(scale > 0.4) and np.all(scale <= 1.0) and np.prod(scale) ** (1 / 6) > 0.7
+    gt, edges, _ = _simulated_graph(rng, K=240, n_loops=80, true_factor=1.0, loop_factor=1 / 16)
+    la = loop_axis_variance_factors(_loop_solver(gt, edges), edges)
+    assert la.converged and la.axis_scale == [1.0] * 6 and np.all(np.array(la.sigma_sq[0]) < 1.0)
+    free = loop_axis_variance_factors(_loop_solver(gt, edges), edges, inflate_only=False)
+    assert np.all(np.array(free.axis_scale) > 1.5)
+    gt, edges, _ = _simulated_graph(rng, K=15, n_loops=0)
+    la = loop_axis_variance_factors(_loop_solver(gt, edges), edges)
+    assert la.reason == "no loops" and la.axis_scale == [1.0] * 6 and not la.converged
+
+
+def test_frame_loop_estimated_axes_scales_loops_twice_and_records_both():
+    """graph.loop_variance: estimated_axes: the common factor first, then the per-axis factors
+    on the scaled loops; every loop's information is the product, odometry untouched, both
+    recorded for round.json."""
+    from gr_graph.frame_loop import _FrameLoop
+
+    rng = np.random.default_rng(13)
+    gt, edges, _ = _simulated_graph(rng, K=120, n_loops=40, true_factor=1.0, loop_factor=4.0,
+                                    loop_axes=np.array([1.0, 3.0, 1.0, 1.0, 1.0, 1.0]))
+    before = [e.information.copy() for e in edges]
+    loop = _FrameLoop.__new__(_FrameLoop)
+    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated_axes"}})
+    loop.edges = edges
+    loop.graph = PoseGraph(loop.cfg.graph)
+    res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
+    lv = loop.loop_variance
+    assert res is not None and lv["method"] == "loop_variance_component" and lv["converged"]
+    axes = lv["axes"]
+    assert axes["method"] == "loop_axis_variance_components" and axes["reason"] is None
+    root = np.sqrt(np.array(axes["axis_scale"]))
+    assert axes["axis_scale"][1] < 0.5 and max(axes["axis_scale"]) <= 1.0
+    for e, H in zip(edges, before):
+        expected = lv["scale"] * root[:, None] * H * root[None, :] if e.kind == "loop" else H
+        np.testing.assert_allclose(e.information, expected, rtol=1e-10)
+    assert _loop_z2(edges, gt)[1] < 2.0
 
 
 def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
