@@ -35,15 +35,15 @@ variance component, for the loops only, with the odometry edges' information hel
 
 A registration Hessian describes the random error of an alignment, not a bias such as a
 miscalibrated beam elevation that tilts every revisit of a place the same way; the loops'
-residuals against the odometry show it.
+residuals against the odometry show it. Estimating both groups from residuals instead fails:
+the odometry edges' own residuals are small wherever loops are weak (their drift is not
+observable), so their factor collapses (``benchmarks/nees_variance_components.py``).
 
 Then per axis (:func:`loop_axis_variance_factors`, ``graph.loop_variance: estimated_axes``): the
 common factor weakens every axis of a loop alike, while a 16-ring scan pair misses part of a
 pitch or roll difference (``benchmarks/ring_pattern_study.py``) and is precise in the other axes.
 On the loops scaled by the common factor, six more factors (one per tangent axis, shared by all
-loops) are estimated from the same residuals split by axis, and only ever weaken a loop. Estimating both groups from residuals instead fails:
-the odometry edges' own residuals are small wherever loops are weak (their drift is not
-observable), so their factor collapses (``benchmarks/nees_variance_components.py``).
+loops) are estimated from the same residuals split by axis, and only ever weaken a loop.
 
 Ground truth is not used; :mod:`gr_graph.noise_consistency` checks the result against it.
 """
@@ -308,7 +308,7 @@ class LoopAxisVarianceFactors:
         return root[:, None] * np.asarray(information, np.float64) * root[None, :]
 
     def summary(self) -> dict[str, Any]:
-        """JSON-ready dict (the round summary's ``loop_variance``)."""
+        """JSON-ready dict (the round summary's ``loop_variance["axes"]``)."""
         return {"method": "loop_axis_variance_components", "axis_scale": self.axis_scale,
                 "sigma_sq": self.sigma_sq, "redundancy": self.redundancy, "n_loops": self.n_loops,
                 "iterations": self.iterations, "converged": self.converged, "reason": self.reason}
@@ -335,11 +335,12 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
     on both sides of axis ``j``, the graph solved again, until every ``|sigma_j^2 - 1| < tol``.
 
     ``inflate_only`` (default): a factor never exceeds 1, i.e. a loop is never made more certain
-    on an axis than its registration claims (the claim is a floor: biases only add to it). Without
+    on an axis than it came in (its information is a floor: biases only add to the error). Without
     this, an axis on which the loops are far more precise than the odometry between them collapses:
     a stronger loop leaves itself less redundancy and a smaller residual, so its factor grows
-    without bound (seen on the 16-channel full route: yaw and x/y redundancies 0.4-0.6 after three
-    iterations). An axis whose redundancy is under 0.5 is left as it is.
+    without bound (seen on the 16-channel full route, started from the loops as registered: yaw and
+    x/y redundancies 0.4-0.6 after three iterations). An axis whose redundancy is under 0.5 is left
+    as it is.
 
     Parameters and the dense Jacobian block as :func:`loop_variance_factor`.
 
@@ -347,7 +348,8 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
     -------
     LoopAxisVarianceFactors
         All factors 1 with ``reason`` set when they cannot be estimated (no loops, no axis with
-        redundancy and a positive residual sum, a singular normal matrix).
+        redundancy and a positive residual sum, a singular normal matrix, a loop information that
+        is not positive definite).
     """
     ones = [1.0] * 6
     loops = [i for i, e in enumerate(edges) if e.kind == "loop"]
@@ -375,7 +377,11 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
             lam = 0.5 * (current[i] + current[i].T)
             block = slice(6 * n, 6 * n + 6)
             hat_whitened = J_loops[block] @ X[:, block]
-            upper = np.linalg.cholesky(lam).T  # upper^T upper = lam: any whitening gives the same R_e
+            try:
+                upper = np.linalg.cholesky(lam).T  # upper^T upper = lam: any whitening gives the same R_e
+            except np.linalg.LinAlgError:
+                return LoopAxisVarianceFactors(ones, history, None, len(loops), it, False,
+                                               f"loop information not positive definite (edge {i})")
             redundancy += 1.0 - np.diag(np.linalg.solve(upper, hat_whitened @ upper))
             v = np.asarray(graph.at(1 + i).unwhitenedError(values), np.float64)
             quadratic += v * (lam @ v)
