@@ -455,6 +455,27 @@ class _FrameLoop:
             if e.kind == "loop":
                 e.information = factors.scaled_information(e.information)
 
+    def _scale_loops_per_axis(self, solve: Any) -> None:
+        """The per-axis stage of ``estimated_axes`` on the loops the common factor has scaled; a
+        failure (memory, gtsam) is logged and recorded and keeps the common factor: it never loses
+        the run."""
+        try:
+            axes = loop_axis_variance_factors(solve, self.edges)
+        except Exception as exc:  # noqa: BLE001 - the run is finished: keep the common factor
+            log.warning("loop variance per axis failed (%s: %s); the loops keep the common factor",
+                        type(exc).__name__, exc)
+            self.loop_variance["axes"] = {"method": "loop_axis_variance_components",
+                                          "reason": f"failed: {type(exc).__name__}: {exc}"}
+            return
+        self.loop_variance["axes"] = axes.summary()
+        if axes.reason is not None:
+            log.info("loop variance per axis: not estimated (%s)", axes.reason)
+            return
+        log.info("loop variance per axis (roll, pitch, yaw, x, y, z): loop information x %s (%d iterations%s)",
+                 ", ".join(f"{v:.4g}" for v in axes.axis_scale), axes.iterations,
+                 "" if axes.converged else ", not converged: the last factors are applied")
+        self._scale_loops(axes)
+
     def estimate_loop_variance(self, poses: np.ndarray) -> GraphResult | None:
         """Divide every loop edge's information by the loops' variance factor and solve again
         (``graph.loop_variance: estimated``, :func:`gr_graph.noise_calibration.loop_variance_factor`).
@@ -484,14 +505,7 @@ class _FrameLoop:
                  ", ".join(f"{v:.4g}" for v in lv.sigma_sq), lv.redundancy, lv.n_loops, lv.scale)
         self._scale_loops(lv)
         if self.cfg.graph.loop_variance == "estimated_axes":  # then per axis, only where an axis needs more
-            axes = loop_axis_variance_factors(solve, self.edges)
-            self.loop_variance["axes"] = axes.summary()
-            if axes.reason is None:
-                log.info("loop variance per axis (roll, pitch, yaw, x, y, z): loop information x %s",
-                         ", ".join(f"{v:.4g}" for v in axes.axis_scale))
-                self._scale_loops(axes)
-            else:
-                log.info("loop variance per axis: not estimated (%s)", axes.reason)
+            self._scale_loops_per_axis(solve)
         self.graph = self._graph_of(latest[0], self.cfg.graph)
         return self.graph.optimize(marginals=False)
 

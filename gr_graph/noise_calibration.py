@@ -168,13 +168,24 @@ def factor_redundancies(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     J, lu = _whitened_jacobian(graph, values)
     out = []
     for group in factor_groups:
-        rows = (6 * np.asarray(group, np.int64)[:, None] + np.arange(6)).ravel()
+        rows = _factor_rows(group)
         if len(rows) == 0:
             out.append(0.0)
             continue
         Jg = J[rows].toarray()
         out.append(float(len(rows) - np.trace(Jg @ lu.solve(np.ascontiguousarray(Jg.T)))))
     return out
+
+
+def _factor_rows(factors: Sequence[int]) -> np.ndarray:
+    """Rows of the factors ``factors`` in a pose graph's Jacobian (six per factor, in order)."""
+    return (6 * np.asarray(factors, np.int64)[:, None] + np.arange(6)).ravel()
+
+
+def _axis_scaled(information: np.ndarray, axis_scale: np.ndarray) -> np.ndarray:
+    """``diag(sqrt d) Lambda diag(sqrt d)``: ``information`` with axis ``j`` scaled by ``d_j``."""
+    root = np.sqrt(np.asarray(axis_scale, np.float64))
+    return root[:, None] * np.asarray(information, np.float64) * root[None, :]
 
 
 def _whitened_jacobian(graph: gtsam.NonlinearFactorGraph,
@@ -304,8 +315,7 @@ class LoopAxisVarianceFactors:
 
     def scaled_information(self, information: np.ndarray) -> np.ndarray:
         """A loop edge's ``(6, 6)`` information with the six factors applied."""
-        root = np.sqrt(np.asarray(self.axis_scale, np.float64))
-        return root[:, None] * np.asarray(information, np.float64) * root[None, :]
+        return _axis_scaled(information, np.asarray(self.axis_scale))
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready dict (the round summary's ``loop_variance["axes"]``)."""
@@ -330,9 +340,14 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
 
         sigma_j^2 = sum_loops v_ej (Lambda_e v_e)_j / sum_loops (R_e)_jj
 
-    (unbiased for ``sigma_j^2`` when the model holds: ``E[v_e v_e^T] Lambda_e = R_e``; summed over ``j``
-    it is :func:`loop_variance_factor`'s estimate). ``Lambda_e`` is rescaled by ``1 / sigma_j``
-    on both sides of axis ``j``, the graph solved again, until every ``|sigma_j^2 - 1| < tol``.
+    (the iterated variance-component estimate: at its fixed point, with the weights equal to the true
+    ones and the odometry consistent, ``E[v_e v_e^T] Lambda_e = R_e``, so every ``sigma_j^2`` is 1;
+    the numerators add up to the loops' chi2 and the denominators to their redundancy, i.e. the
+    redundancy-weighted mean of the ``sigma_j^2`` is :func:`loop_variance_factor`'s estimate; a
+    single ``R_jj`` may be negative when a loop's information correlates its axes).
+    ``Lambda_e`` is rescaled by ``1 / sigma_j`` on both sides of axis ``j``, the graph solved again,
+    until every ``|sigma_j^2 - 1| < tol``. The iteration amplifies the noise of the first estimate:
+    on simulated consistent loops (80, ~30 redundancy an axis) single factors came out down to 0.47.
 
     ``inflate_only`` (default): a factor never exceeds 1, i.e. a loop is never made more certain
     on an axis than it came in (its information is a floor: biases only add to the error). Without
@@ -348,8 +363,7 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
     -------
     LoopAxisVarianceFactors
         All factors 1 with ``reason`` set when they cannot be estimated (no loops, no axis with
-        redundancy and a positive residual sum, a singular normal matrix, a loop information that
-        is not positive definite).
+        redundancy and a positive residual sum, a singular normal matrix).
     """
     ones = [1.0] * 6
     loops = [i for i, e in enumerate(edges) if e.kind == "loop"]
@@ -361,30 +375,24 @@ def loop_axis_variance_factors(solve: Callable[[list[np.ndarray]], tuple[gtsam.N
     history: list[list[float]] = []
     r_axes: list[float] | None = None
     for it in range(max_iterations):
-        root = np.sqrt(d)
-        current = [root[:, None] * h * root[None, :] if i in is_loop else h for i, h in enumerate(info)]
-        graph, values = solve(current)
+        graph, values = solve([_axis_scaled(h, d) if i in is_loop else h for i, h in enumerate(info)])
         try:
             J, lu = _whitened_jacobian(graph, values)
         except RuntimeError as exc:  # splu: a singular normal matrix (a pose no factor constrains)
             return LoopAxisVarianceFactors(ones, history, None, len(loops), it, False,
                                            f"singular normal matrix ({exc})")
-        rows = (6 * (1 + np.asarray(loops, np.int64))[:, None] + np.arange(6)).ravel()  # factor 0: the prior
-        J_loops = J[rows].toarray()
+        J_loops = J[_factor_rows([1 + i for i in loops])].toarray()  # factor 0: the prior
         X = lu.solve(np.ascontiguousarray(J_loops.T))
         quadratic, redundancy = np.zeros(6), np.zeros(6)
         for n, i in enumerate(loops):
-            lam = 0.5 * (current[i] + current[i].T)
+            factor = graph.at(1 + i)
+            # the whitening gtsam used (W^T W = Lambda as the graph holds it, floors included): the
+            # whitened Jacobian's rows are W J, so J N^-1 J^T Lambda = W^-1 (W J N^-1 J^T W^T) W
+            W = np.asarray(factor.noiseModel().R(), np.float64)
             block = slice(6 * n, 6 * n + 6)
-            hat_whitened = J_loops[block] @ X[:, block]
-            try:
-                upper = np.linalg.cholesky(lam).T  # upper^T upper = lam: any whitening gives the same R_e
-            except np.linalg.LinAlgError:
-                return LoopAxisVarianceFactors(ones, history, None, len(loops), it, False,
-                                               f"loop information not positive definite (edge {i})")
-            redundancy += 1.0 - np.diag(np.linalg.solve(upper, hat_whitened @ upper))
-            v = np.asarray(graph.at(1 + i).unwhitenedError(values), np.float64)
-            quadratic += v * (lam @ v)
+            redundancy += 1.0 - np.diag(np.linalg.solve(W, (J_loops[block] @ X[:, block]) @ W))
+            v = np.asarray(factor.unwhitenedError(values), np.float64)
+            quadratic += v * ((W.T @ W) @ v)
         r_axes = redundancy.tolist()
         estimable = (redundancy >= 0.5) & np.isfinite(quadratic) & (quadratic > 0.0)
         if not estimable.any():
