@@ -342,6 +342,30 @@ def test_frame_loop_estimated_axes_scales_loops_twice_and_records_both():
     assert _loop_z2(edges, gt)[1] < 2.0
 
 
+def test_frame_loop_per_axis_failure_keeps_the_common_factor(monkeypatch):
+    """An exception in the per-axis stage (e.g. memory for the dense Jacobian block) does not lose
+    the finished run: the loops keep the common factor, the graph is solved, the reason recorded."""
+    import gr_graph.frame_loop as frame_loop
+
+    def fails(*args, **kwargs):
+        raise MemoryError("dense Jacobian block")
+
+    monkeypatch.setattr(frame_loop, "loop_axis_variance_factors", fails)
+    rng = np.random.default_rng(15)
+    gt, edges, _ = _simulated_graph(rng, K=60, n_loops=12, true_factor=1.0, loop_factor=9.0)
+    before = [e.information.copy() for e in edges]
+    loop = frame_loop._FrameLoop.__new__(frame_loop._FrameLoop)
+    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated_axes"}})
+    loop.edges = edges
+    loop.graph = PoseGraph(loop.cfg.graph)
+    res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
+    assert res is not None and len(res.poses) == 60
+    scale = loop.loop_variance["scale"]
+    assert scale < 0.5 and loop.loop_variance["axes"]["reason"].startswith("failed: MemoryError")
+    for e, H in zip(edges, before):
+        np.testing.assert_allclose(e.information, scale * H if e.kind == "loop" else H, rtol=1e-12)
+
+
 def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, capsys):
     rng = np.random.default_rng(3)
     gt, edges, _ = _simulated_graph(rng, K=30, n_loops=6, true_factor=1.0)
