@@ -26,7 +26,7 @@ Run::
 
     python benchmarks/ring_pattern_study.py [--rings 16 32 64] [--frames 200 1000 2000 3000 4000]
         [--delta-mrad 4] [--map-scans 20] [--seed 0] [--num-neighbors K] [--runs RUN ...]
-        [--write] [--name ring_pattern]
+        [--write] [--name ring_pattern] [--note TEXT]
 
 ``--write`` writes ``benchmarks/results/NAME.md`` and ``.json``.
 """
@@ -206,6 +206,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--runs", type=Path, nargs="*", default=[], help="finished synthetic-world runs to read")
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/NAME.md and .json")
     ap.add_argument("--name", default="ring_pattern", help="results file name (default ring_pattern)")
+    ap.add_argument("--note", default="", help="a paragraph appended to the results file (e.g. how the runs were made)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     runs = [row for r in args.runs for row in missed_share(r)]
@@ -217,6 +218,8 @@ def main(argv: list[str] | None = None) -> None:
                f"--seed {args.seed}" + (f" --num-neighbors {args.num_neighbors}" if args.num_neighbors else "")
                + (f" --runs {' '.join(str(r) for r in args.runs)}" if args.runs else ""))
     text = markdown(results, runs, command, args.delta_mrad, args.map_scans, seconds)
+    if args.note:
+        text += "\n\n" + args.note
     print(text)
     if args.write:
         from gr_graph.atomic import atomic_write_json, atomic_write_text
