@@ -160,6 +160,18 @@ def _loop_solver(gt: np.ndarray, edges: list[RegistrationEdge]):
     return solve
 
 
+def _bare_frame_loop(loop_variance: str, edges: list[RegistrationEdge]):
+    """A ``_FrameLoop`` holding only what :meth:`estimate_loop_variance` reads: the config with
+    ``graph.loop_variance``, the edges and an empty pose graph."""
+    from gr_graph.frame_loop import _FrameLoop
+
+    loop = _FrameLoop.__new__(_FrameLoop)
+    loop.cfg = load_config(overrides={"graph": {"loop_variance": loop_variance}})
+    loop.edges = edges
+    loop.graph = PoseGraph(loop.cfg.graph)
+    return loop
+
+
 @pytest.mark.parametrize("loop_factor", [40.0, 1.0])
 def test_loop_variance_factor_finds_overconfident_loops_with_odometry_fixed(loop_factor):
     """Odometry consistent with its information, loops' real errors ``loop_factor`` x what their
@@ -202,14 +214,9 @@ def test_loop_variance_needs_loops_and_the_frame_loop_applies_it():
     assert lv.reason == "no loops" and lv.scale == 1.0 and not lv.converged
     # the frame loop's step (graph.loop_variance: estimated): loops scaled, odometry kept, the
     # robust graph solved again and the summary kept for round.json
-    from gr_graph.frame_loop import _FrameLoop
-
     gt, edges, _ = _simulated_graph(rng, K=60, n_loops=12, true_factor=1.0, loop_factor=30.0)
     before = [e.information.copy() for e in edges]
-    loop = _FrameLoop.__new__(_FrameLoop)
-    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated"}})
-    loop.edges = edges
-    loop.graph = PoseGraph(loop.cfg.graph)
+    loop = _bare_frame_loop("estimated", edges)
     res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
     scale = loop.loop_variance["scale"]
     assert loop.loop_variance["converged"] and 1 / 60 < scale < 1 / 15
@@ -237,8 +244,7 @@ def _loop_z2(edges: list[RegistrationEdge], gt: np.ndarray) -> np.ndarray:
 
     loops = [e for e in edges if e.kind == "loop"]
     xi = edge_errors(np.array([e.T for e in loops]), gt_relative_poses(np.array([(e.source, e.target) for e in loops]), gt))
-    sd = np.sqrt(np.diagonal(np.linalg.inv(np.array([e.information for e in loops])), axis1=1, axis2=2))
-    return ((xi / sd) ** 2).mean(axis=0)
+    return np.array(axis_stats(xi, np.array([e.information for e in loops]))["z2_mean"])
 
 
 def test_loop_axis_variance_factors_find_the_axis_the_loops_err_on():
@@ -319,16 +325,11 @@ def test_frame_loop_estimated_axes_scales_loops_twice_and_records_both():
     """graph.loop_variance: estimated_axes: the common factor first, then the per-axis factors
     on the scaled loops; every loop's information is the product, odometry untouched, both
     recorded for round.json."""
-    from gr_graph.frame_loop import _FrameLoop
-
     rng = np.random.default_rng(13)
     gt, edges, _ = _simulated_graph(rng, K=120, n_loops=40, true_factor=1.0, loop_factor=4.0,
                                     loop_axes=np.array([1.0, 3.0, 1.0, 1.0, 1.0, 1.0]))
     before = [e.information.copy() for e in edges]
-    loop = _FrameLoop.__new__(_FrameLoop)
-    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated_axes"}})
-    loop.edges = edges
-    loop.graph = PoseGraph(loop.cfg.graph)
+    loop = _bare_frame_loop("estimated_axes", edges)
     res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
     lv = loop.loop_variance
     assert res is not None and lv["method"] == "loop_variance_component" and lv["converged"]
@@ -354,10 +355,7 @@ def test_frame_loop_per_axis_failure_keeps_the_common_factor(monkeypatch):
     rng = np.random.default_rng(15)
     gt, edges, _ = _simulated_graph(rng, K=60, n_loops=12, true_factor=1.0, loop_factor=9.0)
     before = [e.information.copy() for e in edges]
-    loop = frame_loop._FrameLoop.__new__(frame_loop._FrameLoop)
-    loop.cfg = load_config(overrides={"graph": {"loop_variance": "estimated_axes"}})
-    loop.edges = edges
-    loop.graph = PoseGraph(loop.cfg.graph)
+    loop = _bare_frame_loop("estimated_axes", edges)
     res = loop.estimate_loop_variance(gt @ _exp(np.full(6, 1e-3)))
     assert res is not None and len(res.poses) == 60
     scale = loop.loop_variance["scale"]
