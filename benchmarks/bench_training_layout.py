@@ -37,8 +37,11 @@ class _Enough(Exception):
     """Raised from the trainer's step callback once the steps are done."""
 
 
-def time_steps(memory: Path, out: Path, threads: int, steps: int) -> dict[str, float]:
-    """Seconds of ``steps`` trainer steps on ``memory`` with ``threads`` torch threads."""
+def time_steps(memory: Path, out: Path, threads: int, steps: int, keep: list | None = None) -> dict[str, float]:
+    """Seconds of ``steps`` trainer steps on ``memory`` with ``threads`` torch threads.
+
+    ``keep``: if given, the trainer is appended to it (its weights after the steps).
+    """
     from gr_graph.config import load_config
     from gr_graph.memory import load_memory
     from training.trainer import TrainConfig, Trainer
@@ -59,6 +62,8 @@ def time_steps(memory: Path, out: Path, threads: int, steps: int) -> dict[str, f
         trainer.fit(resume=False, callback=stop_after)
     except _Enough:
         pass
+    if keep is not None:
+        keep.append(trainer)
     step_s = np.asarray(trainer.step_seconds[5:], np.float64)  # the first steps warm up
     return {"threads": threads, "steps": len(trainer.step_seconds), "wall_s": time.perf_counter() - t0,
             "median_step_s": float(np.median(step_s))}

@@ -300,3 +300,32 @@ def test_cholesky_head_keeps_small_eigenvalues_of_anisotropic_factors():
     _, C = cholesky_to_cov(raw, 0.1, 1e-6)
     assert C.dtype == torch.float64
     assert torch.linalg.eigvalsh(C).min() >= 0.99e-6
+
+
+@pytest.mark.parametrize("deterministic", [True, False])
+def test_row_gather_equals_advanced_indexing_in_values_and_gradients(deterministic):
+    """``_rows`` (``index_select``, the network's gathers) against ``src[idx]`` bit for bit: values
+    and the accumulated gradient of rows picked many times, 2-D and 3-D sources, under
+    deterministic algorithms (how the trainer runs) and without."""
+    from training.network import _rows
+
+    g = torch.Generator().manual_seed(3)
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(deterministic)
+    try:
+        for shape in [(300, 32), (300, 3, 3)]:
+            idx = torch.randint(0, 300, (500, 16), generator=g)  # every row ~27 times
+            upstream = torch.randn(500, 16, *shape[1:], generator=g)
+            out, grads = [], []
+            for gather in (_rows, lambda s, i: s[i]):
+                src = torch.randn(*shape, generator=torch.Generator().manual_seed(4), requires_grad=True)
+                y = gather(src, idx)
+                y.backward(upstream)
+                out.append(y.detach())
+                grads.append(src.grad)
+            assert out[0].shape == (500, 16, *shape[1:])
+            assert torch.equal(out[0], out[1])
+            assert torch.equal(grads[0], grads[1])
+            assert float(grads[0].abs().sum()) > 0
+    finally:
+        torch.use_deterministic_algorithms(previous)
