@@ -18,6 +18,9 @@ whose round 0 was made with the same data and the default.
 
 ``--write`` writes ``benchmarks/results/loop_variance.md`` and ``loop_variance.json``.
 
+A run may name its round as ``RUN@R`` (default ``@0``), e.g. round 0 against round 1 of one run
+(``LABEL RUN@0 RUN@1``) or the learning rounds of two runs (``LABEL RUN_A@1 RUN_B@1``).
+
 Any two round-0 runs of the same data compare the same way, e.g. without and with the
 vertical-angle correction (both ``--loop-variance estimated``)::
 
@@ -71,7 +74,15 @@ def round_figures(run: Path, r: int = 0) -> dict:
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
             "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": _loop_scale(lv),
             "loop_z2": (nc["edges"]["loop"].get("per_axis") or {}).get("z2_mean"),
-            "loop_redundancy": lv.get("redundancy")}
+            "loop_redundancy": lv.get("redundancy"), "accepted": summary.get("accepted")}
+
+
+def run_round(arg: str) -> tuple[Path, int]:
+    """``RUN`` or ``RUN@R`` -> (run folder or cell record, round)."""
+    path, sep, r = arg.rpartition("@")
+    if not sep or not r.isdigit():
+        return Path(arg), 0
+    return Path(path), int(r)
 
 
 def _loop_scale(lv: dict) -> float | list[float] | None:
@@ -107,7 +118,8 @@ def table(rows: list[tuple[str, dict, dict]], labels: tuple[str, str] = ("fixed"
                      else _fmt(f["loop_scale"]))  # no factor: the loops as registered; a list: one per axis
             more = (f" {_fmt(f.get('odometry_nees_median'))} | {_axes(f.get('odometry_z2'))} | "
                     f"{_axes(f.get('loop_z2'))} |" if axes else "")
-            lines.append(f"| {label}, {what} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
+            flag = " (rejected)" if f.get("accepted") is False else ""  # a learning round the acceptance test rejected
+            lines.append(f"| {label}, {what}{flag} | {f['n_loops']} | {_fmt(f['odometry_nees'])} | {_fmt(f['loop_nees'])} "
                          f"| {_fmt(f['position_nees'])} ({_fmt(f['horizontal_nees'])} / {_fmt(f['vertical_nees'])}) "
                          f"| {f['ate_rmse']:.3f} | {f['rpe300_all_pairs_mean']:.3f} | {f['kitti_t_err_percent']:.3f} "
                          f"| {scale} |" + more)
@@ -148,8 +160,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give LABEL FIXED_RUN ESTIMATED_RUN triples")
     rows = []
     for i in range(0, len(args.triples), 3):
-        label, fixed, est = args.triples[i], Path(args.triples[i + 1]), Path(args.triples[i + 2])
-        rows.append((label, round_figures(fixed), round_figures(est)))
+        label, fixed, est = args.triples[i], run_round(args.triples[i + 1]), run_round(args.triples[i + 2])
+        rows.append((label, round_figures(*fixed), round_figures(*est)))
     a, b = args.labels
     text = table(rows, (a, b), args.axes, not args.no_summary)
     print(text)
