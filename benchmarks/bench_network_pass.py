@@ -18,8 +18,6 @@ Writes ``benchmarks/results/network_pass.md`` and ``network_pass.json`` with ``-
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -79,25 +77,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.one:
         print(f"{measure(args.frames, args.channels):.2f}")
         return 0
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from checkouts import checkout_label, run_alternating
+
     trees = {"this": HERE} | ({"other": args.compare.resolve()} if args.compare else {})
-    out: dict[str, list[float]] = {k: [] for k in trees}
-    for rep in range(args.repeats):
-        for name, tree in trees.items():
-            cmd = [sys.executable, str(Path(__file__).resolve()), "--one", "--frames", str(args.frames),
-                   "--channels", str(args.channels)]
-            env = {**os.environ, "PYTHONPATH": str(tree)}
-            res = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=True)
-            out[name].append(float(res.stdout.strip().splitlines()[-1]))
-            print(f"repeat {rep}: {name} {out[name][-1]:.1f} ms/frame", flush=True)
+    labels = {name: checkout_label(tree) for name, tree in trees.items()}  # the code as measured
+    runs = run_alternating(Path(__file__).resolve(), trees, args.repeats,
+                           lambda name, rep: ["--one", "--frames", str(args.frames), "--channels", str(args.channels)],
+                           lambda name, rep, line: print(f"repeat {rep}: {name} {float(line):.1f} ms/frame", flush=True))
+    out = {name: [float(v) for v in lines] for name, lines in runs.items()}
     import numpy as np
 
     lines = ["| checkout | CPU ms per frame, mean ± std (n) |", "|---|---|"]
-    def commit(tree: Path) -> str:
-        res = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short=7", "HEAD"], capture_output=True, text=True)
-        return res.stdout.strip() or "?"
-
     for name, vals in out.items():
-        lines.append(f"| {name} (commit {commit(trees[name])}) | {np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0:.1f}"
+        lines.append(f"| {name} (commit {labels[name]}) | {np.mean(vals):.1f} ± {np.std(vals, ddof=1) if len(vals) > 1 else 0:.1f}"
                      f" ({len(vals)}) |")
     if args.compare:
         lines.append(f"\nratio this / other: {np.mean(out['this']) / np.mean(out['other']):.3f}")

@@ -54,7 +54,8 @@ def record_figures(record: Path, r: int = 0) -> dict:
             "loop_nees": nees["nees_loop_mean"], "n_loops": rnd["n_loops"],
             "position_nees": nees["nees_position_mean"], "horizontal_nees": None, "vertical_nees": None,
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
-            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": None, "loop_redundancy": None}
+            "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": None, "loop_redundancy": None,
+            "accepted": rnd.get("accepted"), "round": r}
 
 
 def round_figures(run: Path, r: int = 0) -> dict:
@@ -74,13 +75,13 @@ def round_figures(run: Path, r: int = 0) -> dict:
             "ate_rmse": slam["ate_rmse"], "rpe300_all_pairs_mean": slam["rpe300_all_pairs_mean"],
             "kitti_t_err_percent": slam["kitti_t_err_percent"], "loop_scale": _loop_scale(lv),
             "loop_z2": (nc["edges"]["loop"].get("per_axis") or {}).get("z2_mean"),
-            "loop_redundancy": lv.get("redundancy"), "accepted": summary.get("accepted")}
+            "loop_redundancy": lv.get("redundancy"), "accepted": summary.get("accepted"), "round": r}
 
 
 def run_round(arg: str) -> tuple[Path, int]:
-    """``RUN`` or ``RUN@R`` -> (run folder or cell record, round)."""
+    """``RUN`` or ``RUN@R`` -> (run folder or cell record, round); an existing path is taken whole."""
     path, sep, r = arg.rpartition("@")
-    if not sep or not r.isdigit():
+    if not sep or not r.isdigit() or Path(arg).exists():
         return Path(arg), 0
     return Path(path), int(r)
 
@@ -149,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="names of the two runs of a triple (default: fixed estimated)")
     ap.add_argument("--name", default="loop_variance", help="results file name (default: loop_variance)")
     ap.add_argument("--title", default="Loop edges: fixed weight against the estimated loop variance component "
-                    "(round 0)", help="the results file's heading")
+                    "(round 0)", help="the results file's heading (name the rounds when comparing others)")
     ap.add_argument("--axes", action="store_true",
                     help="add the odometry edges' NEES median and the odometry and loop edges' per-axis z^2")
     ap.add_argument("--no-summary", action="store_true",

@@ -66,12 +66,13 @@ def neighborhoods_to_torch(nb: Neighborhoods | dict, device: torch.device | str 
 
 
 def _rows(src: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``src[idx]`` for an integer index array ``idx`` of any shape: rows of ``src`` along dim 0.
+    """``src[idx]`` for a non-negative integer index array ``idx`` of any shape: rows of ``src`` along dim 0.
 
-    The same values and gradients as advanced indexing, bit for bit, but ``index_select``'s
-    backward (``index_add``) is about 2x faster on CPU than the ``index_put`` that ``src[idx]``
-    backpropagates through under deterministic algorithms, which was a third of the
-    network's backward pass (``benchmarks/bench_training_step.py``).
+    Under deterministic algorithms (how the trainer runs) the same values and gradients as
+    advanced indexing, bit for bit, and faster: ``src[idx]`` backpropagates through a serial
+    ``index_put`` with accumulation, ``index_select`` through ``index_add``, which adds the same
+    rows in the same order (a training step 0.96x: ``benchmarks/bench_training_step.py``).
+    Negative indices raise instead of counting from the end.
     """
     return torch.index_select(src, 0, idx.reshape(-1)).view(*idx.shape, *src.shape[1:])
 

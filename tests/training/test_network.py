@@ -302,16 +302,16 @@ def test_cholesky_head_keeps_small_eigenvalues_of_anisotropic_factors():
     assert torch.linalg.eigvalsh(C).min() >= 0.99e-6
 
 
-@pytest.mark.parametrize("deterministic", [True, False])
-def test_row_gather_equals_advanced_indexing_in_values_and_gradients(deterministic):
+def test_row_gather_equals_advanced_indexing_in_values_and_gradients():
     """``_rows`` (``index_select``, the network's gathers) against ``src[idx]`` bit for bit: values
     and the accumulated gradient of rows picked many times, 2-D and 3-D sources, under
-    deterministic algorithms (how the trainer runs) and without."""
+    deterministic algorithms (how the trainer runs; without them ``src[idx]``'s own gradient
+    varies from run to run on several threads)."""
     from training.network import _rows
 
     g = torch.Generator().manual_seed(3)
     previous = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(deterministic)
+    torch.use_deterministic_algorithms(True)
     try:
         for shape in [(300, 32), (300, 3, 3)]:
             idx = torch.randint(0, 300, (500, 16), generator=g)  # every row ~27 times
