@@ -93,12 +93,13 @@ def save_atomic(obj: Any, path: Path) -> None:
 def deterministic_algorithms() -> Iterator[None]:
     """Run the block with ``torch.use_deterministic_algorithms(True)``; restore the setting after.
 
-    Needed for reproducible training on CPU with more than one thread: the backward pass of
-    the network's gathers (``features[index]``) is an ``index_put_`` with accumulation, which
-    torch parallelises with atomic float adds when deterministic algorithms are off, so the
-    order of the additions, and the rounding of the gradient, changes from run to run. In
-    deterministic mode torch accumulates serially. Any op without a deterministic
-    implementation then raises instead of silently varying.
+    Needed for reproducible training on CPU with more than one thread: a gather written as
+    ``features[index]`` backpropagates through an ``index_put_`` with accumulation, which torch
+    parallelises with atomic float adds when deterministic algorithms are off, so the order of
+    the additions, and the rounding of the gradient, changes from run to run. In deterministic
+    mode torch accumulates serially (the network's own gathers use ``index_select``,
+    :func:`training.network._rows`: the same additions in the same order, faster). Any op
+    without a deterministic implementation then raises instead of silently varying.
     """
     previous = torch.are_deterministic_algorithms_enabled()
     previous_warn = torch.is_deterministic_algorithms_warn_only_enabled()
