@@ -37,11 +37,8 @@ class _Enough(Exception):
     """Raised from the trainer's step callback once the steps are done."""
 
 
-def time_steps(memory: Path, out: Path, threads: int, steps: int, keep: list | None = None) -> dict[str, float]:
-    """Seconds of ``steps`` trainer steps on ``memory`` with ``threads`` torch threads.
-
-    ``keep``: if given, the trainer is appended to it (its weights after the steps).
-    """
+def make_trainer(memory: Path, out: Path, threads: int):
+    """A trainer of one epoch with a 16-channel learning round's default configuration and ``threads`` torch threads."""
     from gr_graph.config import load_config
     from gr_graph.memory import load_memory
     from training.trainer import TrainConfig, Trainer
@@ -49,7 +46,15 @@ def time_steps(memory: Path, out: Path, threads: int, steps: int, keep: list | N
     cfg = load_config(overrides={"data": {"channels": 16, "synthetic_preset": "kitti"}})
     options = cfg.training.trainer_config("cpu", False, None).model_dump()
     options.update(epochs=1, num_threads=threads)
-    trainer = Trainer(load_memory(memory), out, TrainConfig.from_dict(options))
+    return Trainer(load_memory(memory), out, TrainConfig.from_dict(options))
+
+
+def time_steps(memory: Path, out: Path, threads: int, steps: int, keep: list | None = None) -> dict[str, float]:
+    """Seconds of ``steps`` trainer steps on ``memory`` with ``threads`` torch threads.
+
+    ``keep``: if given, the trainer is appended to it (its weights after the steps).
+    """
+    trainer = make_trainer(memory, out, threads)
     done = [0]
 
     def stop_after(_record: dict) -> None:

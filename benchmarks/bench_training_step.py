@@ -60,14 +60,12 @@ def step_parts(memory: Path, out: Path, threads: int, steps: int) -> dict[str, f
     """Median milliseconds of each part of a training step over ``steps`` steps (the first five left out)."""
     import torch
 
-    from gr_graph.config import load_config
-    from gr_graph.memory import load_memory
-    from training.trainer import SkipSample, TrainConfig, Trainer, deterministic_algorithms
+    from training.trainer import SkipSample, deterministic_algorithms
 
-    cfg = load_config(overrides={"data": {"channels": 16, "synthetic_preset": "kitti"}})
-    options = cfg.training.trainer_config("cpu", False, None).model_dump()
-    options.update(epochs=1, num_threads=threads)
-    trainer = Trainer(load_memory(memory), out, TrainConfig.from_dict(options))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_training_layout import make_trainer
+
+    trainer = make_trainer(memory, out, threads)
     torch.set_num_threads(threads)
     order = trainer.epoch_order(0)
     parts: dict[str, list[float]] = {"sample": [], "forward": [], "losses": [], "backward": [], "adam and checks": []}

@@ -14,10 +14,13 @@ the NEES against ground truth before and after (edge NEES per kind, position NEE
 marginals, horizontal / vertical) and the accuracy of the re-solved poses (ATE RMSE, mean RPE-300
 over all pairs). Nothing in SLAM uses ground truth; this only evaluates. ``--loops-only``
 estimates the loops' factor alone (the odometry edges keep the run's shared scale).
+``--loop-axes`` alternates, for ``--iterations`` passes, the odometry's variance component with
+the library's loop stage of ``graph.loop_variance: estimated_axes`` (the loops' common factor, then
+their per-axis factors, the odometry held fixed), and prints the NEES after every pass.
 
 Run::
 
-    python benchmarks/nees_variance_components.py RUN_DIR/round_2 [--iterations 15] [--loops-only]
+    python benchmarks/nees_variance_components.py RUN_DIR/round_2 [--iterations 15] [--loops-only | --loop-axes]
 """
 
 from __future__ import annotations
@@ -31,7 +34,12 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from gr_graph.metrics import ate, rpe_translation
-from gr_graph.noise_calibration import between_residuals, factor_redundancies, loop_variance_factor
+from gr_graph.noise_calibration import (
+    between_residuals,
+    factor_redundancies,
+    loop_axis_variance_factors,
+    loop_variance_factor,
+)
 from gr_graph.noise_consistency import edge_nees, position_nees, position_nees_split
 from gr_graph.pose_graph import position_covariance_world
 
@@ -69,23 +77,29 @@ def chi2_per_edge(poses: np.ndarray, edges: np.ndarray, edge_T: np.ndarray, info
     return np.einsum("ei,eij,ej->e", res, 0.5 * (info + np.swapaxes(info, 1, 2)), res)
 
 
+def odometry_variance(z: dict[str, np.ndarray], info: np.ndarray, poses: np.ndarray,
+                      prior_sigma: float) -> tuple[np.ndarray, dict[int, float], dict[int, float]]:
+    """Solve the Gaussian graph with ``info`` from ``poses``; the solution, each group's redundancy
+    (0: odometry, 1: loops) and its variance factor ``sigma_g^2 = chi2_g / r_g``."""
+    edges, kind, edge_T = z["edges"], z["edge_kind"], z["edge_T"]
+    graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
+    poses = solve(graph, poses)
+    total = 6 * len(edges) + 6 - 6 * len(poses)
+    r_loop, r_prior = factor_redundancies(graph, pose_values(poses), [1 + np.flatnonzero(kind == 1), [0]])
+    r = {0: total - r_loop - r_prior, 1: r_loop}  # factor 0 is the prior
+    chi2 = chi2_per_edge(poses, edges, edge_T, info)
+    return poses, r, {g: chi2[kind == g].sum() / r[g] for g in (0, 1)}
+
+
 def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
     """Both groups (odometry, loops) estimated from the residuals, rescaled together until stable."""
-    edges, kind, edge_T = z["edges"], z["edge_kind"], z["edge_T"]
+    kind = z["edge_kind"]
     info = np.array(z["edge_information"], np.float64)
     poses = np.array(z["poses"])
     scale = {0: 1.0, 1: 1.0}
-    K = len(poses)
-    loop_factors = 1 + np.flatnonzero(kind == 1)  # factor 0 is the prior
     for it in range(iterations):
-        graph = gaussian_graph(edges, edge_T, info, z["poses"][0], prior_sigma)
-        poses = solve(graph, poses)
-        total = 6 * len(edges) + 6 - 6 * K
-        r_loop, r_prior = factor_redundancies(graph, pose_values(poses), [loop_factors, [0]])
-        r_odo = total - r_loop - r_prior
-        chi2 = chi2_per_edge(poses, edges, edge_T, info)
-        s2 = {0: chi2[kind == 0].sum() / r_odo, 1: chi2[kind == 1].sum() / r_loop}
-        print(f"  iteration {it}: redundancy odometry {r_odo:.1f}, loops {r_loop:.1f}; "
+        poses, r, s2 = odometry_variance(z, info, poses, prior_sigma)
+        print(f"  iteration {it}: redundancy odometry {r[0]:.1f}, loops {r[1]:.1f}; "
               f"sigma^2 odometry {s2[0]:.4g}, loops {s2[1]:.4g}")
         for g in (0, 1):
             info[kind == g] /= s2[g]
@@ -95,19 +109,54 @@ def variance_components(z: dict[str, np.ndarray], iterations: int, prior_sigma: 
     return _solved(z, info, poses, prior_sigma, {"variance": scale})
 
 
-def loop_variance_only(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
-    """The library's loop variance component (:func:`gr_graph.noise_calibration.loop_variance_factor`)
-    on the stored graph: loops rescaled, odometry held fixed."""
-    kind = z["edge_kind"]
-    edges = [SimpleNamespace(kind="loop" if k == 1 else "odometry", information=H)
-             for k, H in zip(kind, z["edge_information"])]
-    latest = [np.array(z["poses"])]
+def _library_solver(z: dict[str, np.ndarray], prior_sigma: float, poses: np.ndarray):
+    """``solve(informations) -> (graph, values)`` as the library's loop variance functions take it
+    (each call solved from the previous solution, kept in ``latest[0]``), and ``latest``."""
+    latest = [np.array(poses)]
 
     def solve_with(informations: list[np.ndarray]) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         graph = gaussian_graph(z["edges"], z["edge_T"], np.array(informations), z["poses"][0], prior_sigma)
         latest[0] = solve(graph, latest[0])
         return graph, pose_values(latest[0])
 
+    return solve_with, latest
+
+
+def odometry_then_loop_axes(z: dict[str, np.ndarray], passes: int, prior_sigma: float) -> dict:
+    """``passes`` times: the odometry edges divided by their variance factor, then the loops' common
+    and per-axis factors with the odometry held fixed (the library's ``estimated_axes`` stage);
+    the NEES row after every pass is printed."""
+    kind = z["edge_kind"]
+    info = np.array(z["edge_information"], np.float64)
+    poses = np.array(z["poses"])
+    res = None
+    for it in range(passes):
+        poses, r, s2 = odometry_variance(z, info, poses, prior_sigma)
+        info[kind == 0] /= s2[0]
+        edges = [SimpleNamespace(kind="loop" if k == 1 else "odometry", information=H) for k, H in zip(kind, info)]
+        solve_with, latest = _library_solver(z, prior_sigma, poses)
+        common = loop_variance_factor(solve_with, edges)
+        for e in edges:
+            if e.kind == "loop":
+                e.information = common.scaled_information(e.information)
+        axes = loop_axis_variance_factors(solve_with, edges)
+        info = np.stack([axes.scaled_information(e.information) if e.kind == "loop" else e.information for e in edges])
+        res = _solved(z, info, latest[0], prior_sigma, {"variance": {0: s2[0], 1: s2[1]}})
+        poses = res["poses"]
+        print(nees_row(f"pass {it + 1}: odometry sigma^2 {s2[0]:.3g} (redundancy {r[0]:.1f}), loops sigma^2 "
+                       f"{s2[1]:.3g} ({r[1]:.1f}); loops x {common.scale:.3g}, per axis "
+                       f"{' / '.join(f'{a:.2g}' for a in axes.axis_scale)}", z, poses,
+                       position_covariance_world(poses, res["covariance"]), info), flush=True)
+    return res
+
+
+def loop_variance_only(z: dict[str, np.ndarray], iterations: int, prior_sigma: float) -> dict:
+    """The library's loop variance component (:func:`gr_graph.noise_calibration.loop_variance_factor`)
+    on the stored graph: loops rescaled, odometry held fixed."""
+    kind = z["edge_kind"]
+    edges = [SimpleNamespace(kind="loop" if k == 1 else "odometry", information=H)
+             for k, H in zip(kind, z["edge_information"])]
+    solve_with, latest = _library_solver(z, prior_sigma, z["poses"])
     lv = loop_variance_factor(solve_with, edges, max_iterations=iterations)
     print(f"  loop variance: sigma_L^2 {[round(v, 4) for v in lv.sigma_sq]}, redundancy {lv.redundancy}, "
           f"scale {lv.scale:.4g} ({lv.reason or 'estimated'})")
@@ -145,20 +194,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("round_dir", type=Path)
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--prior-sigma", type=float, default=1e-4, help="graph.prior_sigma of the run")
-    ap.add_argument("--loops-only", action="store_true",
-                    help="estimate the loops' variance factor only; the odometry edges keep the run's scale")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--loops-only", action="store_true",
+                      help="estimate the loops' variance factor only; the odometry edges keep the run's scale")
+    mode.add_argument("--loop-axes", action="store_true",
+                      help="alternate the odometry's variance factor with the loops' common and per-axis factors, "
+                           "--iterations passes, the NEES printed after each")
     args = ap.parse_args(argv)
     with np.load(args.round_dir / "marginals.npz") as f:
         z = {k: np.array(f[k]) for k in f.files}
     if not (z["edge_kind"] == 1).any():
         print(f"{args.round_dir}: no loop edges, nothing to estimate")
         return 2
+    header = ("| graph | odometry NEES | loop NEES (n) | position NEES | horizontal / vertical | ATE RMSE [m] "
+              "| RPE-300 all pairs [m] |\n|---|---|---|---|---|---|---|")
+    as_run = nees_row("as run (one shared scale)", z, z["poses"], z["position_cov_world"], z["edge_information"])
+    if args.loop_axes:
+        print(header + "\n" + as_run, flush=True)
+        odometry_then_loop_axes(z, args.iterations, args.prior_sigma)
+        return 0
     estimate = loop_variance_only if args.loops_only else variance_components
     res = estimate(z, args.iterations, args.prior_sigma)
-    print("| graph | odometry NEES | loop NEES (n) | position NEES | horizontal / vertical | ATE RMSE [m] "
-          "| RPE-300 all pairs [m] |")
-    print("|---|---|---|---|---|---|---|")
-    print(nees_row("as run (one shared scale)", z, z["poses"], z["position_cov_world"], z["edge_information"]))
+    print(header + "\n" + as_run)
     what = "loop variance component" if args.loops_only else "two variance components"
     print(nees_row(f"{what} (x{1 / res['variance'][0]:.3g} odometry, "
                    f"x{1 / res['variance'][1]:.3g} loops)", z, res["poses"],
