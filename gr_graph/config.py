@@ -117,7 +117,7 @@ class OdometryConfig(_Section):
         0.0, ge=0.0, description="'map' mode: a scan enters the target map only when it moved at least this far "
         "[m] or turned at least map_keyframe_rotation_deg since the last scan that entered; a threshold of 0 is "
         "not used, 0 and 0: every scan (a stopped vehicle then fills the map with one ring pattern, which holds "
-        "the registrations at motion start back: README, Odometry at motion start)"
+        "the registrations at motion start back: benchmarks/results/findings.md, Odometry at motion start)"
     )
     map_keyframe_rotation_deg: float = Field(
         0.0, ge=0.0, description="'map' mode: see map_keyframe_translation [deg]"

@@ -20,7 +20,7 @@ In ``"map"`` mode every scan enters the map at its pose by default. With
 vehicle moved or turned that much since the last scan that entered (:meth:`VgicpOdometry.
 enters_map`): a stopped vehicle otherwise fills the map with one ring pattern, repeated scan after
 scan, and the registrations at motion start follow that pattern rather than the world (the car's
-pitch as it pulls away is missed: README, odometry).
+pitch as it pulls away is missed: benchmarks/results/findings.md, Odometry at motion start).
 
 A registration that returns non-finite values, has an inlier ratio below
 ``min_inlier_ratio``, or ends further than ``max_deviation_*`` from the constant-velocity
