@@ -84,11 +84,7 @@ def step_parts(memory: Path, out: Path, threads: int, steps: int) -> dict[str, f
             t.append(time.perf_counter())
             loss.backward()
             t.append(time.perf_counter())
-            ok = all(bool(torch.isfinite(p.grad).all()) for p in trainer.model.parameters() if p.grad is not None)
-            if ok and trainer.config.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), trainer.config.grad_clip)
-            if ok:
-                trainer.optimizer.step()
+            trainer.apply_gradients()
             trainer.optimizer.zero_grad(set_to_none=False)
             t.append(time.perf_counter())
             for name, a, b in zip(parts, t[:-1], t[1:]):

@@ -340,6 +340,23 @@ class Trainer:
         """The seeded visiting order of the edges in ``epoch``."""
         return np.random.default_rng([self.config.seed, epoch, 7919]).permutation(len(self.dataset))
 
+    def apply_gradients(self) -> str:
+        """Apply the accumulated gradients: clipped to ``config.grad_clip``, then one Adam step.
+
+        Returns ``"applied"``; ``"nonfinite"`` when a gradient is not finite and ``"no_gradient"``
+        when every pair of the step was skipped (all gradients zero), both without an Adam step
+        (its moments are kept). The gradients are not zeroed.
+        """
+        params = list(self.model.parameters())
+        if not all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params):
+            return "nonfinite"
+        if not any(p.grad is not None and bool((p.grad != 0).any()) for p in params):
+            return "no_gradient"
+        if self.config.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
+        self.optimizer.step()
+        return "applied"
+
     def fit(self, resume: bool = True, callback: Callable[[dict[str, Any]], None] | None = None) -> Path:
         """Train for ``config.epochs`` epochs (continuing a checkpoint if ``resume``).
 
@@ -405,15 +422,9 @@ class Trainer:
                                 out = C if C is not None else self._dummy_output()
                                 (out.nan_to_num(0.0) * 0.0).sum().backward()
                         records.append(rec)
-                    grads_ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.model.parameters())
-                    has_grad = any(p.grad is not None and bool((p.grad != 0).any()) for p in self.model.parameters())
-                    if grads_ok and not has_grad:
-                        grads_ok = False  # every pair of the step was skipped: no Adam step (keeps its moments)
-                    elif grads_ok:
-                        if cfg.grad_clip > 0:
-                            torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
-                        self.optimizer.step()
-                    else:
+                    update = self.apply_gradients()
+                    grads_ok = update == "applied"
+                    if update == "nonfinite":
                         self.skip_counts["nonfinite_grad"] += 1
                         log.warning("step %d: non-finite gradient, update not applied", self.step)
                     self.step_seconds.append(time.perf_counter() - t0)  # not in the log: it must not vary
