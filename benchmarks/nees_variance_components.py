@@ -17,10 +17,16 @@ estimates the loops' factor alone (the odometry edges keep the run's shared scal
 ``--loop-axes`` alternates, for ``--iterations`` passes, the odometry's variance component with
 the library's loop stage of ``graph.loop_variance: estimated_axes`` (the loops' common factor, then
 their per-axis factors, the odometry held fixed), and prints the NEES after every pass.
+``--odometry-of OTHER_ROUND_DIR`` asks which part of a round's graph moved its trajectory: the
+round's graph re-solved with the odometry edges' information of another round of the same run
+(same odometry measurements; the loops as they are), and with only that round's per-axis shape
+(the median ratio of each axis' variance between the rounds, divided by its geometric mean; the
+round's own scale kept).
 
 Run::
 
     python benchmarks/nees_variance_components.py RUN_DIR/round_2 [--iterations 15] [--loops-only | --loop-axes]
+    python benchmarks/nees_variance_components.py RUN_DIR/round_1 --odometry-of RUN_DIR/round_0
 """
 
 from __future__ import annotations
@@ -175,6 +181,27 @@ def _solved(z: dict[str, np.ndarray], info: np.ndarray, poses: np.ndarray, prior
     return {"poses": poses, "covariance": cov, "information": info, **extra}
 
 
+def odometry_swapped(z: dict[str, np.ndarray], other: dict[str, np.ndarray],
+                     prior_sigma: float) -> list[tuple[str, dict]]:
+    """``z``'s graph re-solved with ``other``'s odometry information, then with only its per-axis shape."""
+    odo, odo_other = z["edge_kind"] == 0, other["edge_kind"] == 0
+    if not np.array_equal(z["edges"][odo], other["edges"][odo_other]) or not np.allclose(
+            z["edge_T"][odo], other["edge_T"][odo_other]):
+        raise SystemExit("--odometry-of: the two rounds' odometry edges differ (not rounds of one run on raw scans?)")
+    own, theirs = z["edge_information"][odo], other["edge_information"][odo_other]
+    ratio = np.median(np.einsum("eii->ei", np.linalg.inv(own)) / np.einsum("eii->ei", np.linalg.inv(theirs)), axis=0)
+    root = np.sqrt(ratio / np.exp(np.mean(np.log(ratio))))
+    out = []
+    for tag, odometry_info in (("odometry information of the other round", theirs),
+                               ("odometry per-axis shape of the other round (own scale; axis factors "
+                                + " / ".join(f"{v:.2g}" for v in root ** 2) + ")",
+                                root[None, :, None] * own * root[None, None, :])):
+        info = np.array(z["edge_information"])
+        info[odo] = odometry_info
+        out.append((tag, _solved(z, info, z["poses"], prior_sigma, {})))
+    return out
+
+
 def nees_row(tag: str, z: dict[str, np.ndarray], poses: np.ndarray, cov_world: np.ndarray, info: np.ndarray) -> str:
     kind, ok, gt = z["edge_kind"], z["edge_ok"].astype(bool), z["gt_poses"]
     ne = edge_nees(z["edges"], z["edge_T"], info, gt)
@@ -200,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--loop-axes", action="store_true",
                       help="alternate the odometry's variance factor with the loops' common and per-axis factors, "
                            "--iterations passes, the NEES printed after each")
+    mode.add_argument("--odometry-of", type=Path, metavar="OTHER_ROUND_DIR",
+                      help="re-solve with the odometry edges' information of another round of the same run, "
+                           "then with only its per-axis shape")
     args = ap.parse_args(argv)
     with np.load(args.round_dir / "marginals.npz") as f:
         z = {k: np.array(f[k]) for k in f.files}
@@ -209,6 +239,15 @@ def main(argv: list[str] | None = None) -> int:
     header = ("| graph | odometry NEES | loop NEES (n) | position NEES | horizontal / vertical | ATE RMSE [m] "
               "| RPE-300 all pairs [m] |\n|---|---|---|---|---|---|---|")
     as_run = nees_row("as run (one shared scale)", z, z["poses"], z["position_cov_world"], z["edge_information"])
+    if args.odometry_of:
+        with np.load(args.odometry_of / "marginals.npz") as f:
+            other = {k: np.array(f[k]) for k in f.files}
+        print(header + "\n" + nees_row("other round as run", other, other["poses"], other["position_cov_world"],
+                                       other["edge_information"]) + "\n" + as_run, flush=True)
+        for tag, res in odometry_swapped(z, other, args.prior_sigma):
+            print(nees_row(tag, z, res["poses"], position_covariance_world(res["poses"], res["covariance"]),
+                           res["information"]), flush=True)
+        return 0
     if args.loop_axes:
         print(header + "\n" + as_run, flush=True)
         odometry_then_loop_axes(z, args.iterations, args.prior_sigma)
