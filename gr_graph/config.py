@@ -441,8 +441,16 @@ def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
 
 
 def config_to_yaml(cfg: SlamConfig) -> str:
-    """The resolved configuration as YAML text (round-trips through :func:`load_config`)."""
+    """The resolved configuration as YAML text (round-trips through :func:`load_config`).
+
+    The ``sensor`` section holds only the fields that were given (config file, command line):
+    what was left unsaid is guessed from the data by the loaders (the time unit and reference,
+    the ring count; :meth:`gr_graph.sensors.SensorConfig.given`), and a rerun from this file must
+    guess it again, not take the defaults as said (a 32-ring folder read as the default HDL-64E's
+    64 rings).
+    """
     d = cfg.model_dump(mode="json")
+    d["sensor"] = cfg.sensor.model_dump(mode="json", exclude_unset=True)
     return yaml.safe_dump(d, sort_keys=False)
 
 

@@ -27,7 +27,8 @@ import numpy as np
 
 from factors.se3 import hat, log_se3
 
-__all__ = ["times_from_azimuth", "normalise_times", "deskew", "distort", "sweep_motion_from_velocity"]
+__all__ = ["times_from_azimuth", "normalise_times", "resolve_time_reference", "TIME_REFERENCES", "deskew", "distort",
+           "sweep_motion_from_velocity"]
 
 
 def times_from_azimuth(points: np.ndarray, clockwise: bool = True) -> np.ndarray:
@@ -51,22 +52,115 @@ def times_from_azimuth(points: np.ndarray, clockwise: bool = True) -> np.ndarray
     return np.clip(t, 0.0, 1.0)
 
 
-def normalise_times(times: np.ndarray, scan_period: float | None = None) -> np.ndarray:
-    """Per-point times in any unit/offset (seconds, nanoseconds, absolute stamps) -> sweep fractions.
+TIME_REFERENCES = ("auto", "sweep_start", "sweep_end", "absolute")
+"""What per-point times count from (:func:`normalise_times`)."""
+RELATIVE_SLACK = 0.05
+"""``reference="auto"``: times within ``[-s, 1 + s]`` scan periods of 0 count as relative to the sweep."""
+START_SLACK = 0.01
+"""A sweep whose earliest time lies within this many scan periods of its reference starts at its
+earliest point (the first firing is a hair after the reference; full sweeps are mapped exactly as
+by the former ``(t - t_min) / period``)."""
 
-    With ``scan_period`` (in the unit of ``times``) the fraction is ``(t - t_min) / period``;
-    without, the times are stretched to ``[0, 1]`` by their own range. Non-finite times
-    raise ``ValueError``.
+
+def resolve_time_reference(times: np.ndarray, scan_period: float) -> str:
+    """What ``times`` (seconds) count from, judged from their values (``reference="auto"``).
+
+    ``"sweep_start"`` when every time lies in ``[0, scan_period]`` (up to
+    :data:`RELATIVE_SLACK` periods), ``"sweep_end"`` when every time lies in
+    ``[-scan_period, 0]``, else ``"absolute"`` (stamps on some clock). Empty times count as
+    ``"sweep_start"``.
+    """
+    t = np.asarray(times, np.float64)
+    if t.size == 0:
+        return "sweep_start"
+    slack = RELATIVE_SLACK * float(scan_period)
+    lo, hi = float(t.min()), float(t.max())
+    if lo >= -slack and hi <= scan_period + slack:
+        return "sweep_start"
+    if lo >= -scan_period - slack and hi <= slack:
+        return "sweep_end"
+    return "absolute"
+
+
+def normalise_times(times: np.ndarray, scan_period: float | None = None, reference: str = "auto",
+                    sweep_start: float | None = None, tolerance: float | None = None) -> np.ndarray:
+    """Per-point times (seconds, or any unit without ``scan_period``) -> sweep fractions in ``[0, 1]``.
+
+    Parameters
+    ----------
+    times : (N,) array
+        Per-point times.
+    scan_period : float, optional
+        Sweep duration in the unit of ``times``. Without it the times are stretched to
+        ``[0, 1]`` by their own range, ``(t - t_min) / (t_max - t_min)`` (``reference`` and
+        ``sweep_start`` unused).
+    reference : {"auto", "sweep_start", "sweep_end", "absolute"}
+        What the times count from. ``sweep_start``: the sweep's start, fraction ``t / period``
+        (a partial sweep keeps its place in the sweep); ``sweep_end``: back from its end
+        (``t <= 0``), ``(t + period) / period``; ``absolute``: stamps, counted from
+        ``sweep_start`` when given, else from the frame's earliest point (the only reference
+        a frame of absolute stamps has; a partial sweep is then stretched from its first
+        point). ``auto`` (default) picks one from the values (:func:`resolve_time_reference`);
+        for absolute stamps it uses ``sweep_start`` only when the times fall in the sweep
+        that starts there.
+    sweep_start : float, optional
+        Absolute times: the sweep's start on the same clock (e.g. the frame's stamp).
+    tolerance : float, optional
+        None (default): fractions outside ``[0, 1]`` are clipped. A number: fractions further
+        than this outside ``[0, 1]`` raise ``ValueError`` (times that do not fit one sweep, e.g.
+        a wrong unit); closer ones are clipped.
+
+    Returns
+    -------
+    np.ndarray
+        ``(N,)`` float64 fractions. A sweep whose earliest time lies within
+        :data:`START_SLACK` periods of its reference (a full sweep) maps to
+        ``(t - t_min) / period`` exactly as before; only sweeps that start later (partial
+        sweeps, e.g. the front half only) keep their offset, ``(t - reference) / period``.
+
+    Raises
+    ------
+    ValueError
+        Non-finite times, an unknown ``reference``, or (with ``tolerance``) times that do not
+        fit one sweep.
     """
     t = np.asarray(times, np.float64)
     if t.size == 0:
         return t
     if not np.all(np.isfinite(t)):
         raise ValueError("per-point times contain non-finite values")
-    span = float(scan_period) if scan_period is not None else float(t.max() - t.min())
-    if span <= 0.0:
+    if reference not in TIME_REFERENCES:
+        raise ValueError(f"time reference must be one of {TIME_REFERENCES}, got {reference!r}")
+    if scan_period is None:
+        span = float(t.max() - t.min())
+        if span <= 0.0:
+            return np.full_like(t, 0.5)
+        return np.clip((t - t.min()) / span, 0.0, 1.0)
+    period = float(scan_period)
+    if period <= 0.0:
         return np.full_like(t, 0.5)
-    return np.clip((t - t.min()) / span, 0.0, 1.0)
+    ref = resolve_time_reference(t, period) if reference == "auto" else reference
+    if ref == "sweep_start":
+        start: float | None = 0.0
+    elif ref == "sweep_end":
+        start = -period
+    elif sweep_start is not None and (reference == "absolute"
+                                      or resolve_time_reference(t - float(sweep_start), period) == "sweep_start"):
+        start = float(sweep_start)
+    else:
+        start = None
+    t_min = float(t.min())
+    if start is None or abs(t_min - start) <= START_SLACK * period:
+        rel = t - t_min  # absolute stamps without a start, or a sweep starting at its start (as before)
+    else:
+        rel = t - start
+    frac = rel / period
+    if tolerance is not None:
+        lo, hi = float(frac.min()), float(frac.max())
+        if lo < -tolerance or hi > 1.0 + tolerance:
+            raise ValueError(f"per-point times (from {ref}) span {float(rel.min()):.6g}..{float(rel.max()):.6g} s, "
+                             f"i.e. sweep fractions {lo:.3g}..{hi:.3g} with a scan period of {period:.6g} s")
+    return np.clip(frac, 0.0, 1.0)
 
 
 def sweep_motion_from_velocity(frame_motion: np.ndarray, frame_period: float = 0.1,

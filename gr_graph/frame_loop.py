@@ -10,7 +10,8 @@ scans of the learning rounds (``data.read_threads``; :func:`prefetch_frames`), a
    (densified frames of the learning rounds carry no times: azimuth);
 1. preprocesses it (:func:`gr_graph.preprocess.preprocess_scan`); only the downsampled
    scan is kept;
-2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`) and adds the pose
+2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`, its constant-velocity
+   guess scaled to the time since the previous frame: dropped frames) and adds the pose
    and its odometry edge to the pose graph; in learning rounds the edge's information may
    first be replaced by the learned H(C) (:class:`gr_graph.edge_noise.LearnedEdgeNoise`);
 3. when the :class:`gr_graph.loop_closure.LoopClosureSchedule` says so, looks for a loop
@@ -18,6 +19,9 @@ scans of the learning rounds (``data.read_threads``; :func:`prefetch_frames`), a
    adds accepted loops to the graph (in learning rounds with their learned H(C) as well)
    and re-optimises it now and then.
 
+After the last frame, a sequence with fewer than two usable scans (no trajectory, only guesses)
+stops the run (:func:`check_usable_scans`: :class:`UnusableScansError`, naming the likely causes);
+more than half of the scans unusable is a logged warning with the counts.
 At the end the whole graph is optimised; in learning rounds every edge's information is then
 scaled by one factor from the graph's residuals (:meth:`_FrameLoop.calibrate_noise`,
 :mod:`gr_graph.noise_calibration`) and the graph solved again. Then its marginal covariances
@@ -42,7 +46,7 @@ from tqdm import tqdm
 
 from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
 from gr_graph.sensors import check_sequence_sensor
-from gr_graph.datasets.base import LidarFrame, LidarSequence, is_motion_compensated
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
@@ -66,8 +70,45 @@ log = logging.getLogger(__name__)
 SLAM_BLAS_THREADS = 1
 MAX_STARTUP_FRAMES = 5  # raw frames kept to be deskewed once the first motion is known (normally 2)
 
-__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "deskew_enabled", "frame_readers", "frames_read_ahead",
-           "prefetch_frames", "run_slam"]
+__all__ = ["FrameDeskewer", "SlamResult", "StageTimer", "UnusableScansError", "check_usable_scans", "deskew_enabled",
+           "frame_readers", "frames_read_ahead", "prefetch_frames", "run_slam"]
+
+
+class UnusableScansError(DatasetError):
+    """Too few of a sequence's scans were usable for a trajectory (:func:`check_usable_scans`).
+
+    Attributes
+    ----------
+    n_usable, n_frames : int
+    """
+
+    def __init__(self, message: str, n_usable: int, n_frames: int) -> None:
+        super().__init__(message)
+        self.n_usable = n_usable
+        self.n_frames = n_frames
+
+
+def check_usable_scans(n_usable: int, n_frames: int, name: str, cfg: SlamConfig) -> None:
+    """Stop a run whose scans give no trajectory; warn when most of them are unusable.
+
+    A scan is usable when at least ``preprocess.min_points`` points are left after cropping to
+    ``[preprocess.min_range, preprocess.max_range]`` and downsampling. With no usable scan, or
+    fewer than two of a sequence of two or more, every odometry edge is a fallback guess and the
+    trajectory says nothing: :class:`UnusableScansError`, whose message names the likely causes.
+    More than half of the scans unusable: a logged warning with the counts.
+    """
+    pc = cfg.preprocess
+    causes = (f"points in millimetres (or another unit) instead of metres; preprocess.min_range "
+              f"{pc.min_range:g} m / preprocess.max_range {pc.max_range:g} m cropping every point away; "
+              f"scans with fewer than preprocess.min_points {pc.min_points} points (empty or nearly empty files or "
+              f"messages, a wrong point_format or topic)")
+    if n_usable == 0 or (n_usable < 2 <= n_frames):
+        raise UnusableScansError(
+            f"{name}: {n_usable} of {n_frames} scans usable, too few for a trajectory (every odometry edge would be "
+            f"a guess). Likely causes: {causes}", n_usable, n_frames)
+    if n_frames - n_usable > n_frames / 2:
+        log.warning("%s: only %d of %d scans usable (%d unusable): their odometry edges are constant-velocity "
+                    "guesses. Likely causes: %s", name, n_usable, n_frames, n_frames - n_usable, causes)
 
 
 class StageTimer:
@@ -288,6 +329,7 @@ class _FrameLoop:
         self.n_flagged = 0
         self.loop_variance: dict[str, Any] | None = None  # graph.loop_variance: estimated (finish)
         self.n_dropped = 0
+        self.usable: list[bool] = []  # per run position: the scan was usable (preprocess.min_points)
         self.deskew_on, self.deskew_reason = deskew_enabled(cfg.odometry.deskew, sequence)
         scan_period = cfg.odometry.deskew_scan_period
         if scan_period is None and getattr(sequence, "scan_period", None) is not None:
@@ -327,6 +369,7 @@ class _FrameLoop:
                         self.look_for_loop(i, scan)
                 bar.set_postfix(loops=self.n_loops, flagged=self.n_flagged, refresh=False)
         bar.close()
+        check_usable_scans(sum(self.usable), K, getattr(self.sequence, "name", "sequence"), self.cfg)
         return self.finish()
 
     def deskew(self, i: int, frame: LidarFrame) -> LidarFrame:
@@ -363,6 +406,7 @@ class _FrameLoop:
         for j, scan in enumerate(scans):
             self.n_dropped -= scan.n_dropped  # counted when the frame was first preprocessed
             self.scans[j] = scan.points.astype(np.float32)
+            self.usable[j] = bool(scan.usable)
         with self.timer("odometry"):
             self.odometry.rebuild_map(scans)
         log.debug("deskewed the %d startup frames and rebuilt the odometry map", len(scans))
@@ -374,10 +418,21 @@ class _FrameLoop:
         self.n_dropped += scan.n_dropped
         return scan
 
+    def frame_time_step(self, i: int) -> float | None:
+        """Seconds between frames ``i - 1`` and ``i`` (run positions) from the sequence's
+        timestamps; None for the first frame or when the timestamps do not say."""
+        ts = getattr(self.sequence, "timestamps", None)
+        if i < 1 or ts is None or len(ts) <= i:
+            return None
+        dt = float(ts[i]) - float(ts[i - 1])
+        return dt if np.isfinite(dt) else None
+
     def add_odometry(self, i: int, scan: Scan) -> None:
-        """Register scan ``i``; add its pose and odometry edge to the graph."""
+        """Register scan ``i`` (its constant-velocity guess scaled to the time since the previous
+        frame: dropped frames); add its pose and odometry edge to the graph."""
+        self.usable.append(bool(scan.usable))
         with self.timer("odometry"):
-            edge = self.odometry.step(scan)
+            edge = self.odometry.step(scan, self.frame_time_step(i))
         self.scans.append(scan.points.astype(np.float32))
         self.frame_index.append(int(scan.index))
         self.graph.add_pose(self.estimate.pose(i))
@@ -522,7 +577,8 @@ class _FrameLoop:
         return graph
 
     def finish(self) -> SlamResult:
-        """Optimise the whole graph, compute the marginals; the run's result."""
+        """Optimise the whole graph, compute the marginals; the run's result (the frame loop
+        has checked that enough scans were usable: :func:`check_usable_scans`)."""
         K = len(self.sequence)
         if self.n_flagged:
             log.warning("%d of %d odometry edges failed and were replaced by the constant-velocity guess",
@@ -557,6 +613,7 @@ class _FrameLoop:
             runtime=dict(self.timer.seconds),
             graph_error=(res.initial_error, res.final_error),
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
+                  "n_unusable_scans": len(self.usable) - sum(self.usable),
                   "scans_left_out_of_map": self.odometry.scans_left_out_of_map,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
@@ -573,5 +630,10 @@ def run_slam(sequence: LidarSequence, cfg: SlamConfig, desc: str = "",
     ``edge_noise`` (learning rounds, ``training.edge_noise: learned``) replaces each odometry
     edge's information by the learned H(C) before it enters the graph. ``desc`` labels the
     progress bar.
+
+    Raises
+    ------
+    UnusableScansError
+        Fewer than two of the sequence's scans usable (:func:`check_usable_scans`).
     """
     return _FrameLoop(sequence, cfg, edge_noise).run(desc)

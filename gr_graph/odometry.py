@@ -22,6 +22,15 @@ enters_map`): a stopped vehicle otherwise fills the map with one ring pattern, r
 scan, and the registrations at motion start follow that pattern rather than the world (the car's
 pitch as it pulls away is missed: benchmarks/results/findings.md, Odometry at motion start).
 
+The constant-velocity guess of a step is the last accepted frame-to-frame motion, scaled to the
+time between the two frames when their timestamps are given (:meth:`VgicpOdometry.step`'s ``dt``;
+:func:`time_scaled_motion`: ``Exp(ratio · Log(delta))``, ``ratio`` = this step's time over the time
+the last accepted motion spanned): after dropped frames (a 0.4 s gap in a 10 Hz recording) the guess
+covers the whole gap, and so does the divergence test. A ratio within :data:`GUESS_RATIO_DEADBAND`
+of 1 (the timestamps' jitter: at most 3.4 % in KITTI 00's) leaves the motion as it is, bit for bit;
+a ratio that is not finite or not positive (repeated or decreasing timestamps) is taken as 1; a
+ratio above :data:`MAX_GUESS_RATIO` is clipped to it.
+
 A registration that returns non-finite values, has an inlier ratio below
 ``min_inlier_ratio``, or ends further than ``max_deviation_*`` from the constant-velocity
 guess is *flagged* (``ok=False``, ``reason`` says why), logged, and replaced by the guess
@@ -39,12 +48,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import small_gicp
 
-from factors.se3 import rotation_angle
+from factors.se3 import exp_se3, log_se3, rotation_angle
 from gr_graph.config import GraphConfig, OdometryConfig
 from gr_graph.preprocess import Scan
 from gr_graph.registration_covariance import Correspondences, cluster_robust_information, vgicp_correspondences
 
 log = logging.getLogger(__name__)
+
+#: a time ratio within this of 1 leaves the constant-velocity guess unscaled (timestamp jitter, not a
+#: change of frame rate; keeps evenly spaced sequences bit-identical whatever the float rounding of their times)
+GUESS_RATIO_DEADBAND = 0.1
+#: the constant-velocity guess is extrapolated over at most this many times the last motion's duration
+MAX_GUESS_RATIO = 10.0
 
 
 @dataclass
@@ -126,6 +141,31 @@ def registration_information(res: small_gicp.RegistrationResult, T: np.ndarray, 
     return info, "cluster_robust"
 
 
+def guess_time_ratio(dt: float | None, dt_delta: float | None) -> float:
+    """How much longer this step lasts (``dt``) than the last accepted motion did (``dt_delta``).
+
+    1.0 when either is unknown, not finite or not positive, or when the ratio is within
+    :data:`GUESS_RATIO_DEADBAND` of 1; clipped to :data:`MAX_GUESS_RATIO`.
+    """
+    if dt is None or dt_delta is None:
+        return 1.0
+    dt, dt_delta = float(dt), float(dt_delta)
+    if not (np.isfinite(dt) and np.isfinite(dt_delta) and dt > 0.0 and dt_delta > 0.0):
+        return 1.0
+    ratio = dt / dt_delta
+    if abs(ratio - 1.0) <= GUESS_RATIO_DEADBAND:
+        return 1.0
+    return min(ratio, MAX_GUESS_RATIO)
+
+
+def time_scaled_motion(delta: np.ndarray, ratio: float) -> np.ndarray:
+    """``Exp(ratio · Log(delta))``: the motion ``delta`` at the same velocity for ``ratio`` times as
+    long; ``delta`` itself (the same array) when ``ratio`` is exactly 1."""
+    if ratio == 1.0:
+        return delta
+    return exp_se3(ratio * log_se3(np.asarray(delta, np.float64)))
+
+
 def check_registration(
     T: np.ndarray,
     guess: np.ndarray,
@@ -164,10 +204,16 @@ class VgicpOdometry:
         self.poses: list[np.ndarray] = []
         self.edges: list[RegistrationEdge] = []
         self._delta = np.eye(4)
+        self._delta_dt: float | None = None  # time spanned by _delta [s] (None: unknown)
         self._map: small_gicp.GaussianVoxelMap | None = None
         self._prev: Scan | None = None
         self._last_map_pose: np.ndarray | None = None  # pose of the last scan that entered the map
         self.scans_left_out_of_map = 0
+
+    def guess(self, dt: float | None = None) -> np.ndarray:
+        """The constant-velocity guess T̂_{k+1,k} of the next step, ``dt`` seconds after the last
+        scan: the last accepted motion scaled to ``dt`` (module docstring; unscaled without ``dt``)."""
+        return time_scaled_motion(self._delta, guess_time_ratio(dt, self._delta_dt))
 
     @property
     def last_increment(self) -> np.ndarray:
@@ -224,8 +270,13 @@ class VgicpOdometry:
             self._map = vm
 
     # ------------------------------------------------------------------ step
-    def step(self, scan: Scan) -> RegistrationEdge | None:
-        """Register ``scan`` onto the past; return its odometry edge (None for the first scan)."""
+    def step(self, scan: Scan, dt: float | None = None) -> RegistrationEdge | None:
+        """Register ``scan`` onto the past; return its odometry edge (None for the first scan).
+
+        ``dt`` is the time since the previous scan [s] when the timestamps are known: the
+        constant-velocity guess (initial value and divergence test) is scaled to it
+        (:meth:`guess`); None uses the last accepted motion as it is.
+        """
         k = len(self.poses)
         if k == 0:
             self.poses.append(np.eye(4))
@@ -233,7 +284,10 @@ class VgicpOdometry:
             self._prev = scan
             return None
         T_prev = self.poses[-1]
-        guess_rel = self._delta
+        ratio = guess_time_ratio(dt, self._delta_dt)
+        guess_rel = time_scaled_motion(self._delta, ratio)
+        if ratio != 1.0:
+            log.debug("odometry edge (%d, %d): constant-velocity guess scaled x %.3g to %.3f s", k, k - 1, ratio, dt)
         reason = ""
         if not scan.usable:
             reason = "source scan unusable (too few points)"
@@ -300,6 +354,7 @@ class VgicpOdometry:
                 info={"covariance": model},
             )
             self._delta = T_rel
+            self._delta_dt = float(dt) if dt is not None and np.isfinite(dt) and dt > 0.0 else None
         T_new = T_prev @ edge.T
         self.poses.append(T_new)
         self.edges.append(edge)

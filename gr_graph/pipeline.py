@@ -28,7 +28,13 @@ Outputs: :mod:`gr_graph.round_output`.
 Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` exists and
 whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options the round
 depends on) equals the current one; a round with a missing or different ``round.json`` is
-recomputed, with everything after it. Finished rounds are re-judged (the test is cheap and
+recomputed, with everything after it. A finished round also records the identity of its input
+(``data_fingerprint``, :func:`data_fingerprint`: the number of frames and, for data read from files,
+a hash of the files' names, sizes and modification times, the timestamps, ground truth and
+calibration): when the data at the same path changed (scans replaced, deleted or added), the rerun
+refuses to resume (:class:`ResumeDataError`, before anything is written) and asks for a new ``--out``
+or ``--no-resume``. The synthetic world has no files: its identity is its configuration (and its
+number of frames). A ``round.json`` written before the data fingerprint existed is taken as it is. Finished rounds are re-judged (the test is cheap and
 deterministic), so a rerun with a changed ``training.acceptance`` re-decides without recomputing. An unfinished round's training resumes from its
 checkpoint unless an earlier round was recomputed (the memory changed).
 ``output.resume: false`` recomputes all rounds.
@@ -52,7 +58,7 @@ from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
-from gr_graph.frame_loop import SlamResult, StageTimer, frames_read_ahead, run_slam
+from gr_graph.frame_loop import SlamResult, StageTimer, UnusableScansError, frames_read_ahead, run_slam
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
 from gr_graph.noise_consistency import round_noise_consistency
@@ -73,7 +79,11 @@ from gr_graph.trajectory import write_kitti_poses
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SlamPipeline", "round_fingerprint"]
+__all__ = ["ResumeDataError", "SlamPipeline", "data_fingerprint", "round_fingerprint"]
+
+
+class ResumeDataError(RuntimeError):
+    """A finished round in ``--out`` was made from other data than the run's (resume refused)."""
 
 
 #: ``data`` options that change how frames are read, never what is read: in no fingerprint or cache key.
@@ -116,6 +126,76 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
         if section in d and d[section].get(key) == default:
             d[section].pop(key)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _input_files(sequence: Any) -> list[Path] | None:
+    """The files a sequence reads its frames from (of the sequence or the first of its ``parent``
+    chain that has them): a loader's ``files`` (folders, KITTI), a bag's ``path`` (the file, or
+    the files of a ROS2 bag folder); None for made frames (the synthetic world)."""
+    seen: set[int] = set()
+    while sequence is not None and id(sequence) not in seen:
+        seen.add(id(sequence))
+        files = getattr(sequence, "files", None)
+        if isinstance(files, (list, tuple)) and all(isinstance(f, (str, Path)) for f in files):
+            return [Path(f) for f in files]
+        path = getattr(sequence, "path", None)
+        if isinstance(path, (str, Path)):
+            path = Path(path)
+            return sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+        sequence = getattr(sequence, "parent", None)
+    return None
+
+
+#: bytes read from each end of the sampled files of :func:`data_fingerprint`
+FINGERPRINT_SAMPLE_BYTES = 65536
+
+
+def _file_sample(path: Path, size: int) -> bytes:
+    """The first and last :data:`FINGERPRINT_SAMPLE_BYTES` of a file (b"" when unreadable)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(FINGERPRINT_SAMPLE_BYTES)
+            if size > 2 * FINGERPRINT_SAMPLE_BYTES:
+                fh.seek(size - FINGERPRINT_SAMPLE_BYTES)
+            return head + fh.read(FINGERPRINT_SAMPLE_BYTES)
+    except OSError:
+        return b""
+
+
+def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
+    """The identity of a run's input, cheap to compute (no frame decoded).
+
+    Returns
+    -------
+    dict
+        ``n_frames``; ``files`` (how many files the frames come from, None for made frames: the
+        synthetic world, whose identity is its configuration) and ``digest`` (None for made frames),
+        a hash of the files' names and sizes, the first and last 64 KiB of the first, middle and
+        last file (data swapped for another drive with files of the same sizes, e.g. organized
+        clouds, differ there), the sequence's timestamps, ground truth and ``T_cam_velo``.
+        Modification times are left out: data copied elsewhere (a cluster's scratch disk) is the
+        same data. A file that cannot be read counts as size -1.
+    """
+    files = _input_files(sequence)
+    if files is None:
+        return {"n_frames": len(sequence), "files": None, "digest": None}
+    h = hashlib.sha256()
+    sizes = []
+    for f in files:
+        try:
+            size = f.stat().st_size
+        except OSError:
+            size = -1
+        sizes.append(size)
+        h.update(f"{f.name}\0{size}\n".encode())
+    for k in sorted({0, len(files) // 2, len(files) - 1} if files else set()):
+        h.update(_file_sample(files[k], sizes[k]))
+    for name in ("timestamps", "gt_poses", "T_cam_velo"):
+        value = getattr(sequence, name, None)
+        h.update(name.encode())
+        if value is not None:
+            h.update(np.ascontiguousarray(value, np.float64).tobytes())
+    return {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
 
 
 def check_learning_config(cfg: SlamConfig) -> None:
@@ -173,6 +253,7 @@ class SlamPipeline:
             sequence, source_description = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed,
                                                                     sensor=cfg.sensor)
         self.sequence: LidarSequence = sequence
+        self.data_fingerprint = data_fingerprint(sequence)
         self.frame_cache = self._open_frame_cache(sequence)
         if self.frame_cache is not None:
             self.sequence = self.frame_cache
@@ -195,8 +276,10 @@ class SlamPipeline:
         from gr_graph.provenance import git_state
 
         code = [__version__, git_state()["commit"]]  # the renderer may change between commits
-        key = hashlib.sha256(json.dumps([d, sequence.name, len(sequence), code],
-                                        sort_keys=True).encode()).hexdigest()[:16]
+        identity = [d, sequence.name, len(sequence), code]
+        if self.data_fingerprint["digest"] is not None:  # frames read from files: the files' identity too
+            identity.append(self.data_fingerprint["digest"])
+        key = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
         return CachedFrames(sequence, self.out / "frames", key)
 
     def remove_frame_cache(self) -> None:
@@ -214,9 +297,21 @@ class SlamPipeline:
                           num_threads=cfg.odometry.num_threads)
 
     def run(self) -> dict[str, Any]:
-        """Run round 0 and the learning rounds; write every output; return the metrics dict."""
+        """Run round 0 and the learning rounds; write every output; return the metrics dict.
+
+        Raises
+        ------
+        ResumeDataError
+            Resuming into an ``--out`` whose finished rounds were made from other data
+            (:meth:`check_resume`; nothing is written).
+        gr_graph.frame_loop.UnusableScansError
+            Too few scans usable for a trajectory (:meth:`slam_round`; no round is finished and
+            neither ``metrics.json`` nor the final poses are written).
+        """
+        self.check_resume()
         self.prepare()
         metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
+                                   "data_fingerprint": self.data_fingerprint,
                                    "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
                                    "provenance": self.provenance(),
                                    "rounds": {}}
@@ -273,8 +368,44 @@ class SlamPipeline:
         """Fail fast (before round 0) when a learning round could not run (:func:`check_learning_config`)."""
         check_learning_config(self.cfg)
 
+    def check_resume(self) -> None:
+        """Refuse to resume (before anything is written) when a round that would be skipped was
+        made from other data than this run's (:meth:`finished_round`)."""
+        if not self.cfg.output.resume:
+            return
+        for r in range(self.cfg.training.rounds + 1):
+            summary = read_round_summary(self.round_dir(r))
+            if summary is None or summary.get("config_fingerprint") != round_fingerprint(self.cfg, r):
+                return  # recomputed, with every round after it
+            self.check_round_data(r, summary)
+
+    def check_round_data(self, r: int, summary: dict[str, Any]) -> None:
+        """Raise :class:`ResumeDataError` when finished round ``r`` (its ``summary``) was made from
+        other data than this run's (:func:`data_fingerprint`); a summary without a data fingerprint
+        (written before it existed) passes."""
+        stored = summary.get("data_fingerprint")
+        if stored is None:
+            log.info("round %d: round.json has no data fingerprint (written before it existed); the data are taken "
+                     "to be unchanged", r)
+            return
+        now = self.data_fingerprint
+        if stored == now:
+            return
+        if stored.get("n_frames") != now["n_frames"]:
+            what = f"{stored.get('n_frames')} frames then, {now['n_frames']} now"
+        elif stored.get("files") != now["files"]:
+            what = f"{stored.get('files')} files then, {now['files']} now"
+        else:
+            what = ("the same number of frames, but the files differ (names, sizes or modification times) or their "
+                    "timestamps, ground truth or calibration do")
+        raise ResumeDataError(
+            f"{self.round_dir(r)}: round {r} is finished but was made from other data than {self.source_description} "
+            f"({what}); its results would not belong to these data. Use a new --out, or --no-resume (output.resume: "
+            f"false) to recompute every round into {self.out}")
+
     def finished_round(self, r: int) -> dict[str, Any] | None:
-        """The summary of round ``r`` if it is finished with the current configuration (resume)."""
+        """The summary of round ``r`` if it is finished with the current configuration and data
+        (resume; other data: :class:`ResumeDataError`)."""
         if not self.cfg.output.resume:
             return None
         summary = read_round_summary(self.round_dir(r))
@@ -283,6 +414,7 @@ class SlamPipeline:
         if summary.get("config_fingerprint") != round_fingerprint(self.cfg, r):
             log.info("round %d: existing results were made with another configuration; recomputing", r)
             return None
+        self.check_round_data(r, summary)
         log.info("round %d: already finished in %s; skipped (resume)", r, self.round_dir(r))
         return summary
 
@@ -435,8 +567,14 @@ class SlamPipeline:
         (rd / "round.json").unlink(missing_ok=True)
         t0 = time.perf_counter()
         edge_noise = self.edge_noise(densified)
-        res = run_slam(self.sequence if densified is None else densified, self.slam_config(r),
-                       desc=f" round {r}", edge_noise=edge_noise)
+        try:
+            res = run_slam(self.sequence if densified is None else densified, self.slam_config(r),
+                           desc=f" round {r}", edge_noise=edge_noise)
+        except UnusableScansError as exc:  # nothing of the round is written: no trajectory of guesses
+            if not any(rd.iterdir()):
+                rd.rmdir()
+            raise UnusableScansError(f"round {r}: data {self.source_description}: {exc}", exc.n_usable,
+                                     exc.n_frames) from exc
         if self.owns_sequence and release_render_cache(self.sequence):  # outputs and training read no frames
             log.info("round %d: every frame read; the synthetic town is freed (rebuilt if frames are read again)", r)
         mean_points = float(np.mean([len(s) for s in res.scans])) if res.scans else 0.0
@@ -451,7 +589,7 @@ class SlamPipeline:
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
-        summary = round_summary(r, res, round_fingerprint(cfg, r), mean_points)
+        summary = round_summary(r, res, round_fingerprint(cfg, r), mean_points, self.data_fingerprint)
         if map_counts is not None:
             summary["map"] = map_counts
         if densified is not None:

@@ -25,7 +25,7 @@ Output directory (``--out``)::
 
 Every file is written atomically (temporary sibling, then rename).
 
-``metrics.json`` = ``{"source", "n_frames", "channels", "rounds": {"<r>": summary}}`` (and
+``metrics.json`` = ``{"source", "n_frames", "data_fingerprint", "channels", "rounds": {"<r>": summary}}`` (and
 ``frame_cache``: frames read back, made, unreadable, not stored, when the cache was on); a
 round's summary (also its ``round.json``, :func:`round_summary`) holds counts (frames,
 odometry edges, flagged edges, loops, loop candidates), ``slam`` and ``odometry``
@@ -34,7 +34,9 @@ against the ground truth, both in the camera frame: RPE over 300 frames mean/RMS
 consecutive and all pairs, ATE, KITTI devkit %), ``loop_closure`` (precision/recall against
 ground truth, :func:`gr_graph.loop_evaluation.loop_precision_recall`), ``runtime_s`` per stage
 (``read`` is time spent waiting for frames), ``frames_per_second`` and
-``config_fingerprint``, ``marginals`` (:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
+``config_fingerprint``, ``data_fingerprint`` (the input's identity, checked on resume:
+:func:`gr_graph.pipeline.data_fingerprint`), ``n_unusable_scans``, ``marginals``
+(:class:`gr_graph.pose_graph.MarginalsReport`: ``status`` "ok",
 or how a graph gtsam could not marginalise was handled, which poses failed; None when disabled);
 with ground truth and marginals, ``noise_consistency`` (NEES per edge kind and of the marginals,
 :mod:`gr_graph.noise_consistency`); learning rounds add ``edge_noise``, ``densify``,
@@ -123,12 +125,20 @@ def write_round_map(rd: Path, res: SlamResult, voxel_size: float) -> dict[str, A
     return write_map(map_path(rd), res.scans, res.poses, voxel_size)
 
 
-def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_scan: float) -> dict[str, Any]:
-    """The counts of a round's summary (the caller adds metrics, edge noise, runtimes)."""
+def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_scan: float,
+                  data_fingerprint: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The counts of a round's summary (the caller adds metrics, edge noise, runtimes).
+
+    ``data_fingerprint`` (:func:`gr_graph.pipeline.data_fingerprint`) is the identity of the
+    input the round was made from, checked when a rerun resumes.
+    """
     return {
         "round": r,
         "config_fingerprint": fingerprint,
+        "data_fingerprint": data_fingerprint,
         "n_frames": len(res.poses),
+        # scans with fewer than preprocess.min_points points: their odometry edges are guesses
+        "n_unusable_scans": res.info.get("n_unusable_scans"),
         "n_odometry_edges": sum(e.kind == "odometry" for e in res.edges),
         "n_flagged_odometry_edges": res.info["n_flagged_odometry"],
         "n_loops": len(res.loops),

@@ -156,10 +156,17 @@ class SensorConfig(BaseModel):
     ``has_ring`` / ``has_time`` say whether the data carries per-point ring indices / times:
     ``None`` (default) = use them when the data has them (KITTI: rings recovered from the
     storage order); ``True`` = required (a frame without them is an error); ``False`` = the data
-    has none (or they are to be ignored). Per-point times are read in ``time_unit`` and counted
-    from ``time_reference`` (:meth:`times_to_fractions` turns them into the sweep fractions of
-    ``LidarFrame.time``). ``scan_period`` is the sweep duration in seconds (None: the sequence's,
-    else the spacing of the frame timestamps).
+    has none, or they are to be ignored (folder and bag loaders drop the field, logged).
+    Per-point times are read in ``time_unit`` and counted from ``time_reference``
+    (:meth:`times_to_fractions` turns them into the sweep fractions of ``LidarFrame.time``).
+    ``scan_period`` is the sweep duration in seconds (None: the sequence's, else the spacing of
+    the frame timestamps). The folder and bag loaders
+    (:class:`gr_graph.datasets.frame_fields.FieldConventions`) use ``time_unit`` and
+    ``time_reference`` when they are set (None, the default: guessed from the data;
+    ``times_to_fractions`` then reads seconds from the sweep's start), and take the ring count
+    from a named sensor (:attr:`named_beams`: ``model`` or ``n_beams`` given), else from the data.
+    ``config.yaml`` keeps only the sensor fields that were given, so a rerun from it guesses
+    what the first run guessed (:func:`gr_graph.config.config_to_yaml`).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -176,10 +183,12 @@ class SensorConfig(BaseModel):
                                                     "required, False = none")
     has_time: bool | None = Field(None, description="data carries per-point times: None = when present, True = "
                                                     "required, False = none")
-    time_unit: Literal["s", "ms", "us", "ns"] = Field("s", description="unit of per-point times")
-    time_reference: Literal["sweep_start", "sweep_end", "absolute"] = Field(
-        "sweep_start", description="per-point times count from the sweep's start (>= 0), back from its end (<= 0), "
-        "or are absolute stamps (same clock as the frame timestamps)")
+    time_unit: Literal["s", "ms", "us", "ns"] | None = Field(
+        None, description="unit of per-point times; None: guessed from the data (times_to_fractions: seconds)")
+    time_reference: Literal["sweep_start", "sweep_end", "absolute"] | None = Field(
+        None, description="per-point times count from the sweep's start (>= 0), back from its end (<= 0), "
+        "or are absolute stamps (same clock as the frame timestamps); None: from what the values show "
+        "(times_to_fractions: sweep_start)")
     scan_period: float | None = Field(None, gt=0.0, description="sweep duration [s]; None: the sequence's, else "
                                                                 "the frame spacing")
 
@@ -301,7 +310,10 @@ class SensorConfig(BaseModel):
         ``sweep_start`` times as they are; ``sweep_end`` times (<= 0) shifted by the scan period;
         ``absolute`` stamps minus ``sweep_start`` (the sweep's start on the same clock, s) or,
         without it, minus the earliest point's time. Divided by ``scan_period`` (without one: by
-        the times' own span).
+        the times' own span). The arithmetic is :func:`gr_graph.deskew.normalise_times`, which
+        the loaders (:class:`gr_graph.datasets.frame_fields.FieldConventions`) apply with these
+        settings when they are set (``time_unit`` / ``time_reference`` not None, or a
+        ``scan_period``) and with a guessed unit and reference otherwise.
 
         Parameters
         ----------
@@ -318,29 +330,29 @@ class SensorConfig(BaseModel):
             Non-finite times, or times that do not fit into one sweep (e.g. a wrong
             ``time_unit``); the message gives the span found. Callers add the file name.
         """
-        t = np.asarray(times, np.float64) * TIME_UNITS[self.time_unit]
-        if t.size == 0:
-            return t
-        if not np.all(np.isfinite(t)):
-            raise SensorError("per-point times contain non-finite values")
-        period = self.scan_period
-        if self.time_reference == "sweep_start":
-            rel = t
-        elif self.time_reference == "sweep_end":
-            rel = t + (period if period is not None else -float(t.min()))
-        else:
-            rel = t - (float(sweep_start) if sweep_start is not None else float(t.min()))
-        span = period if period is not None else float(rel.max() - rel.min())
-        if span <= 0.0:
-            return np.full_like(rel, 0.5)
-        frac = rel / span if period is not None else (rel - rel.min()) / span
-        lo, hi = float(frac.min()), float(frac.max())
-        if lo < -tolerance or hi > 1.0 + tolerance:
-            raise SensorError(
-                f"per-point times ({self.time_unit}, from {self.time_reference}) span {rel.min():.6g}..{rel.max():.6g} s, "
-                f"i.e. sweep fractions {lo:.3g}..{hi:.3g} with a scan period of {span:.6g} s: check sensor.time_unit, "
-                "sensor.time_reference and sensor.scan_period")
-        return np.clip(frac, 0.0, 1.0)
+        from gr_graph.deskew import normalise_times
+
+        t = np.asarray(times, np.float64) * TIME_UNITS[self.time_unit or "s"]
+        try:
+            return normalise_times(t, self.scan_period, self.time_reference or "sweep_start", sweep_start, tolerance)
+        except ValueError as exc:
+            if "non-finite" in str(exc):
+                raise SensorError(str(exc)) from None
+            raise SensorError(f"{exc} (times read in {self.time_unit or 's'}): check sensor.time_unit, "
+                              "sensor.time_reference and sensor.scan_period") from None
+
+    # ---------------------------------------------------------------- what the user said
+    def given(self, field: str) -> bool:
+        """Whether ``field`` was set explicitly (config file, command line, constructor), not
+        left at its default. Loaders guess the time unit and reference, and take the ring
+        count from the data, unless the corresponding field was given."""
+        return field in self.model_fields_set
+
+    @property
+    def named_beams(self) -> int | None:
+        """The beam count when the sensor was named (``model`` or ``n_beams`` given), else None
+        (the default HDL-64E stands for "not said": loaders count rings from the data)."""
+        return self.beams if (self.given("model") or self.given("n_beams")) else None
 
 
 HDL64_FOV_SPAN_DEG = SENSOR_MODELS["hdl64e"].vertical_fov_deg[0] - SENSOR_MODELS["hdl64e"].vertical_fov_deg[1]

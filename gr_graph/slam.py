@@ -7,7 +7,10 @@ Runs SLAM (round 0, raw scans) and, with ``--rounds N``, N learning rounds (Algo
 they need the trainer). Without a KITTI root it runs on the synthetic sequence (the
 project's generated route through a procedural town) and says so.
 Outputs (see :mod:`gr_graph.pipeline`) go to ``--out``; rerunning with the same ``--out``
-skips finished rounds. Each learning round is accepted or rejected by a test without ground
+skips finished rounds, unless the data changed since (replaced, added or deleted scans): then it
+stops with an error (exit code 2) asking for a new ``--out`` or ``--no-resume``. A run in which
+too few scans are usable for a trajectory (e.g. scans in millimetres, all cropped away by
+``preprocess.max_range``) stops with an error too (exit code 2) instead of writing a trajectory of guesses. Each learning round is accepted or rejected by a test without ground
 truth (:mod:`gr_graph.round_acceptance`); a rejection stops the rounds, and the final trajectory
 (the best accepted round) is written to ``--out``/poses_kitti.txt and named in the one-line JSON
 summary printed at the end (``final_round``, ``final_poses``).
@@ -127,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odometry map ('map' mode): a scan enters it only after moving M metres or turning DEG "
                         "degrees since the last one that entered, e.g. 0.1 1; 0 leaves that test out (default: "
                         f"{d.odometry.map_keyframe_translation} {d.odometry.map_keyframe_rotation_deg}: every scan)")
-    p.add_argument("--no-resume", action="store_true", help="recompute rounds even if finished")
+    p.add_argument("--no-resume", action="store_true",
+                   help="recompute rounds even if finished (also when the data changed since they were made)")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
                    help="print the resolved configuration (defaults, --config, options) as YAML and exit")
@@ -250,12 +254,12 @@ def main(argv: list[str] | None = None) -> int:
         print(config_to_yaml(cfg), end="")
         return 0
     from gr_graph.datasets.base import DatasetError
-    from gr_graph.pipeline import SlamPipeline
+    from gr_graph.pipeline import ResumeDataError, SlamPipeline
 
     try:
         pipe = SlamPipeline(cfg)
         metrics = pipe.run()
-    except DatasetError as exc:
+    except (DatasetError, ResumeDataError) as exc:  # DatasetError: also too few usable scans
         print(f"error: {exc}", file=sys.stderr)
         return 2
     final_round = metrics["final_round"]

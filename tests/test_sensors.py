@@ -110,7 +110,16 @@ def test_sensor_section_round_trips_through_yaml(tmp_path):
     p.write_text(text)
     assert load_config(p) == cfg
     # the default keeps a compact section: the catalogue's elevations are not written out
-    assert yaml.safe_load(config_to_yaml(SlamConfig()))["sensor"]["elevations_deg"] is None
+    assert "elevations_deg" not in yaml.safe_load(config_to_yaml(SlamConfig()))["sensor"]
+    # only what was given is written: a rerun from the file guesses what the first run guessed
+    # (the ring count from the data, not the default sensor's 64 beams; the time unit)
+    assert yaml.safe_load(config_to_yaml(SlamConfig()))["sensor"] == {}
+    p.write_text(config_to_yaml(SlamConfig()))
+    again = load_config(p).sensor
+    assert again.named_beams is None and again.time_unit is None and again == SlamConfig().sensor
+    named = load_config(None, {"sensor": {"model": "vlp16"}})
+    p.write_text(config_to_yaml(named))
+    assert load_config(p).sensor.named_beams == 16
 
 
 def test_cli_sensor_flag_replaces_the_beams_and_keeps_the_rest(tmp_path):

@@ -11,9 +11,11 @@ Frame conventions
 - ``ring`` is the laser index ``0..n_rings-1`` ordered from the *highest* elevation beam
   (0) to the lowest, ``int16`` of shape ``(N,)``; ``None`` when unknown.
 - ``time`` is each point's measurement time as a fraction of the sweep, ``float64`` in
-  ``[0, 1]`` of shape ``(N,)`` (0 = the sweep's start; loaders convert seconds or stamps with
-  :func:`gr_graph.deskew.normalise_times`); ``None`` when the data has none (the odometry
-  then derives it from the azimuth when it deskews).
+  ``[0, 1]`` of shape ``(N,)`` (0 = the sweep's start, not the frame's earliest point: a
+  partial sweep keeps its place in the sweep; loaders convert seconds or stamps with
+  :func:`gr_graph.deskew.normalise_times`, see :mod:`gr_graph.datasets.frame_fields`); ``None``
+  when the data has none or ``sensor.has_time`` is false (the odometry then derives it from
+  the azimuth when it deskews).
 
 Sequence attributes
 -------------------

@@ -41,6 +41,9 @@ REFERENCE_MAX_RESIDUAL_DEG = 0.1
 """Strategy 2 accepts a block of reference rings whose median residual is at most this."""
 REFERENCE_MIN_MARGIN = 2.0
 """... and whose residual is at least this many times smaller than the next best block's."""
+REFERENCE_MIN_LINE_FRACTION = 0.5
+"""... and only for a frame with more lines than this fraction of the reference rings: a block of a
+few lines fits many places (a half-azimuth sweep, whose azimuth does not wrap, is one "line")."""
 REFERENCE_FRAMES = 5
 """Probe frames indexed in storage order whose ring medians make the reference (their median)."""
 PROBE_FRAMES = 12
@@ -110,8 +113,11 @@ def recover_rings(points: np.ndarray, n_rings: int = 64, order_tolerance_deg: fl
        frames of the sequence, :class:`RingIndexer`), a scan with fewer lines (a partial
        sweep: the last frame of a recording) or with lines out of order beyond the
        tolerance is matched to a contiguous block of reference rings; accepted when the
-       best block fits to :data:`REFERENCE_MAX_RESIDUAL_DEG` (median) and clearly beats
-       the next best.
+       frame has more than :data:`REFERENCE_MIN_LINE_FRACTION` of the reference's lines,
+       the best block fits to :data:`REFERENCE_MAX_RESIDUAL_DEG` (median) and clearly beats
+       the next best. (A frame cut in azimuth, e.g. the front half only, has no azimuth
+       wrap between its lines and shows as one or a few "lines": refused here,
+       :class:`RingIndexer` then takes rings from per-point elevation.)
 
     Parameters
     ----------
@@ -175,8 +181,14 @@ def recover_rings_with_method(points: np.ndarray, n_rings: int = 64,
 
 
 def _match_reference(medians: np.ndarray, reference: np.ndarray, problem: str) -> int:
-    """Offset o such that the lines (top to bottom) are rings o, o+1, ...; raise if unclear."""
+    """Offset o such that the lines (top to bottom) are rings o, o+1, ...; raise if unclear
+    (too few lines to place, :data:`REFERENCE_MIN_LINE_FRACTION`, or no clear best block)."""
     n_lines, n_rings = len(medians), len(reference)
+    if n_lines <= REFERENCE_MIN_LINE_FRACTION * n_rings:
+        raise RingRecoveryError(
+            f"{problem}; too few lines to match to the {n_rings} reference rings (need more than "
+            f"{int(REFERENCE_MIN_LINE_FRACTION * n_rings)}: is the scan cut in azimuth?)"
+        )
     top_down = medians if n_lines < 2 or medians[-1] < medians[0] else medians[::-1]
     fits = np.array([np.nanmedian(np.abs(top_down - reference[o : o + n_lines]))
                      for o in range(n_rings - n_lines + 1)])
@@ -200,10 +212,11 @@ class RingIndexer:
     (``reference_source``; the per-ring median over up to :data:`REFERENCE_FRAMES` probes
     that strategy 1 indexes), so the reference, and every ring index, does not depend on
     the order in which frames are read. Such frames are matched against the reference
-    (strategy 2). A frame neither strategy indexes gets rings from per-point elevation
-    (``"elevation"``: nearest reference ring, or equal-count elevation bins without a
-    reference): approximate, logged by the caller and counted in :attr:`counts`, so that
-    a whole run is never refused for one odd frame.
+    (strategy 2) when they have most of the reference's lines. A frame neither strategy
+    indexes (e.g. shuffled points, or a sweep cut in azimuth, whose lines cannot be split)
+    gets rings from per-point elevation (``"elevation"``: nearest reference ring, or
+    equal-count elevation bins without a reference): approximate, logged by the caller and
+    counted in :attr:`counts`, so that a whole run is never refused for one odd frame.
 
     Parameters
     ----------

@@ -1,10 +1,28 @@
 """A folder of point-cloud files (``.bin``, ``.pcd``, ``.ply`` or ``.npy``) as a LiDAR sequence.
 
-The files are sorted naturally (``frame2`` before ``frame10``); a folder mixing types is refused.
+Which files are scans, and their order (:func:`point_files`):
+
+- hidden files (names starting with ``.``, e.g. macOS AppleDouble ``._000003.pcd`` files) are
+  skipped; a warning gives their count;
+- when every file name (without its suffix) is a decimal number, e.g. timestamps written with
+  ``str(float)`` (``1600000000.3.pcd``, ``1600000000.1002998.pcd``), the files are ordered by
+  that number; otherwise they are sorted naturally (digit runs by value: ``frame2`` before
+  ``frame10``, ``1`` before ``10``, ROS-style ``<sec>_<nsec>`` names by seconds then nanoseconds);
+- a folder mixing types is refused.
+
+A scan without points (an empty ``.bin``, ``POINTS 0`` PCD, 0-byte file, ...; see
+:mod:`gr_graph.datasets.point_files`) becomes an empty frame, logged and counted in
+:attr:`FolderSequence.empty_frames`; the pipeline marks it unusable. The field conventions
+(per-point time, rings) are probed on the first scan that has points.
+
 Optional side files, given explicitly or found next to the scans (in the folder, then its parent):
 
-- timestamps: ``times.txt`` or ``timestamps.txt``, one number a line, seconds (values above
-  1e12 are taken as nanoseconds); without one, frames are 0.1 s apart (logged);
+- timestamps: ``times.txt`` or ``timestamps.txt``, one number a line, strictly increasing, in
+  seconds, milliseconds, microseconds or nanoseconds, absolute (e.g. epoch) or relative. The
+  unit is the one of s/ms/us/ns that makes the median spacing between frames a LiDAR frame
+  spacing (:data:`PLAUSIBLE_FRAME_SPACING_S`, 0.005-2 s) and is logged; when none does, or when
+  that unit puts the first time after :data:`MAX_ABSOLUTE_TIME_S` (the magnitude contradicts
+  the spacing), the file is refused. Without a timestamps file, frames are 0.1 s apart (logged);
 - poses: ``poses.txt`` (or ``poses_kitti.txt`` / ``poses_tum.txt``), KITTI (12 numbers a line,
   row-major 3x4) or TUM (``t x y z qx qy qz qw``), told apart by the column count, one pose a
   frame, of the LiDAR in a world frame; they are re-expressed relative to the first (the world
@@ -27,12 +45,21 @@ import numpy as np
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
 from gr_graph.datasets.frame_fields import DEFAULT_FRAME_PERIOD_S, FieldConventions, frame_period
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
+from gr_graph.datasets.pointcloud2 import DecodedCloud
+from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
 
 TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
-_NS_THRESHOLD = 1e12
+TIME_UNITS: tuple[tuple[str, float], ...] = (("s", 1.0), ("ms", 1e-3), ("us", 1e-6), ("ns", 1e-9))
+"""Candidate units of a timestamps file (name, seconds per unit)."""
+PLAUSIBLE_FRAME_SPACING_S = (0.005, 2.0)
+"""Median frame spacing (s) a LiDAR sequence can have (200 Hz down to 0.5 Hz, e.g. subsampled
+recordings). Its ratio (400) is below the 1000 between units, so at most one unit fits."""
+MAX_ABSOLUTE_TIME_S = 1e10
+"""Times above this many seconds (year 2286 as a Unix time) are not plausible in any unit."""
+_DECIMAL_NAME = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)")
 
 
 def natural_key(name: str) -> list:
@@ -40,20 +67,47 @@ def natural_key(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
+def sort_point_files(files: list[Path]) -> list[Path]:
+    """``files`` in frame order.
+
+    When every name without its suffix is a decimal number (``1600000000.1002998``,
+    ``1600000000.3``, ``000012``), by that number (exactly, as a ``Decimal``; ties naturally);
+    otherwise naturally (:func:`natural_key`), where ``1600000000.3`` would wrongly come before
+    ``1600000000.1002998`` (3 < 1002998).
+    """
+    if files and all(_DECIMAL_NAME.fullmatch(p.stem) for p in files):
+        from decimal import Decimal
+
+        return sorted(files, key=lambda p: (Decimal(p.stem), natural_key(p.name)))
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
 def point_files(folder: Path) -> list[Path]:
-    """The point files of ``folder``, naturally sorted; refuses an empty folder or mixed types."""
+    """The point files of ``folder`` in frame order (:func:`sort_point_files`), hidden files
+    (``.*``, e.g. AppleDouble ``._x.pcd``) skipped with a warning; refuses an empty folder or mixed types."""
     if not folder.is_dir():
         raise DatasetError(f"{folder}: no such folder")
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in POINT_FILE_SUFFIXES]
+    candidates = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in POINT_FILE_SUFFIXES]
+    hidden = sorted(p.name for p in candidates if p.name.startswith("."))
+    if hidden:
+        log.warning("%s: skipped %d hidden file%s named like scans (%s%s; e.g. macOS AppleDouble '._' files)",
+                    folder, len(hidden), "s" if len(hidden) > 1 else "", ", ".join(hidden[:3]),
+                    ", ..." if len(hidden) > 3 else "")
+    files = [p for p in candidates if not p.name.startswith(".")]
     if not files:
-        raise DatasetError(f"{folder}: no point files ({', '.join(POINT_FILE_SUFFIXES)})")
+        raise DatasetError(f"{folder}: no point files ({', '.join(POINT_FILE_SUFFIXES)})"
+                           + (f"; {len(hidden)} hidden files skipped" if hidden else ""))
     kinds: dict[str, int] = {}
     for p in files:
         kinds[p.suffix.lower()] = kinds.get(p.suffix.lower(), 0) + 1
     if len(kinds) > 1:
         listing = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items()))
         raise DatasetError(f"{folder}: mixed file types ({listing}); keep one type of point file in the folder")
-    return sorted(files, key=lambda p: natural_key(p.name))
+    ordered = sort_point_files(files)
+    if ordered != sorted(files, key=lambda p: natural_key(p.name)):
+        log.info("%s: the file names are decimal numbers: ordered by their value (%s)", folder,
+                 ", ".join(p.name for p in ordered[:3]) + (", ..." if len(ordered) > 3 else ""))
+    return ordered
 
 
 def find_side_file(folder: Path, names: tuple[str, ...]) -> Path | None:
@@ -65,8 +119,36 @@ def find_side_file(folder: Path, names: tuple[str, ...]) -> Path | None:
     return None
 
 
+def timestamp_unit(ts: np.ndarray, source: str) -> tuple[str, float]:
+    """The unit ``(name, seconds per unit)`` of increasing frame times ``ts`` (see the module docstring).
+
+    Raises
+    ------
+    DatasetError
+        Naming ``source``, when no unit gives a plausible frame spacing, or the unit that does
+        makes the times implausibly large.
+    """
+    if len(ts) < 2:
+        return "s", 1.0  # one frame: its time is 0 whatever the unit
+    spacing = float(np.median(np.diff(ts)))
+    lo, hi = PLAUSIBLE_FRAME_SPACING_S
+    fitting = [(name, unit) for name, unit in TIME_UNITS if lo <= spacing * unit <= hi]
+    if not fitting:
+        tried = ", ".join(f"{spacing * unit:.3g} s in {name}" for name, unit in TIME_UNITS)
+        raise DatasetError(f"{source}: the median spacing between timestamps is {spacing:.6g} (file units); no unit "
+                           f"gives a LiDAR frame spacing of {lo:g}-{hi:g} s ({tried}): give one time a frame, "
+                           "in s, ms, us or ns")
+    name, unit = fitting[0]
+    largest = float(np.max(np.abs(ts[[0, -1]]))) * unit
+    if largest > MAX_ABSOLUTE_TIME_S:
+        raise DatasetError(f"{source}: the frame spacing ({spacing:.6g}) says the times are in {name}, but then "
+                           f"they reach {largest:.3g} s (more than {MAX_ABSOLUTE_TIME_S:g} s, year 2286 as a Unix "
+                           "time): the values and their spacing contradict each other")
+    return name, unit
+
+
 def read_timestamps_file(path: Path, n_frames: int) -> np.ndarray:
-    """Seconds since the first frame, one a frame (see the module docstring for units)."""
+    """Seconds since the first frame, one a frame (the unit is guessed and logged, see the module docstring)."""
     from gr_graph.trajectory import TrajectoryFormatError, read_kitti_times
 
     try:
@@ -75,10 +157,12 @@ def read_timestamps_file(path: Path, n_frames: int) -> np.ndarray:
         raise DatasetError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from exc
     if len(ts) != n_frames:
         raise DatasetError(f"{path}: {len(ts)} timestamps for {n_frames} frames")
-    if ts[0] > _NS_THRESHOLD:
-        ts = (ts - ts[0]) * 1e-9
-        log.info("%s: timestamps above 1e12 read as nanoseconds", path)
-    return ts - ts[0]
+    name, unit = timestamp_unit(ts, str(path))
+    rel = (ts - ts[0]) * unit
+    if len(ts) > 1:
+        log.info("%s: timestamps read in %s (median frame spacing %.4g s)", path, name,
+                 float(np.median(np.diff(rel))))
+    return rel
 
 
 def read_pose_file(path: Path, n_frames: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -116,6 +200,10 @@ class FolderSequence:
         Layout of ``.bin`` files.
     timestamps, poses : path, optional
         Side files (see the module docstring); None: look next to the scans.
+    sensor : SensorConfig, optional
+        The ``sensor`` section: its time unit and reference when set, its ``scan_period`` (else the
+        frame spacing), ``has_time`` / ``has_ring``, and the ring count of a named sensor
+        (:meth:`gr_graph.datasets.frame_fields.FieldConventions.probe`).
 
     Attributes
     ----------
@@ -126,10 +214,12 @@ class FolderSequence:
         False when the files carry per-point times.
     scan_period : float
         The frame spacing (s), used as the sweep duration.
+    empty_frames : set of int
+        Indices of the frames read so far whose file held no points (each logged once).
     """
 
     def __init__(self, folder: str | Path, point_format: str = "xyzi", timestamps: str | Path | None = None,
-                 poses: str | Path | None = None) -> None:
+                 poses: str | Path | None = None, sensor: SensorConfig | None = None) -> None:
         self.folder = Path(folder)
         self.point_format = point_format
         self.files = point_files(self.folder)
@@ -153,11 +243,23 @@ class FolderSequence:
             log.warning("%s: no timestamps file (%s): frames taken %.2f s apart", self.folder,
                         " / ".join(TIMESTAMP_FILES), DEFAULT_FRAME_PERIOD_S)
             self.timestamps = np.arange(n) * DEFAULT_FRAME_PERIOD_S
-        self.scan_period = frame_period(self.timestamps)
-        first = read_point_file(self.files[0], point_format)
-        self.conventions = FieldConventions.probe(first, self.scan_period, str(self.files[0]))
-        self.motion_compensated = not self.conventions.has_time
-        self.n_rings = self.conventions.n_rings
+        self.scan_period = (sensor.scan_period if sensor is not None and sensor.scan_period is not None
+                            else frame_period(self.timestamps))
+        self.empty_frames: set[int] = set()
+        self._read_ahead: dict[int, DecodedCloud] = {}
+        probe_index = 0
+        for probe_index, path in enumerate(self.files):  # the first scan with points fixes the conventions
+            first = read_point_file(path, point_format)
+            self._read_ahead = {probe_index: first}
+            if len(first.points):
+                break
+        self.conventions = FieldConventions.probe(first, self.scan_period, str(self.files[probe_index]), sensor)
+        self.motion_compensated = self.conventions.motion_compensated
+
+    @property
+    def n_rings(self) -> int:
+        """Rings of the scans (grows, with a warning, when a later scan has more than the first)."""
+        return self.conventions.n_rings
 
     def __len__(self) -> int:
         return len(self.files)
@@ -165,10 +267,30 @@ class FolderSequence:
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
         path = self.files[i]
-        cloud = read_point_file(path, self.point_format)
+        cloud = self._read_ahead.pop(i, None)
+        if cloud is None:
+            cloud = read_point_file(path, self.point_format)
         if cloud.dropped_nonfinite:
             log.warning("%s: dropped %d non-finite points", path, cloud.dropped_nonfinite)
+        if len(cloud.points) == 0:
+            return self._empty_frame(i, path, cloud)
         return self.conventions.frame(cloud, i, float(self.timestamps[i]), str(path))
+
+    def _empty_frame(self, i: int, path: Path, cloud: DecodedCloud) -> LidarFrame:
+        """The frame of a scan without points (unusable for registration; logged once a frame)."""
+        if i not in self.empty_frames:
+            self.empty_frames.add(i)
+            what = ("a 0-byte file" if path.stat().st_size == 0 else
+                    f"all {cloud.dropped_nonfinite} points non-finite" if cloud.dropped_nonfinite else "no points")
+            log.warning("%s: empty scan (%s): frame %d is empty (%d empty frame%s so far)", path, what, i,
+                        len(self.empty_frames), "s" if len(self.empty_frames) > 1 else "")
+        conv = self.conventions  # the fields the sequence's other frames have, empty
+        has_time = conv.has_time and getattr(conv, "use_time", True)
+        has_ring = conv.has_ring and getattr(conv, "use_ring", True)
+        return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=np.zeros((0, 3)),
+                          intensity=np.zeros(0, np.float32), ring=np.zeros(0, np.int16) if has_ring else None,
+                          n_rings=conv.n_rings, dropped_nonfinite=cloud.dropped_nonfinite,
+                          time=np.zeros(0) if has_time else None)
 
     def __iter__(self) -> Iterator[LidarFrame]:
         for i in range(len(self)):

@@ -1,17 +1,26 @@
 """From decoded point fields to a :class:`~gr_graph.datasets.base.LidarFrame`: the conventions
-a sequence fixes once, from its first frame (:class:`FieldConventions`).
+a sequence fixes once, from its first frame and the ``sensor`` section (:class:`FieldConventions`).
 
 - **Per-point time**: drivers store it in seconds (Velodyne ``time``, Hesai ``timestamp``),
   nanoseconds (Ouster ``t``, Livox) or microseconds, relative to the sweep or absolute. The
-  unit is the power of 1000 that makes the first frame's time span closest to the frame
-  spacing (a sweep lasts about one frame period); times become sweep fractions
-  ``(t - t_min) / scan_period`` in ``[0, 1]`` (:func:`gr_graph.deskew.normalise_times`).
+  unit is ``sensor.time_unit`` when given, else the power of 1000 that makes the first frame's
+  time span closest to the frame spacing (a sweep lasts about one frame period). Times become
+  sweep fractions with :func:`gr_graph.deskew.normalise_times` over ``sensor.scan_period``
+  (else the frame spacing), counted from ``sensor.time_reference`` when given, else from what
+  the values say: times within one sweep of 0 count from the sweep's start (or back from its
+  end), so a partial sweep keeps its place in the sweep; absolute stamps count from the
+  frame's earliest point. With ``time_unit`` or ``time_reference`` given, times that do not
+  fit one sweep are an error naming the file. ``sensor.has_time: false`` drops the time field
+  (logged; the sequence still counts as not motion-compensated, so deskewing takes the times
+  from the azimuth).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first frame's rings rises with the ring number, rings are flipped
-  (``n_rings - 1 - ring``). ``n_rings`` is the first frame's highest ring + 1 rounded up to
-  16, 32, 64 or 128 when one of those is at most 25 % above; a later ring at or above it is an
-  error naming the frame's source.
+  (``n_rings - 1 - ring``). ``n_rings`` is the named sensor's beam count (``--sensor``,
+  ``sensor.model`` / ``n_beams``; a larger ring index is an error), else the first frame's
+  highest ring + 1 rounded up to 16, 32, 64 or 128 when one of those is at most 25 % above,
+  raised (logged) when a later frame holds a higher ring. ``sensor.has_ring: false`` drops
+  the ring field (logged).
 """
 
 from __future__ import annotations
@@ -23,7 +32,8 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame
 from gr_graph.datasets.pointcloud2 import DecodedCloud
-from gr_graph.deskew import normalise_times
+from gr_graph.deskew import RELATIVE_SLACK, normalise_times
+from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +79,30 @@ class FieldConventions:
     Attributes
     ----------
     has_time : bool
-        The first frame has a per-point time field (and it spans more than 0).
+        The first frame has a per-point time field (and it spans more than 0): the scans are
+        raw sweeps, not motion-compensated (also when ``use_time`` is False).
     time_unit_s : float
         Seconds per unit of the time field.
     scan_period : float
         Sweep duration (s) that maps times to fractions.
     has_ring : bool
+        The first frame has a ring field.
     n_rings : int
+        Rings of the sensor; grows (logged) when a frame holds a higher ring, unless
+        ``fixed_rings``.
     flip_rings : bool
         Rings are numbered from the lowest beam and get flipped.
+    time_reference : str
+        What times count from (:data:`gr_graph.deskew.TIME_REFERENCES`; ``auto``: judged per
+        frame from the values).
+    time_tolerance : float or None
+        Sweep fractions further than this outside ``[0, 1]`` are an error (None: clipped);
+        set when the sensor section gives the time unit or reference.
+    use_time, use_ring : bool
+        False when the sensor section says to ignore the field (``has_time`` / ``has_ring``
+        false): frames get no times / rings.
+    fixed_rings : bool
+        ``n_rings`` is the named sensor's beam count.
     """
 
     has_time: bool = False
@@ -86,44 +111,152 @@ class FieldConventions:
     has_ring: bool = False
     n_rings: int = 64
     flip_rings: bool = False
+    time_reference: str = "auto"
+    time_tolerance: float | None = None
+    use_time: bool = True
+    use_ring: bool = True
+    fixed_rings: bool = False
+
+    @property
+    def motion_compensated(self) -> bool:
+        """False when the data carries per-point times (raw sweeps), used or not."""
+        return not self.has_time
 
     @classmethod
-    def probe(cls, cloud: DecodedCloud, frame_period: float, source: str) -> FieldConventions:
-        """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart."""
-        conv = cls(scan_period=float(frame_period))
-        if cloud.time is not None and len(cloud.time) and np.ptp(cloud.time) > 0:
-            conv.has_time = True
-            conv.time_unit_s = guess_time_unit(cloud.time, frame_period)
-            log.info("%s: per-point time field %r read in units of %g s (span %.4g s, frame period %.4g s)",
-                     source, cloud.time_field, conv.time_unit_s, np.ptp(cloud.time) * conv.time_unit_s,
-                     frame_period)
-        elif cloud.time is not None:
-            log.warning("%s: per-point time field %r is constant: ignored", source, cloud.time_field)
-        if cloud.ring is not None and len(cloud.ring):
-            conv.has_ring = True
-            conv.n_rings = ring_count(int(cloud.ring.max()))
-            conv.flip_rings = rings_rise_with_elevation(cloud.points, cloud.ring)
-            if conv.flip_rings:
-                log.info("%s: ring 0 is the lowest beam: rings flipped to number from the highest", source)
+    def probe(cls, cloud: DecodedCloud, frame_period: float, source: str,
+              sensor: SensorConfig | None = None) -> FieldConventions:
+        """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart.
+
+        Parameters
+        ----------
+        cloud : DecodedCloud
+            The first frame's fields.
+        frame_period : float
+            Spacing of the frame timestamps (s).
+        source : str
+            Named in messages and errors.
+        sensor : SensorConfig, optional
+            The ``sensor`` section. ``time_unit`` and ``time_reference``, when set (not None), replace the
+            guesses (and make times that do not fit one sweep an error), ``scan_period``
+            the frame spacing, ``model`` / ``n_beams`` given (:attr:`SensorConfig.named_beams`)
+            fix ``n_rings``; ``has_time`` /
+            ``has_ring`` false drop the field, true require it.
+
+        Raises
+        ------
+        DatasetError
+            A field the sensor section requires is missing, the first frame's times do not
+            fit one sweep in the given unit, or its rings exceed the named sensor's beams.
+        """
+        period = float(frame_period)
+        if sensor is not None and sensor.scan_period is not None:
+            period = float(sensor.scan_period)
+        conv = cls(scan_period=period)
+        conv._probe_time(cloud, frame_period, source, sensor)
+        conv._probe_ring(cloud, source, sensor)
         return conv
 
-    def frame(self, cloud: DecodedCloud, index: int, timestamp: float, source: str) -> LidarFrame:
-        """The frame of ``cloud`` under these conventions."""
+    def _probe_time(self, cloud: DecodedCloud, frame_period: float, source: str,
+                    sensor: SensorConfig | None) -> None:
+        want = None if sensor is None else sensor.has_time
+        if cloud.time is not None and len(cloud.time) and np.ptp(cloud.time) > 0:
+            self.has_time = True
+            if want is False:
+                self.use_time = False
+                log.warning("%s: per-point time field %r ignored (sensor.has_time: false); deskewing, when on, "
+                            "takes the times from the azimuth", source, cloud.time_field)
+                return
+            unit_given = sensor is not None and sensor.time_unit is not None
+            reference_given = sensor is not None and sensor.time_reference is not None
+            if unit_given:
+                self.time_unit_s = TIME_UNITS[sensor.time_unit]  # type: ignore[union-attr]
+            else:
+                self.time_unit_s = guess_time_unit(cloud.time, self.scan_period)
+            if reference_given:
+                self.time_reference = sensor.time_reference  # type: ignore[union-attr]
+            if unit_given or reference_given:
+                self.time_tolerance = RELATIVE_SLACK
+            log.info("%s: per-point time field %r read in units of %g s (%s; span %.4g s, scan period %.4g s, "
+                     "frame period %.4g s), counted from %s", source, cloud.time_field, self.time_unit_s,
+                     "sensor.time_unit" if unit_given else "guessed", np.ptp(cloud.time) * self.time_unit_s,
+                     self.scan_period, frame_period,
+                     self.time_reference if reference_given else "the reference the values show")
+            self.fractions(cloud.time, source)  # the first frame must fit one sweep
+        elif cloud.time is not None:
+            log.warning("%s: per-point time field %r is constant: ignored", source, cloud.time_field)
+        if want and not self.has_time:
+            raise DatasetError(f"{source}: no per-point time field that varies (sensor.has_time is true)")
+
+    def _probe_ring(self, cloud: DecodedCloud, source: str, sensor: SensorConfig | None) -> None:
+        want = None if sensor is None else sensor.has_ring
+        named = None if sensor is None else sensor.named_beams
+        if named is not None:
+            self.n_rings, self.fixed_rings = int(named), True
+        if cloud.ring is None or not len(cloud.ring):
+            if want:
+                raise DatasetError(f"{source}: no ring field (sensor.has_ring is true)")
+            return
+        self.has_ring = True
+        if want is False:
+            self.use_ring = False
+            log.warning("%s: ring field ignored (sensor.has_ring: false)", source)
+            return
+        highest = int(cloud.ring.max())
+        if self.fixed_rings:
+            self._check_named_rings(highest, source)
+        else:
+            self.n_rings = ring_count(highest)
+        self.flip_rings = rings_rise_with_elevation(cloud.points, cloud.ring)
+        if self.flip_rings:
+            log.info("%s: ring 0 is the lowest beam: rings flipped to number from the highest", source)
+
+    def _check_named_rings(self, highest: int, source: str) -> None:
+        if highest >= self.n_rings:
+            raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings of the sensor (sensor.model / "
+                               "sensor.n_beams, --sensor): name the sensor that took the scans")
+
+    def fractions(self, times: np.ndarray, source: str, sweep_start: float | None = None) -> np.ndarray:
+        """Sweep fractions of one frame's stored times (:func:`gr_graph.deskew.normalise_times`)."""
+        try:
+            return normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
+                                   self.time_reference, sweep_start, self.time_tolerance)
+        except ValueError as exc:
+            hint = ("; check sensor.time_unit, sensor.time_reference and sensor.scan_period"
+                    if self.time_tolerance is not None else "")
+            raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s){hint}") from None
+
+    def _rings(self, cloud: DecodedCloud, source: str) -> np.ndarray:
+        highest = int(cloud.ring.max()) if len(cloud.ring) else -1  # type: ignore[union-attr]
+        if highest >= self.n_rings:
+            if self.fixed_rings:
+                self._check_named_rings(highest, source)
+            grown = ring_count(highest)
+            log.warning("%s: ring %d: ring count raised from %d to %d (the first frame's highest ring was lower)%s",
+                        source, highest, self.n_rings, grown,
+                        "; frames read before were numbered with the smaller count (rings flipped): name the "
+                        "sensor (--sensor, sensor.n_beams) to fix the count" if self.flip_rings else "")
+            self.n_rings = grown
+        r = (self.n_rings - 1 - cloud.ring) if self.flip_rings else cloud.ring
+        return np.asarray(r).astype(np.int16)
+
+    def frame(self, cloud: DecodedCloud, index: int, timestamp: float, source: str,
+              sweep_start: float | None = None) -> LidarFrame:
+        """The frame of ``cloud`` under these conventions.
+
+        ``sweep_start`` is the frame's stamp on the clock of absolute per-point times (s), when
+        the loader knows it; absolute times that fall in the sweep starting there count from it.
+        """
         n = len(cloud.points)
         time = None
-        if self.has_time:
+        if self.has_time and self.use_time:
             if cloud.time is None:
                 raise DatasetError(f"{source}: no per-point time field, but the sequence's first frame has one")
-            time = normalise_times(cloud.time * self.time_unit_s, self.scan_period)
+            time = self.fractions(cloud.time, source, sweep_start)
         ring = None
-        if self.has_ring:
+        if self.has_ring and self.use_ring:
             if cloud.ring is None:
                 raise DatasetError(f"{source}: no ring field, but the sequence's first frame has one")
-            if n and int(cloud.ring.max()) >= self.n_rings:
-                raise DatasetError(f"{source}: ring {int(cloud.ring.max())} >= {self.n_rings} rings "
-                                   "(from the first frame)")
-            r = (self.n_rings - 1 - cloud.ring) if self.flip_rings else cloud.ring
-            ring = r.astype(np.int16)
+            ring = self._rings(cloud, source)
         intensity = cloud.intensity if cloud.intensity is not None else np.zeros(n, np.float32)
         return LidarFrame(index=index, timestamp=float(timestamp), points=cloud.points,
                           intensity=intensity.astype(np.float32, copy=False), ring=ring,

@@ -43,7 +43,7 @@ from gr_graph.datasets.base import (
     velo_to_cam_poses,
 )
 from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
-from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, size_error
+from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, float64_bin_problem, size_error
 
 log = logging.getLogger(__name__)
 
@@ -154,7 +154,8 @@ def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarra
         If the file is missing, its size is not a multiple of the point size (the message
         suggests the other format when the size fits it), or its contents do not look like
         ``point_format`` points (e.g. a 12-byte x,y,z file read as x,y,z,intensity; see
-        :mod:`gr_graph.datasets.point_layout`).
+        :mod:`gr_graph.datasets.point_layout`), or were written as float64
+        (:func:`~gr_graph.datasets.point_layout.float64_bin_problem`).
     """
     if point_format not in POINT_FORMATS:
         raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
@@ -168,6 +169,9 @@ def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarra
         values = np.fromfile(path, dtype=np.float32) if size % 4 == 0 else None
         raise size_error(path, size, point_format, values)
     values = np.fromfile(path, dtype=np.float32)
+    problem = float64_bin_problem(path, values)
+    if problem is not None:
+        raise DatasetError(problem)
     check_point_layout(values, point_format, path)
     if stride == 4:
         return values.reshape(-1, 4)

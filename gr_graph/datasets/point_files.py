@@ -5,17 +5,33 @@ the file has them, intensity, per-point time and ring) or raises a
 :class:`~gr_graph.datasets.base.DatasetError` naming the file.
 
 - ``.bin``: headerless float32 x,y,z,intensity (or x,y,z with ``point_format="xyz"``), checked
-  by :mod:`gr_graph.datasets.point_layout`.
+  by :mod:`gr_graph.datasets.point_layout`. A file written as float64 (``tofile`` of a float64
+  array) is refused with a message saying so and how to convert it: read as float32, a
+  float64 file has absurd values (``|v| > 1e10``) in more than 1 % of its values while read as
+  float64 it holds plausible coordinates
+  (:func:`gr_graph.datasets.point_layout.float64_bin_problem`, also applied to KITTI roots).
 - ``.pcd``: PCL's format, ``DATA ascii`` and ``binary`` read here with every field (e.g.
   ``intensity``, ``ring``, ``t``); ``binary_compressed`` through open3d (x, y, z, intensity).
 - ``.ply``: the ``vertex`` element (it must be the file's first element) of ASCII or binary
   (either byte order) files, every scalar property.
 - ``.npy``: an ``(N, 3)`` / ``(N, 4)`` numeric array (x, y, z[, intensity]) or a structured array
   with fields ``x``, ``y``, ``z`` (and optionally ``intensity``, ``t``/``time``/``timestamp``, ``ring``).
+
+**Empty files.** A cloud without points (an empty ``.bin``, a PCD with ``POINTS 0``, a PLY with
+``element vertex 0``, an empty ``.npy`` array, or a 0-byte ``.pcd``/``.ply``/``.npy``) is read as
+an empty cloud, not an error: the sequence turns it into an empty frame, which the pipeline
+marks unusable (:class:`~gr_graph.datasets.folder.FolderSequence` logs it). A truncated or
+corrupt file (header cut off, fewer data bytes than the header promises) is still an error.
+
+**Non-finite intensity.** Points with a non-finite coordinate are dropped and counted, and a
+non-finite intensity at a finite point is replaced by 0 with the count logged
+(:func:`gr_graph.datasets.pointcloud2.decode_structured`, as for bags); non-finite per-point
+times remain an error.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +39,9 @@ import numpy as np
 from gr_graph.datasets.base import DatasetError
 from gr_graph.datasets.pointcloud2 import DecodedCloud, decode_structured
 
-POINT_FILE_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
+log = logging.getLogger(__name__)
 
+POINT_FILE_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8",
               ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -41,12 +58,25 @@ def read_point_file(path: str | Path, point_format: str = "xyzi") -> DecodedClou
     path : path
     point_format : {"xyzi", "xyz"}
         Layout of ``.bin`` files only.
+
+    Returns
+    -------
+    DecodedCloud
+        Empty (no points) for an empty or 0-byte file; non-finite intensities set to 0 (logged).
+
+    Raises
+    ------
+    DatasetError
+        Naming the file: missing, unknown suffix, truncated or corrupt, wrong field layout, a
+        ``.bin`` in another layout (:mod:`~gr_graph.datasets.point_layout`) or written as float64.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
         raise DatasetError(f"{path}: point file not found")
     try:
+        if suffix in (".pcd", ".ply", ".npy") and path.stat().st_size == 0:
+            return empty_cloud()  # a 0-byte file (e.g. a recorder that crashed): an empty frame
         if suffix == ".bin":
             from gr_graph.datasets.kitti import read_velodyne_bin
 
@@ -64,6 +94,11 @@ def read_point_file(path: str | Path, point_format: str = "xyzi") -> DecodedClou
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: unreadable ({exc})") from exc
     raise DatasetError(f"{path}: unknown point file type {suffix!r} (supported: {', '.join(POINT_FILE_SUFFIXES)})")
+
+
+def empty_cloud() -> DecodedCloud:
+    """A cloud without points (and without intensity, time or ring fields)."""
+    return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
 
 
 def _columns(values: np.ndarray, names: list[str]) -> np.ndarray:
@@ -94,7 +129,10 @@ def _read_header(path: Path, first: bytes, end: tuple[bytes, ...]) -> tuple[list
 
 
 def read_pcd(path: str | Path) -> DecodedCloud:
-    """Read a PCD file (``DATA ascii`` or ``binary`` with any fields; ``binary_compressed`` via open3d)."""
+    """Read a PCD file (``DATA ascii`` or ``binary`` with any fields; ``binary_compressed`` via open3d).
+
+    ``POINTS 0`` gives an empty cloud; fewer data than ``POINTS`` promises is an error.
+    """
     path = Path(path)
     try:
         lines, offset = _read_header(path, b"PCD", (b"DATA",))
@@ -118,8 +156,8 @@ def read_pcd(path: str | Path) -> DecodedCloud:
                            f"({len(names)}/{len(sizes)}/{len(types)}/{len(counts)}): wrong field layout")
     n_points = int(header["POINTS"][0])
     mode = header["DATA"][0].lower()
-    if n_points == 0:
-        raise DatasetError(f"{path}: PCD file holds no points")
+    if n_points < 0:
+        raise DatasetError(f"{path}: PCD header says POINTS {n_points}")
     formats = []
     for name, size, typ, count in zip(names, sizes, types, counts):
         if (typ, size) not in _PCD_TYPES:
@@ -128,6 +166,8 @@ def read_pcd(path: str | Path) -> DecodedCloud:
         formats.append(base if count == 1 else np.dtype((base, (count,))))
     unique = [n if n != "_" else f"_pad{k}" for k, n in enumerate(names)]
     dtype = np.dtype({"names": unique, "formats": formats})
+    if n_points == 0:  # POINTS 0: an empty cloud (its fields are still checked)
+        return decode_structured(np.zeros(0, dtype=dtype), str(path))
     if mode == "binary":
         data = np.fromfile(path, dtype=np.uint8, offset=offset)
         need = n_points * dtype.itemsize
@@ -173,7 +213,8 @@ def _read_with_open3d(path: Path) -> DecodedCloud:
 
 
 def read_ply(path: str | Path) -> DecodedCloud:
-    """Read the ``vertex`` element of a PLY file (ASCII or binary), every scalar property."""
+    """Read the ``vertex`` element of a PLY file (ASCII or binary), every scalar property
+    (``element vertex 0``: an empty cloud)."""
     path = Path(path)
     with path.open("rb") as fh:
         if fh.read(3) != b"ply":
@@ -202,8 +243,8 @@ def read_ply(path: str | Path) -> DecodedCloud:
             if parts[1] not in _PLY_TYPES:
                 raise DatasetError(f"{path}: vertex property {parts[2]!r} has unknown type {parts[1]!r}")
             props.append((parts[2], _PLY_TYPES[parts[1]]))
-    if n_points == 0:
-        raise DatasetError(f"{path}: PLY file holds no vertices")
+    if n_points == 0:  # element vertex 0: an empty cloud (its properties are still checked)
+        return decode_structured(np.zeros(0, dtype=[(name, "<" + code) for name, code in props]), str(path))
     if fmt == "ascii":
         with path.open("rb") as fh:
             fh.seek(offset)
@@ -225,20 +266,19 @@ def read_ply(path: str | Path) -> DecodedCloud:
 
 
 def read_npy(path: str | Path) -> DecodedCloud:
-    """Read an ``(N, 3)``/``(N, 4)`` array or a structured array with fields x, y, z (...)."""
+    """Read an ``(N, 3)``/``(N, 4)`` array or a structured array with fields x, y, z (...); an empty
+    array (``(0,)``, ``(0, 3)``, ``(0, 4)`` or structured) is an empty cloud."""
     path = Path(path)
     try:
         arr = np.load(path, allow_pickle=False)
     except ValueError as exc:
         raise DatasetError(f"{path}: not a plain .npy array ({exc})") from exc
     if arr.dtype.names:
-        if arr.size == 0:
-            raise DatasetError(f"{path}: empty array")
-        return decode_structured(arr, str(path))
+        return decode_structured(arr, str(path))  # an empty one gives an empty cloud
+    if arr.size == 0 and np.issubdtype(arr.dtype, np.number) and (arr.ndim == 1 or arr.shape[1:] in ((3,), (4,))):
+        return empty_cloud()
     if arr.ndim != 2 or arr.shape[1] not in (3, 4) or not np.issubdtype(arr.dtype, np.number):
         raise DatasetError(f"{path}: array of shape {arr.shape} and dtype {arr.dtype}; expected (N, 3) x,y,z or "
                            "(N, 4) x,y,z,intensity numbers, or a structured array with fields x, y, z")
-    if len(arr) == 0:
-        raise DatasetError(f"{path}: empty array")
     return decode_structured(_columns(arr.astype(np.float64), ["x", "y", "z", "intensity"][: arr.shape[1]]),
                              str(path))

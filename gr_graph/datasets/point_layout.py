@@ -27,12 +27,25 @@ which layout the data look like instead.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError
+
+log = logging.getLogger(__name__)
+
+FLOAT32_ABSURD = 1e10
+"""A float32 value of a LiDAR scan above this magnitude is absurd (1e10 m; 10 000 km even in millimetres)."""
+FLOAT64_SUSPECT_FRACTION = 0.01
+"""Fraction of absurd float32 values above which a ``.bin`` is examined as float64. Real float32
+scans (KITTI) have none; float64 data read as float32 give about 12 % (float32 values converted
+to float64: the low words are 0, +-1.1e-19, +-2 or +-3.7e19) to 40 % (full-precision float64)."""
+FLOAT64_PLAUSIBLE = 1e6
+"""Read as float64, a file is plausible coordinates when all but 0.1 % of its finite values are
+below this magnitude (float32 scans read as float64 have about 12 % above it)."""
 
 #: Float32 values per point of the layouts the loader reads.
 POINT_FORMATS: dict[str, int] = {"xyzi": 4, "xyz": 3}
@@ -221,3 +234,47 @@ def size_error(path: str | Path, size: int, point_format: str, values: np.ndarra
                     f"({ev.describe()})")
         return DatasetError(f"{msg}: {_HOW_TO_READ[other]}")
     return DatasetError(f"{msg}; the file is truncated or not a KITTI-style scan")
+
+
+def float64_bin_problem(path: str | Path, values: np.ndarray | None = None) -> str | None:
+    """Why a ``.bin`` looks like float64 rather than float32 data, or None.
+
+    The file is read as float32; when more than :data:`FLOAT64_SUSPECT_FRACTION` of its finite
+    values exceed :data:`FLOAT32_ABSURD` and, read as float64, all but 0.1 % of its finite values
+    are below :data:`FLOAT64_PLAUSIBLE` (and not all 0), the message names the file, the
+    evidence, the layout the float64 values look like and how to convert the file. A file with
+    absurd float32 values that does not read as float64 either is let through with a warning
+    (the layout check and the pipeline's range crop deal with it). ``values``: the file read as
+    float32 already (else it is read here).
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size == 0 or size % 4:
+        return None  # empty, or the size check of the reader explains it
+    values = np.fromfile(path, dtype=np.float32) if values is None else values
+    finite = values[np.isfinite(values)]
+    if not len(finite):
+        return None
+    absurd = float(np.mean(np.abs(finite) > FLOAT32_ABSURD))
+    if absurd <= FLOAT64_SUSPECT_FRACTION:
+        return None
+    as64 = np.fromfile(path, dtype=np.float64) if size % 8 == 0 else np.zeros(0)
+    finite64 = as64[np.isfinite(as64)]
+    plausible = (len(finite64) > 0 and np.any(finite64 != 0.0)
+                 and float(np.mean(np.abs(finite64) > FLOAT64_PLAUSIBLE)) <= 1e-3)
+    if not plausible:
+        log.warning("%s: %.1f%% of the values read as float32 exceed %g in magnitude (and the file does not "
+                    "read as float64 either): not a LiDAR scan?", path, 100 * absurd, FLOAT32_ABSURD)
+        return None
+    layout = ""
+    for stride, name, fmt in ((4, "x,y,z,intensity", "xyzi"), (3, "x,y,z", "xyz")):
+        if len(as64) % stride == 0:
+            ev = stride_evidence(as64.astype(np.float32), stride)
+            if ev.ordered and not ev.mixed:
+                layout = (f"; read as float64 it looks like {name} points (point_format={fmt!r} after "
+                          "converting)")
+                break
+    return (f"{path}: looks like float64 data, not float32: read as float32 {100 * absurd:.1f}% of the values "
+            f"are absurd (|v| > {FLOAT32_ABSURD:g}, e.g. {np.max(np.abs(finite)):.3g}), read as float64 the "
+            f"values are plausible coordinates (largest {np.max(np.abs(finite64)):.3g}){layout}; .bin scans must "
+            "be float32: convert with np.fromfile(path, dtype=np.float64).astype(np.float32).tofile(path)")

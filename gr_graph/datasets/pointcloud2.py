@@ -16,12 +16,15 @@ whose message names where the message came from (``source``).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError
+
+log = logging.getLogger(__name__)
 
 POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 """``sensor_msgs/PointField`` datatype constants (INT8 .. FLOAT64) -> numpy type codes."""
@@ -90,6 +93,10 @@ def structured_dtype(fields: list[tuple[str, int, int, int]], point_step: int, b
 def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     """Read x, y, z (+ intensity, time, ring) from a structured array of points.
 
+    Points with a non-finite coordinate are dropped (counted in ``dropped``); a non-finite
+    intensity at a finite point is replaced by 0 and the count logged (SLAM does not use
+    intensity); non-finite per-point times and negative rings are errors naming ``source``.
+
     Parameters
     ----------
     arr : structured np.ndarray
@@ -119,7 +126,10 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     ring_field = next((n for n in RING_FIELDS if n in names), None)
     ring = flat[ring_field].astype(np.int64) if ring_field else None
     if intensity is not None and not np.all(np.isfinite(intensity)):
-        raise DatasetError(f"{source}: non-finite intensity values at finite points")
+        bad = ~np.isfinite(intensity)
+        intensity = np.where(bad, np.float32(0), intensity)
+        log.warning("%s: %d non-finite %s values at finite points replaced by 0", source, int(bad.sum()),
+                    intensity_field)
     if time is not None and not np.all(np.isfinite(time)):
         raise DatasetError(f"{source}: non-finite per-point times ({time_field!r}) at finite points")
     if ring is not None and len(ring) and ring.min() < 0:

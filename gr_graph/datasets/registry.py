@@ -173,7 +173,8 @@ def guess_dataset(path: str | os.PathLike[str]) -> str:
     A ``.bag``/``.mcap``/``.db3`` file or a folder with ``metadata.yaml``: ``rosbag``; a folder
     with ``sequences/`` (or a ``sequences/XX`` folder with ``velodyne/``): ``kitti``; a folder
     with ``velodyne_points/data`` (or ``velodyne_points`` itself): ``kitti_raw``; a folder of
-    point files: ``folder``.
+    point files: ``folder`` (hidden files such as macOS ``._x.pcd`` do not count, as in
+    :func:`gr_graph.datasets.folder.point_files`).
 
     Raises
     ------
@@ -194,7 +195,8 @@ def guess_dataset(path: str | os.PathLike[str]) -> str:
             return "kitti"
         if is_kitti_raw_drive(p) or (p.name == "velodyne_points" and (p / "data").is_dir()):
             return "kitti_raw"
-        if any(c.is_file() and c.suffix.lower() in POINT_FILE_SUFFIXES for c in p.iterdir()):
+        if any(c.is_file() and c.suffix.lower() in POINT_FILE_SUFFIXES and not c.name.startswith(".")
+               for c in p.iterdir()):
             return "folder"
     elif p.suffix.lower() in POINT_FILE_SUFFIXES:
         raise DatasetError(f"{p}: a single scan; give the folder holding the scans")
@@ -206,7 +208,7 @@ def guess_dataset(path: str | os.PathLike[str]) -> str:
 
 
 def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timestamps: str | None,
-               poses: str | None) -> tuple[LidarSequence, str]:
+               poses: str | None, sensor: SensorConfig | None = None) -> tuple[LidarSequence, str]:
     """Open a ``kitti_raw``, ``folder`` or ``rosbag`` path."""
     if kind == "kitti_raw":
         from gr_graph.datasets.kitti_raw import KittiRawSequence
@@ -217,13 +219,14 @@ def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timesta
     elif kind == "folder":
         from gr_graph.datasets.folder import FolderSequence
 
-        folder_seq = FolderSequence(p, point_format=point_format, timestamps=timestamps, poses=poses)
+        folder_seq = FolderSequence(p, point_format=point_format, timestamps=timestamps, poses=poses,
+                                    sensor=sensor)
         seq = folder_seq
         source = f"folder {p} ({len(folder_seq)} {folder_seq.files[0].suffix} files)"
     elif kind == "rosbag":
         from gr_graph.datasets.rosbag import RosbagSequence
 
-        bag = RosbagSequence(p, topic=topic, poses=poses)
+        bag = RosbagSequence(p, topic=topic, poses=poses, sensor=sensor)
         seq = bag
         source = f"bag {p}, topic {bag.topic}"
     else:
@@ -342,7 +345,7 @@ def open_sequence(
                 raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
                                    f"it cannot be combined with {p}")
             base, source = _open_path(kind, p, point_format, topic, None if timestamps is None else str(timestamps),
-                                      None if poses is None else str(poses))
+                                      None if poses is None else str(poses), sensor)
             return _view(base, source, frames, sensor, n_rings)
     elif kind in ("kitti_raw", "folder", "rosbag"):
         raise DatasetError(f"dataset {kind!r} needs a path (python -m gr_graph.slam PATH, or data.path)")

@@ -13,7 +13,9 @@ continues one pass through the bag; a jump starts a new pass at that message's l
 Timestamps are the messages' ``header.stamp`` (seconds since the first), or the bag's log times
 when the header stamps do not increase (logged). Per-point times (fields ``t``/``time``/
 ``timestamp``) make the sequence ``motion_compensated = False``
-(:mod:`gr_graph.datasets.frame_fields` for units and rings). The bag has no ground truth;
+(:mod:`gr_graph.datasets.frame_fields` for units, references and rings, and how the ``sensor``
+section overrides what is guessed); absolute per-point stamps that fall in the sweep starting
+at a message's header stamp count from it. The bag has no ground truth;
 ``poses`` (a KITTI or TUM file with one LiDAR pose a message) adds it.
 """
 
@@ -30,6 +32,7 @@ import numpy as np
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
 from gr_graph.datasets.frame_fields import FieldConventions, frame_period
 from gr_graph.datasets.pointcloud2 import decode_pointcloud2
+from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +97,9 @@ class RosbagSequence:
         The PointCloud2 topic; required when the bag has several.
     poses : path, optional
         Ground truth: KITTI or TUM poses of the LiDAR, one a message.
+    sensor : SensorConfig, optional
+        The ``sensor`` section: its given time unit / reference / scan period, ``has_time`` /
+        ``has_ring`` and beam count (:meth:`FieldConventions.probe`).
 
     Attributes
     ----------
@@ -106,7 +112,8 @@ class RosbagSequence:
     scan_period : float
     """
 
-    def __init__(self, path: str | Path, topic: str | None = None, poses: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path, topic: str | None = None, poses: str | Path | None = None,
+                 sensor: SensorConfig | None = None) -> None:
         self.path = Path(path)
         if not self.path.exists():
             raise DatasetError(f"{self.path}: no such bag")
@@ -135,10 +142,11 @@ class RosbagSequence:
             log.warning("%s: header stamps of %s do not increase: using the bag's log times", self.path, self.topic)
             stamp_ns = self.log_times
         self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
+        self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
+        """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
         self.scan_period = frame_period(self.timestamps)
-        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(0))
-        self.motion_compensated = not self.conventions.has_time
-        self.n_rings = self.conventions.n_rings
+        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(0), sensor)
+        self.motion_compensated = self.conventions.motion_compensated
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
             from gr_graph.datasets.folder import read_pose_file
@@ -186,7 +194,12 @@ class RosbagSequence:
         cloud = decode_pointcloud2(msg, source)
         if cloud.dropped_nonfinite:
             log.debug("%s: dropped %d non-finite points", source, cloud.dropped_nonfinite)
-        return self.conventions.frame(cloud, i, float(self.timestamps[i]), source)
+        return self.conventions.frame(cloud, i, float(self.timestamps[i]), source, float(self.stamps_s[i]))
+
+    @property
+    def n_rings(self) -> int:
+        """Rings of the sensor (grows when a frame holds a higher ring, see :mod:`.frame_fields`)."""
+        return self.conventions.n_rings
 
     def __iter__(self) -> Iterator[LidarFrame]:
         for i in range(len(self)):

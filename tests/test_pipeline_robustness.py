@@ -1,0 +1,269 @@
+"""Robustness of the pipeline to its input: dropped frames (the constant-velocity guess follows the
+timestamps), runs in which no scan is usable (an error, not a trajectory of guesses) and resuming
+into an ``--out`` whose data changed since (refused).
+
+The scenes are small synthetic rooms (planes and columns) seen from poses of a known motion, written
+as ``.npy`` scans into a folder, so that the whole command runs in a second or two.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factors.se3 import exp_se3
+from gr_graph.config import GraphConfig, OdometryConfig, PreprocessConfig, load_config
+from gr_graph.frame_loop import UnusableScansError, check_usable_scans
+from gr_graph.odometry import MAX_GUESS_RATIO, VgicpOdometry, guess_time_ratio, time_scaled_motion
+from gr_graph.pipeline import data_fingerprint
+from gr_graph.preprocess import preprocess_scan
+from gr_graph.slam import main
+
+# one frame's motion at 10 Hz: 1.2 m forward, 1.5 deg yaw (12 m/s)
+XI_FRAME = np.array([0.0, 0.0, np.radians(1.5), 1.2, 0.0, 0.0])
+FRAME_PERIOD = 0.1
+
+
+def room_points(rng: np.random.Generator, n: int = 30000) -> np.ndarray:
+    """World points on the floor, walls and ceiling of a 80 x 40 x 8 m room with four columns."""
+    L = np.array([80.0, 40.0, 8.0])
+    faces = [(0, 0), (0, 1), (1, 0), (1, 1), (2, 0), (2, 1)]
+    face = rng.integers(0, len(faces), n)
+    u = rng.uniform(size=(n, 2))
+    p = np.zeros((n, 3))
+    for f, (ax, val) in enumerate(faces):
+        m = face == f
+        other = [a for a in range(3) if a != ax]
+        p[m, ax] = val * L[ax]
+        p[m, other[0]] = u[m, 0] * L[other[0]]
+        p[m, other[1]] = u[m, 1] * L[other[1]]
+    cols = []
+    for cx, cy in ((25.0, 14.0), (33.0, 27.0), (45.0, 12.0), (55.0, 26.0)):
+        k = n // 12
+        a = rng.uniform(0, 2 * np.pi, k)
+        cols.append(np.column_stack([cx + 0.8 * np.cos(a), cy + 0.8 * np.sin(a), rng.uniform(0, 8, k)]))
+    return np.concatenate([p, *cols]) - np.array([15.0, 20.0, 1.7])  # the sensor starts at (15, 20, 1.7)
+
+
+def drive(keep: list[int], seed: int = 0) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Scans (sensor frame, 1 cm noise) of the room from poses ``Exp(k XI_FRAME)``, k in ``keep``;
+    their ground-truth poses (relative to the first kept one) and timestamps (k x 0.1 s)."""
+    rng = np.random.default_rng(seed)
+    scans, poses = [], []
+    for k in keep:
+        T = exp_se3(k * XI_FRAME)
+        world = room_points(rng)
+        local = (world - T[:3, 3]) @ T[:3, :3]
+        scans.append((local + rng.normal(scale=0.01, size=local.shape)).astype(np.float32))
+        poses.append(T)
+    poses = np.linalg.inv(poses[0]) @ np.asarray(poses)
+    return scans, poses, np.asarray(keep, np.float64) * FRAME_PERIOD
+
+
+def write_folder(folder: Path, scans: list[np.ndarray], times: np.ndarray | None = None) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for j, s in enumerate(scans):
+        np.save(folder / f"{j:06d}.npy", s)
+    if times is not None:
+        np.savetxt(folder / "times.txt", times, fmt="%.6f")
+    return folder
+
+
+def run_cli(folder: Path, out: Path, *extra: str) -> int:
+    return main([str(folder), "--out", str(out), "--rounds", "0", "--no-memory", "--no-progress", "--no-loops",
+                 *extra])
+
+
+def round_poses(out: Path) -> np.ndarray:
+    with np.load(out / "round_0" / "marginals.npz") as z:
+        return np.array(z["poses"])
+
+
+def pose_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+
+
+# ----------------------------------------------------------------------------- 1. dropped frames
+GAP_KEEP = [0, 1, 2, 3, 7, 8, 9]  # frames 4-6 dropped: 0.4 s, 4.8 m between the 4th and 5th scans
+
+
+def odometry_over(scans: list[np.ndarray], times: np.ndarray | None) -> VgicpOdometry:
+    odo = VgicpOdometry(OdometryConfig(), GraphConfig())
+    for i, pts in enumerate(scans):
+        dt = None if times is None or i == 0 else float(times[i] - times[i - 1])
+        odo.step(preprocess_scan(pts, PreprocessConfig(), index=i), dt)
+    return odo
+
+
+def test_guess_time_ratio_guards():
+    assert guess_time_ratio(0.4, 0.1) == pytest.approx(4.0)
+    assert guess_time_ratio(0.05, 0.1) == pytest.approx(0.5)
+    # unknown, repeated, decreasing or non-finite times: the last motion as it is
+    for dt, prev in ((None, 0.1), (0.1, None), (0.0, 0.1), (-0.1, 0.1), (0.1, 0.0), (np.nan, 0.1), (0.1, np.inf)):
+        assert guess_time_ratio(dt, prev) == 1.0, (dt, prev)
+    # jitter and float rounding of evenly spaced times: exactly 1
+    assert guess_time_ratio(0.30000000000000004 - 0.2, 0.1) == 1.0
+    assert guess_time_ratio(0.1037, 0.1020) == 1.0
+    assert guess_time_ratio(100.0, 0.1) == MAX_GUESS_RATIO
+
+
+def test_time_scaled_motion_is_the_same_velocity_for_longer():
+    delta = exp_se3(XI_FRAME)
+    assert time_scaled_motion(delta, 1.0) is delta  # bit-identical when the frames are evenly spaced
+    np.testing.assert_allclose(time_scaled_motion(delta, 4.0), np.linalg.matrix_power(delta, 4), atol=1e-12)
+    np.testing.assert_allclose(time_scaled_motion(delta, 0.5) @ time_scaled_motion(delta, 0.5), delta, atol=1e-12)
+
+
+def test_odometry_across_dropped_frames_follows_the_timestamps():
+    """With the times the gap's registration is accepted and every pose is right; without them
+    (the guess is one frame's motion, 3.6 m short) the gap is not bridged."""
+    scans, gt, times = drive(GAP_KEEP)
+    odo = odometry_over(scans, times)
+    assert all(e.ok for e in odo.edges), [e.reason for e in odo.edges]
+    assert pose_errors(np.asarray(odo.poses), gt).max() < 0.05
+    blind = odometry_over(scans, None)
+    assert not blind.edges[3].ok or pose_errors(np.asarray(blind.poses), gt).max() > 1.0
+
+
+def test_evenly_spaced_times_change_nothing():
+    """Float times k x 0.1 (not exactly 0.1 apart) give bit for bit the poses of the run without times."""
+    scans, _, times = drive(list(range(5)), seed=1)
+    with_times, without = odometry_over(scans, times), odometry_over(scans, None)
+    np.testing.assert_array_equal(np.asarray(with_times.poses), np.asarray(without.poses))
+
+
+def test_cli_run_across_dropped_frames(tmp_path):
+    scans, gt, times = drive(GAP_KEEP)
+    folder = write_folder(tmp_path / "gap", scans, times)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0
+    summary = json.loads((out / "round_0" / "round.json").read_text())
+    assert summary["n_flagged_odometry_edges"] == 0 and summary["n_unusable_scans"] == 0
+    assert pose_errors(round_poses(out), gt).max() < 0.05
+
+
+# ----------------------------------------------------------------------------- 2. no usable scan
+def test_millimetre_scans_are_an_error_not_a_trajectory(tmp_path, capsys):
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "millimetres", [s * 1000.0 for s in scans])
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 2
+    err = capsys.readouterr().err
+    assert "0 of 4 scans usable" in err and str(folder) in err
+    assert "millimetres" in err and "max_range" in err and "min_range" in err
+    # nothing that looks like a result
+    assert not (out / "metrics.json").exists() and not (out / "poses_kitti.txt").exists()
+    assert not (out / "round_0" / "round.json").exists() and not (out / "round_0").exists()
+
+
+def test_check_usable_scans_counts(caplog):
+    cfg = load_config()
+    with pytest.raises(UnusableScansError, match="1 of 5 scans usable"):
+        check_usable_scans(1, 5, "seq", cfg)
+    with pytest.raises(UnusableScansError, match="0 of 1 scans usable"):
+        check_usable_scans(0, 1, "seq", cfg)
+    with caplog.at_level(logging.WARNING):
+        check_usable_scans(1, 1, "seq", cfg)  # a one-frame sequence: its identity pose is right
+        check_usable_scans(5, 5, "seq", cfg)
+        assert caplog.text == ""
+        check_usable_scans(2, 5, "seq", cfg)  # more than half unusable: warned with the counts
+    assert [r.levelname for r in caplog.records] == ["WARNING"]
+    assert "only 2 of 5 scans usable (3 unusable)" in caplog.text
+
+
+def test_mostly_unusable_run_warns(tmp_path, caplog):
+    scans, _, _ = drive(list(range(5)))
+    scans = [scans[0], scans[1]] + [s * 1000.0 for s in scans[2:]]
+    folder = write_folder(tmp_path / "mostly_mm", scans)
+    with caplog.at_level(logging.WARNING):
+        assert run_cli(folder, tmp_path / "out") == 0
+    assert "only 2 of 5 scans usable (3 unusable)" in caplog.text
+    assert json.loads((tmp_path / "out" / "round_0" / "round.json").read_text())["n_unusable_scans"] == 3
+
+
+# ----------------------------------------------------------------------------- 3. resume and changed data
+def test_resume_refuses_changed_data(tmp_path, capsys, caplog):
+    scans, _, _ = drive(list(range(6)))
+    other, _, _ = drive(list(range(0, 12, 2)), seed=3)  # twice as fast: another trajectory
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0
+    rj = out / "round_0" / "round.json"
+    first = rj.read_text()
+    assert json.loads(first)["data_fingerprint"]["n_frames"] == 6
+    assert json.loads((out / "metrics.json").read_text())["data_fingerprint"]["files"] == 6
+    capsys.readouterr()
+    with caplog.at_level(logging.INFO):  # unchanged data: skipped
+        assert run_cli(folder, out) == 0
+    assert "skipped (resume)" in caplog.text and rj.read_text() == first
+
+    # the scans replaced (same names), their times kept: refused, nothing rewritten
+    for j, s in enumerate(other):
+        np.save(folder / f"{j:06d}.npy", s)
+        os.utime(folder / f"{j:06d}.npy", ns=(1_000_000_000 * (j + 1),) * 2)
+    metrics_before = (out / "metrics.json").read_text()
+    assert run_cli(folder, out) == 2
+    err = capsys.readouterr().err
+    assert "round 0 is finished but was made from other data" in err and "--no-resume" in err and "new --out" in err
+    assert rj.read_text() == first and (out / "metrics.json").read_text() == metrics_before
+
+    # one scan deleted: refused, with the counts
+    (folder / "000005.npy").unlink()
+    assert run_cli(folder, out) == 2
+    assert "6 frames then, 5 now" in capsys.readouterr().err
+    assert json.loads((out / "metrics.json").read_text())["n_frames"] == 6  # still the finished run's
+
+    # --no-resume recomputes into the same --out: poses, summary and metrics agree
+    assert run_cli(folder, out, "--no-resume") == 0
+    summary = json.loads(rj.read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert summary["n_frames"] == metrics["n_frames"] == len(round_poses(out)) == 5
+    assert summary["data_fingerprint"] == metrics["data_fingerprint"]
+
+
+def test_round_json_without_data_fingerprint_still_resumes(tmp_path, caplog):
+    """Runs finished before the data fingerprint existed stay finished."""
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0
+    rj = out / "round_0" / "round.json"
+    summary = json.loads(rj.read_text())
+    del summary["data_fingerprint"]
+    rj.write_text(json.dumps(summary))
+    with caplog.at_level(logging.INFO):
+        assert run_cli(folder, out) == 0
+    assert "no data fingerprint" in caplog.text and "skipped (resume)" in caplog.text
+
+
+def test_data_fingerprint_of_files_and_of_the_synthetic_world(tmp_path):
+    from gr_graph.datasets.folder import FolderSequence
+    from gr_graph.datasets.synthetic import SyntheticSequence
+
+    scans, _, _ = drive(list(range(3)))
+    folder = write_folder(tmp_path / "scans", scans)
+    a = data_fingerprint(FolderSequence(folder))
+    assert a["n_frames"] == 3 and a["files"] == 3 and a["digest"] == data_fingerprint(FolderSequence(folder))["digest"]
+    os.utime(folder / "000001.npy", ns=(1, 1))  # touched or copied elsewhere: the same data
+    assert data_fingerprint(FolderSequence(folder))["digest"] == a["digest"]
+    shutil.copytree(folder, tmp_path / "copy")
+    assert data_fingerprint(FolderSequence(tmp_path / "copy"))["digest"] == a["digest"]
+    same_size = np.load(folder / "000002.npy")
+    same_size[0, 0] += 1.0  # another scan of the same size (the last file is sampled)
+    np.save(folder / "000002.npy", same_size)
+    assert data_fingerprint(FolderSequence(folder))["digest"] != a["digest"]
+    np.save(folder / "000002.npy", scans[2])
+    assert data_fingerprint(FolderSequence(folder))["digest"] == a["digest"]
+    np.savetxt(folder / "times.txt", [0.0, 0.1, 0.3])  # other timestamps: another identity
+    b = data_fingerprint(FolderSequence(folder))
+    np.savetxt(folder / "times.txt", [0.0, 0.1, 0.2])
+    assert data_fingerprint(FolderSequence(folder))["digest"] != b["digest"]
+    # the synthetic world has no files: its identity is its configuration (in the round fingerprint)
+    syn = SyntheticSequence(seed=0, preset="clean")
+    assert data_fingerprint(syn) == {"n_frames": len(syn), "files": None, "digest": None}

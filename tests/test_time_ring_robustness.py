@@ -1,0 +1,247 @@
+"""Per-point times of partial sweeps, the ``sensor`` section's time and ring settings, half-azimuth
+KITTI frames and ring counts that grow after the first frame (input-robustness audit)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gr_graph.datasets.base import DatasetError
+from gr_graph.datasets.channels import subsample_channels
+from gr_graph.datasets.folder import FolderSequence
+from gr_graph.datasets.frame_fields import FieldConventions
+from gr_graph.datasets.kitti import KittiSequence
+from gr_graph.datasets.pointcloud2 import DecodedCloud
+from gr_graph.datasets.rosbag import RosbagSequence
+from gr_graph.deskew import normalise_times
+from gr_graph.sensors import SensorConfig, SensorError, hdl64_elevations_deg
+from loader_support import write_bag
+
+PERIOD = 0.1
+
+
+def _sweep(n_rings: int = 16, n_az: int = 360, lowest_first: bool = False, seed: int = 0) -> dict[str, np.ndarray]:
+    """A clockwise sweep starting and ending facing backward: points, sweep fraction, ring (0 = highest)."""
+    rng = np.random.default_rng(seed)
+    frac = (np.arange(n_az) + 0.5) / n_az
+    az = np.pi * (1.0 - 2.0 * frac)  # times_from_azimuth's convention: 0.5 straight ahead
+    elevation = np.radians(np.linspace(10.0, -20.0, n_rings))
+    ring = np.repeat(np.arange(n_rings), n_az)
+    e, a, f = elevation[ring], np.tile(az, n_rings), np.tile(frac, n_rings)
+    r = 10.0 + rng.uniform(0.0, 5.0, len(ring))
+    pts = np.column_stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e)])
+    stored = (n_rings - 1 - ring) if lowest_first else ring
+    return {"points": pts, "frac": f, "ring": stored, "az": a}
+
+
+def _cloud(s: dict[str, np.ndarray], keep: np.ndarray | None = None, times: np.ndarray | None = None,
+           with_ring: bool = True) -> DecodedCloud:
+    keep = np.ones(len(s["points"]), bool) if keep is None else keep
+    t = None if times is None else times[keep]
+    return DecodedCloud(s["points"][keep], None, t, None if t is None else "t",
+                        s["ring"][keep] if with_ring else None, 0)
+
+
+# ---------------------------------------------------------------- 1. partial sweeps
+def test_partial_sweep_times_count_from_the_sweep_start() -> None:
+    t = np.linspace(0.05, 0.1, 50)  # the second half of a 0.1 s sweep, seconds from its start
+    np.testing.assert_allclose(normalise_times(t, PERIOD), t / PERIOD)
+    assert normalise_times(t, PERIOD)[0] == pytest.approx(0.5)
+    back = t - PERIOD  # the same, counted back from the sweep's end
+    np.testing.assert_allclose(normalise_times(back, PERIOD), t / PERIOD, atol=1e-12)
+    np.testing.assert_allclose(normalise_times(back, PERIOD, reference="sweep_end"), t / PERIOD, atol=1e-12)
+    # absolute stamps: from the frame's stamp when the times fall in the sweep starting there
+    stamp = 1.7e9
+    np.testing.assert_allclose(normalise_times(stamp + t, PERIOD, sweep_start=stamp), t / PERIOD, atol=1e-5)
+    # ... else (no stamp, or a stamp on another clock) from the earliest point, as before
+    np.testing.assert_allclose(normalise_times(stamp + t, PERIOD), (t - t[0]) / PERIOD, atol=1e-5)
+    np.testing.assert_allclose(normalise_times(stamp + t, PERIOD, sweep_start=5.0), (t - t[0]) / PERIOD, atol=1e-5)
+
+
+def test_full_sweep_fractions_are_unchanged() -> None:
+    """Full sweeps (earliest time within 1 % of a period of the reference) map exactly as before."""
+    rng = np.random.default_rng(3)
+    for t in (np.sort(rng.uniform(0.0, PERIOD, 1000)), np.linspace(8e-6, 0.0999, 1000),
+              np.linspace(-0.0999, 0.0, 1000), 1.7e9 + np.linspace(0.0, 0.0999, 1000)):
+        np.testing.assert_array_equal(normalise_times(t, PERIOD), np.clip((t - t.min()) / PERIOD, 0.0, 1.0))
+    t = np.linspace(8e-6, 0.0999, 1000)
+    np.testing.assert_array_equal(normalise_times(1.7e9 + t, PERIOD, sweep_start=1.7e9),
+                                  normalise_times(1.7e9 + t, PERIOD))
+
+
+def test_folder_partial_sweep_keeps_its_place(tmp_path: Path) -> None:
+    s = _sweep()
+    front = np.abs(s["az"]) < np.pi / 2
+    for k in range(3):
+        keep = front if k == 1 else np.ones(len(front), bool)
+        arr = np.zeros(int(keep.sum()), [("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"), ("time", "f4")])
+        for i, c in enumerate("xyz"):
+            arr[c] = s["points"][keep, i]
+        arr["time"] = (s["frac"][keep] * PERIOD).astype(np.float32)
+        np.save(tmp_path / f"{k:06d}.npy", arr)
+    seq = FolderSequence(tmp_path)
+    full, half = seq[0], seq[1]
+    np.testing.assert_allclose(full.time, s["frac"] - s["frac"].min(), atol=1e-6)  # a full sweep: as before
+    # the front half lies in the middle of the sweep (0.25..0.75), not stretched from 0
+    np.testing.assert_allclose(half.time, s["frac"][front], atol=1e-6)
+    assert 0.24 < half.time.min() < 0.26 and 0.74 < half.time.max() < 0.76
+
+
+# ---------------------------------------------------------------- 2. sensor time settings
+def test_explicit_time_unit_overrides_the_guess() -> None:
+    s = _sweep()
+    ns = np.round(s["frac"] * PERIOD * 1e9)  # Ouster-style nanoseconds
+    guessed = FieldConventions.probe(_cloud(s, times=ns), PERIOD, "a.pcd", SensorConfig())  # nothing given
+    assert guessed.time_unit_s == 1e-9 and guessed.time_tolerance is None
+    full = s["frac"] - s["frac"].min()  # a full sweep: counted from its first point, as before
+    np.testing.assert_allclose(guessed.frame(_cloud(s, times=ns), 0, 0.0, "a.pcd").time, full, atol=1e-8)
+    said_ns = FieldConventions.probe(_cloud(s, times=ns), PERIOD, "a.pcd", SensorConfig(time_unit="ns"))
+    np.testing.assert_allclose(said_ns.frame(_cloud(s, times=ns), 0, 0.0, "a.pcd").time, full, atol=1e-8)
+    # nanoseconds declared as seconds: refused at once, naming the file and the setting
+    with pytest.raises(DatasetError, match=r"a\.pcd: .*check sensor\.time_unit"):
+        FieldConventions.probe(_cloud(s, times=ns), PERIOD, "a.pcd", SensorConfig(time_unit="s"))
+    # seconds declared as milliseconds: a span of 0.1 ms does not fill a sweep but fits it; a later frame
+    # whose times leave the sweep is refused
+    conv = FieldConventions.probe(_cloud(s, times=s["frac"] * 100.0), PERIOD, "a.pcd", SensorConfig(time_unit="ms"))
+    assert conv.time_unit_s == 1e-3
+    with pytest.raises(DatasetError, match=r"b\.pcd: .*sweep fractions"):
+        conv.frame(_cloud(s, times=s["frac"] * 1000.0), 1, 0.1, "b.pcd")
+
+
+def test_time_reference_and_scan_period_are_honoured() -> None:
+    s = _sweep()
+    back_half = s["frac"] >= 0.5
+    t = s["frac"] * 0.05  # a 20 Hz sweep (0.05 s) in frames 0.1 s apart
+    sensor = SensorConfig(time_unit="s", time_reference="sweep_start", scan_period=0.05)
+    conv = FieldConventions.probe(_cloud(s, times=t), PERIOD, "a.pcd", sensor)
+    assert conv.scan_period == 0.05 and conv.time_reference == "sweep_start"
+    np.testing.assert_allclose(conv.frame(_cloud(s, back_half, times=t), 1, 0.1, "b.pcd").time,
+                               s["frac"][back_half], atol=1e-9)
+    end = FieldConventions.probe(_cloud(s, times=t - 0.05), PERIOD, "a.pcd",
+                                 SensorConfig(time_reference="sweep_end", scan_period=0.05))
+    np.testing.assert_allclose(end.frame(_cloud(s, back_half, times=t - 0.05), 1, 0.1, "b.pcd").time,
+                               s["frac"][back_half], atol=1e-9)
+    # times counted from the start declared as counted back from the end do not fit the sweep
+    with pytest.raises(DatasetError, match="check sensor.time_unit, sensor.time_reference"):
+        FieldConventions.probe(_cloud(s, times=t), PERIOD, "a.pcd",
+                               SensorConfig(time_reference="sweep_end", scan_period=0.05))
+
+
+def test_has_time_false_drops_the_time_field(caplog: pytest.LogCaptureFixture) -> None:
+    s = _sweep()
+    cloud = _cloud(s, times=s["frac"] * PERIOD)
+    with caplog.at_level(logging.WARNING):
+        conv = FieldConventions.probe(cloud, PERIOD, "a.pcd", SensorConfig(has_time=False))
+    assert "sensor.has_time: false" in caplog.text
+    frame = conv.frame(cloud, 0, 0.0, "a.pcd")
+    assert frame.time is None  # the odometry takes times from the azimuth
+    assert conv.has_time and not conv.motion_compensated  # the scans are still raw sweeps
+    with pytest.raises(DatasetError, match="sensor.has_time is true"):
+        FieldConventions.probe(_cloud(s), PERIOD, "a.pcd", SensorConfig(has_time=True))
+
+
+def test_times_to_fractions_keeps_partial_sweeps_and_refuses_a_wrong_unit() -> None:
+    sensor = SensorConfig(time_unit="s", scan_period=PERIOD)
+    np.testing.assert_allclose(sensor.times_to_fractions(np.array([0.05, 0.07, 0.1])), [0.5, 0.7, 1.0])
+    with pytest.raises(SensorError, match="check sensor.time_unit"):
+        sensor.times_to_fractions(np.array([0.0, 5e7, 1e8]))
+
+
+def test_bag_loader_takes_the_sensor_section(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    s = _sweep()
+    arr = np.zeros(len(s["points"]), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+                                      ("ring", "<u2"), ("t", "<u4")])
+    for i, c in enumerate("xyz"):
+        arr[c] = s["points"][:, i]
+    arr["ring"] = s["ring"]
+    arr["t"] = np.round(s["frac"] * PERIOD * 1e9)
+    bag = write_bag(tmp_path / "b", {"/points": [arr, arr]})
+    assert RosbagSequence(bag)[1].time is not None
+    with caplog.at_level(logging.WARNING):
+        seq = RosbagSequence(bag, sensor=SensorConfig(has_time=False, has_ring=False))
+    assert seq[1].time is None and seq[1].ring is None and not seq.motion_compensated
+    assert "sensor.has_time: false" in caplog.text and "sensor.has_ring: false" in caplog.text
+    with pytest.raises(DatasetError, match="check sensor.time_unit"):
+        RosbagSequence(bag, sensor=SensorConfig(time_unit="us"))
+
+
+# ---------------------------------------------------------------- 3. half-azimuth KITTI frames
+def _kitti_scan(rng: np.random.Generator, n_az: int = 700) -> np.ndarray:
+    """An HDL-64E-like scan stored line by line, each line one clockwise turn from azimuth 0."""
+    elevation = np.radians(hdl64_elevations_deg())
+    az = -np.linspace(0.0, 2.0 * np.pi, n_az, endpoint=False)
+    lines = []
+    for e in elevation:
+        a = az + rng.normal(0.0, 1e-4, n_az)
+        r = 15.0 + 5.0 * np.sin(3.0 * a) + rng.normal(0.0, 0.02, n_az)
+        r = np.minimum(r, 1.6 / np.tan(-e)) if e < -0.01 else r  # a ground plane 1.6 m below
+        lines.append(np.column_stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e),
+                                      rng.uniform(0.0, 1.0, n_az)]))
+    return np.concatenate(lines).astype(np.float32)
+
+
+def test_half_azimuth_kitti_frame_gets_elevation_rings(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    seq_dir = tmp_path / "sequences" / "00"
+    (seq_dir / "velodyne").mkdir(parents=True)
+    (seq_dir / "calib.txt").write_text("Tr: " + " ".join(str(v) for v in np.eye(4)[:3].ravel()) + "\n")
+    (seq_dir / "times.txt").write_text("".join(f"{0.1 * k:.6f}\n" for k in range(6)))
+    rng = np.random.default_rng(0)
+    for k in range(6):
+        scan = _kitti_scan(rng)
+        if k == 2:
+            scan = scan[np.abs(np.arctan2(scan[:, 1], scan[:, 0])) < np.pi / 2]
+        scan.tofile(seq_dir / "velodyne" / f"{k:06d}.bin")
+    seq = KittiSequence(tmp_path, "00")
+    assert len(np.unique(seq[0].ring)) == 64 and seq.ring_recovery_counts["storage_order"] == 1
+    with caplog.at_level(logging.WARNING):
+        half = seq[2]
+    assert seq.ring_recovery_counts["elevation"] == 1 and seq.ring_recovery_counts["reference"] == 0
+    assert "rings by elevation" in caplog.text and "too few lines" in caplog.text
+    counts = np.bincount(half.ring, minlength=64)
+    assert np.count_nonzero(counts) >= 60 and counts.max() < 0.05 * len(half)  # not one ring
+    sub = subsample_channels(half, 16)
+    assert 0.2 * len(half) < len(sub) < 0.3 * len(half)
+
+
+# ---------------------------------------------------------------- 4. ring counts
+def test_ring_count_grows_instead_of_aborting(caplog: pytest.LogCaptureFixture) -> None:
+    s = _sweep(n_rings=64, n_az=60, lowest_first=True)  # Velodyne numbering: ring 0 is the lowest beam
+    sky = s["ring"] < 48  # the first frame has no returns on its top 16 beams
+    conv = FieldConventions.probe(_cloud(s, sky), PERIOD, "000000.pcd")
+    assert conv.n_rings == 48 and conv.flip_rings
+    with caplog.at_level(logging.WARNING):
+        frame = conv.frame(_cloud(s), 1, 0.1, "000001.pcd")
+    assert frame.n_rings == 64 and conv.n_rings == 64
+    np.testing.assert_array_equal(frame.ring, 63 - s["ring"])
+    assert "ring count raised from 48 to 64" in caplog.text
+
+
+def test_named_sensor_fixes_the_ring_count() -> None:
+    s = _sweep(n_rings=64, n_az=60, lowest_first=True)
+    sky = s["ring"] < 48
+    for sensor in (SensorConfig(model="os1-64"), SensorConfig(model="custom", n_beams=64,
+                                                              vertical_fov_deg=(10.0, -20.0))):
+        conv = FieldConventions.probe(_cloud(s, sky), PERIOD, "000000.pcd", sensor)
+        first = conv.frame(_cloud(s, sky), 0, 0.0, "000000.pcd")
+        assert first.n_rings == 64
+        np.testing.assert_array_equal(first.ring, 63 - s["ring"][sky])  # the same numbering as later frames
+        np.testing.assert_array_equal(conv.frame(_cloud(s), 1, 0.1, "000001.pcd").ring, 63 - s["ring"])
+    # the default sensor (nothing said) does not fix the count: a 16-ring recording keeps 16
+    assert FieldConventions.probe(_cloud(_sweep()), PERIOD, "a.pcd", SensorConfig()).n_rings == 16
+    with pytest.raises(DatasetError, match="ring 63 >= 16 rings of the sensor"):
+        FieldConventions.probe(_cloud(s), PERIOD, "a.pcd", SensorConfig(model="vlp16"))
+
+
+def test_has_ring_false_drops_the_ring_field(caplog: pytest.LogCaptureFixture) -> None:
+    s = _sweep(n_rings=64, n_az=60, lowest_first=True)
+    sensor = SensorConfig(model="custom", n_beams=64, vertical_fov_deg=(10.0, -20.0), has_ring=False)
+    with caplog.at_level(logging.WARNING):
+        conv = FieldConventions.probe(_cloud(s, s["ring"] < 48), PERIOD, "000000.pcd", sensor)
+    assert "sensor.has_ring: false" in caplog.text
+    frame = conv.frame(_cloud(s), 1, 0.1, "000001.pcd")  # ring 63 is no error: rings are not read
+    assert frame.ring is None and frame.n_rings == 64
+    with pytest.raises(DatasetError, match="sensor.has_ring is true"):
+        FieldConventions.probe(_cloud(s, with_ring=False), PERIOD, "a.pcd", SensorConfig(has_ring=True))
