@@ -56,6 +56,11 @@ TIME_REFERENCES = ("auto", "sweep_start", "sweep_end", "absolute")
 """What per-point times count from (:func:`normalise_times`)."""
 RELATIVE_SLACK = 0.05
 """``reference="auto"``: times within ``[-s, 1 + s]`` scan periods of 0 count as relative to the sweep."""
+FULL_SWEEP = 0.9
+"""A frame of absolute stamps spanning at least this many scan periods is a full sweep: it counts
+from its earliest point, as before partial sweeps were told apart (a frame stamp a few milliseconds
+off the first firing, a driver's latency, does not shift it). Times relative to the sweep are
+taken as they are."""
 START_SLACK = 0.01
 """A sweep whose earliest time lies within this many scan periods of its reference starts at its
 earliest point (the first firing is a hair after the reference; full sweeps are mapped exactly as
@@ -113,10 +118,12 @@ def normalise_times(times: np.ndarray, scan_period: float | None = None, referen
     Returns
     -------
     np.ndarray
-        ``(N,)`` float64 fractions. A sweep whose earliest time lies within
-        :data:`START_SLACK` periods of its reference (a full sweep) maps to
-        ``(t - t_min) / period`` exactly as before; only sweeps that start later (partial
-        sweeps, e.g. the front half only) keep their offset, ``(t - reference) / period``.
+        ``(N,)`` float64 fractions. A full sweep of absolute stamps (spanning at least
+        :data:`FULL_SWEEP` periods) or a sweep whose earliest time lies within :data:`START_SLACK` periods of its
+        reference maps to ``(t - t_min) / period`` exactly as before; only partial sweeps that
+        start later (e.g. the front half only) keep their offset, ``(t - reference) / period``.
+        Absolute stamps with a ``sweep_start``: the stamp is the sweep's start, or its end when
+        the times lie in the period before it (drivers that stamp the last point).
 
     Raises
     ------
@@ -144,14 +151,19 @@ def normalise_times(times: np.ndarray, scan_period: float | None = None, referen
         start: float | None = 0.0
     elif ref == "sweep_end":
         start = -period
-    elif sweep_start is not None and (reference == "absolute"
-                                      or resolve_time_reference(t - float(sweep_start), period) == "sweep_start"):
-        start = float(sweep_start)
+    elif sweep_start is not None:
+        # the stamp marks the sweep's start, or its end (drivers that stamp the last point)
+        on_stamp = resolve_time_reference(t - float(sweep_start), period)
+        start = (float(sweep_start) if on_stamp == "sweep_start" or reference == "absolute" and on_stamp != "sweep_end"
+                 else float(sweep_start) - period if on_stamp == "sweep_end" else None)
     else:
         start = None
     t_min = float(t.min())
-    if start is None or abs(t_min - start) <= START_SLACK * period:
-        rel = t - t_min  # absolute stamps without a start, or a sweep starting at its start (as before)
+    stamped_full_sweep = ref == "absolute" and float(t.max()) - t_min >= FULL_SWEEP * period
+    if start is None or abs(t_min - start) <= START_SLACK * period or stamped_full_sweep:
+        # absolute stamps without a start, or a full sweep of absolute stamps (whatever the stamp's
+        # latency): from its first point
+        rel = t - t_min
     else:
         rel = t - start
     frac = rel / period

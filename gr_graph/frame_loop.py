@@ -83,9 +83,12 @@ class UnusableScansError(DatasetError):
     """
 
     def __init__(self, message: str, n_usable: int, n_frames: int) -> None:
-        super().__init__(message)
+        super().__init__(message, n_usable, n_frames)  # all three in args: the error pickles
         self.n_usable = n_usable
         self.n_frames = n_frames
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 def check_usable_scans(n_usable: int, n_frames: int, name: str, cfg: SlamConfig) -> None:

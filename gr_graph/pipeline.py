@@ -30,7 +30,8 @@ whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options t
 depends on) equals the current one; a round with a missing or different ``round.json`` is
 recomputed, with everything after it. A finished round also records the identity of its input
 (``data_fingerprint``, :func:`data_fingerprint`: the number of frames and, for data read from files,
-a hash of the files' names, sizes and modification times, the timestamps, ground truth and
+a hash of the files' names and sizes, the first and last 64 KiB of the first, middle and last
+file, the timestamps, ground truth and
 calibration): when the data at the same path changed (scans replaced, deleted or added), the rerun
 refuses to resume (:class:`ResumeDataError`, before anything is written) and asks for a new ``--out``
 or ``--no-resume``. The synthetic world has no files: its identity is its configuration (and its
@@ -97,6 +98,10 @@ _ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed
                                               ("odometry", "map_keyframe_translation"): 0.0,
                                               ("odometry", "map_keyframe_rotation_deg"): 0.0}
 
+# sensor options whose default became None (guessed from the data) after runs were published: None
+# hashes as the value the default was, so that rounds finished before stay finished
+_GUESSED_SENSOR_DEFAULTS: dict[str, str] = {"time_unit": "s", "time_reference": "sweep_start"}
+
 
 def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     """Hash of the options round ``r``'s result depends on.
@@ -107,7 +112,9 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
     options, ``odometry.map_keyframe_*``) count only when they are not at their
-    default, so that rounds finished before the option existed stay finished.
+    default, so that rounds finished before the option existed stay finished; ``sensor.time_unit``
+    and ``time_reference``, whose default became None (guessed), hash None as their former
+    defaults (``s``, ``sweep_start``).
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": READ_OPTIONS, "training": True,
@@ -125,7 +132,14 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     for (section, key), default in _ADDED_OPTIONS.items():
         if section in d and d[section].get(key) == default:
             d[section].pop(key)
+    for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed) hashes as the former default
+        if d.get("sensor", {}).get(key, before) is None:
+            d["sensor"][key] = before
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: files of a ROS2 bag folder that hold its data (storage and metadata)
+ROS2_BAG_SUFFIXES = (".db3", ".mcap", ".yaml", ".zstd")
 
 
 def _input_files(sequence: Any) -> list[Path] | None:
@@ -141,7 +155,11 @@ def _input_files(sequence: Any) -> list[Path] | None:
         path = getattr(sequence, "path", None)
         if isinstance(path, (str, Path)):
             path = Path(path)
-            return sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+            if not path.is_dir():
+                return [path]
+            # a ROS2 bag folder: its storage files and metadata, not e.g. a Finder's .DS_Store
+            return sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")
+                          and p.suffix.lower() in ROS2_BAG_SUFFIXES)
         sequence = getattr(sequence, "parent", None)
     return None
 
@@ -396,7 +414,7 @@ class SlamPipeline:
         elif stored.get("files") != now["files"]:
             what = f"{stored.get('files')} files then, {now['files']} now"
         else:
-            what = ("the same number of frames, but the files differ (names, sizes or modification times) or their "
+            what = ("the same number of frames, but the files differ (names, sizes or sampled content) or their "
                     "timestamps, ground truth or calibration do")
         raise ResumeDataError(
             f"{self.round_dir(r)}: round {r} is finished but was made from other data than {self.source_description} "

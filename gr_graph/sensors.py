@@ -145,6 +145,11 @@ def sensor_model(name: str) -> SensorModel:
     return SENSOR_MODELS[key]
 
 
+#: the keys of every ``sensor`` section in a ``config.yaml`` written before it kept only the given ones
+FORMER_FULL_DUMP_KEYS = ("model", "n_beams", "vertical_fov_deg", "elevations_deg", "has_ring", "has_time",
+                         "time_unit", "time_reference", "scan_period")
+
+
 class SensorConfig(BaseModel):
     """The sensor that took the scans: beams, field of view, what the data carries.
 
@@ -204,11 +209,28 @@ class SensorConfig(BaseModel):
 
     @model_validator(mode="after")
     def _resolve(self) -> "SensorConfig":
+        self._forget_former_default_dump()
         if self.model == CUSTOM:
             self._resolve_custom()
         else:
             self._resolve_catalogue(sensor_model(self.model))
         return self
+
+    def _forget_former_default_dump(self) -> None:
+        """A ``config.yaml`` written before the sensor section kept only the given keys lists every
+        key; its defaults (``time_unit: s``, ``time_reference: sweep_start``, the HDL-64E) were not
+        said by anyone, and count as unsaid (guessed from the data) when all the keys are there."""
+        if not set(FORMER_FULL_DUMP_KEYS) <= self.model_fields_set:
+            return
+        unsaid: set[str] = set()
+        if self.time_unit == "s" and self.time_reference == "sweep_start":
+            self._set("time_unit", None)
+            self._set("time_reference", None)
+            unsaid |= {"time_unit", "time_reference"}
+        if self.model == DEFAULT_SENSOR and self.n_beams == SENSOR_MODELS[DEFAULT_SENSOR].n_beams:
+            unsaid |= {"model", "n_beams", "vertical_fov_deg", "elevations_deg"}
+        if unsaid:
+            object.__setattr__(self, "__pydantic_fields_set__", self.model_fields_set - unsaid)
 
     def _set(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)  # no re-validation (validate_assignment) from inside

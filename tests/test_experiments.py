@@ -569,6 +569,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
                                                                       "cluster_size", "min_clusters"},
                                            "odometry": keyframes})
+    # sensor.time_unit / time_reference became None (guessed): hashed as their former defaults
+    d["sensor"].update(time_unit="s", time_reference="sweep_start")
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
     # graph.registration_covariance likewise (its two options are hashed only away from their defaults)
     c = load_config(None, {"training": {"rounds": 2}, "graph": {"registration_covariance": "cluster_robust"}})
@@ -588,6 +590,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                       "min_clusters"}, "odometry": keyframes,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
+    d1["sensor"].update(time_unit="s", time_reference="sweep_start")
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2}, "data": {"read_threads": 1, "prefetch": 2}})

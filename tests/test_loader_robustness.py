@@ -137,6 +137,22 @@ def test_timestamp_unit_from_magnitude_and_spacing(tmp_path: Path, caplog: pytes
     assert f"{path}: timestamps read in {unit} (median frame spacing 0.1 s)" in caplog.text
 
 
+@pytest.mark.parametrize("values,unit,spacing", [
+    (5.0 * np.arange(6), "s", 5.0),                           # a sequence subsampled to one frame in 5 s
+    (1700000000.0 + 5.0 * np.arange(6), "s", 5.0),            # the same in epoch seconds
+    (1700000000000 + 5000 * np.arange(6), "ms", 5.0),         # and in epoch milliseconds
+    (2.5 * np.arange(6), "s", 2.5),
+])
+def test_sparse_frames_keep_their_unit(tmp_path: Path, caplog: pytest.LogCaptureFixture, values: np.ndarray,
+                                      unit: str, spacing: float) -> None:
+    path = tmp_path / "times.txt"
+    path.write_text("".join(f"{v}\n" for v in values.tolist()))
+    with caplog.at_level(logging.INFO, logger="gr_graph.datasets.folder"):
+        ts = read_timestamps_file(path, len(values))
+    np.testing.assert_allclose(ts, spacing * np.arange(6), rtol=1e-9)
+    assert f"{path}: timestamps read in {unit} (median frame spacing {spacing:g} s)" in caplog.text
+
+
 def test_epoch_milliseconds_times_file_in_a_folder(tmp_path: Path) -> None:
     folder = npy_folder(tmp_path / "ms", [f"{k:06d}.npy" for k in range(4)])
     (folder / "times.txt").write_text("".join(f"{1700000000000 + 100 * k}\n" for k in range(4)))
@@ -146,7 +162,7 @@ def test_epoch_milliseconds_times_file_in_a_folder(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("values,why", [
-    ([0, 3, 6, 9], r"no unit gives a LiDAR frame spacing of 0.005-2 s"),  # 3 s / 3 ms: neither plausible
+    ([0, 0.001, 0.002, 0.003], r"no unit gives a LiDAR frame spacing of 0.005-10 s"),  # 1 kHz in s: no unit
     ([20000000000000 + 100 * k for k in range(4)], r"contradict"),  # spacing says ms, then 2e10 s: year 2603
 ])
 def test_implausible_timestamps_are_refused(tmp_path: Path, values: list, why: str) -> None:
@@ -166,6 +182,15 @@ def test_float_stamp_names_are_ordered_by_value(tmp_path: Path) -> None:
     folder = npy_folder(tmp_path / "stamps", names[::-1])
     assert [p.name for p in point_files(folder)] == names
     assert [p.name for p in FolderSequence(folder).files] == names
+
+
+def test_sec_unpadded_nsec_names_keep_their_order(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    stamps = [(100 + k // 10, (k % 10) * 100_000_000 + 5_000_000) for k in range(25)]  # 10 Hz, 5 ms past
+    names = [f"{sec}.{nsec}.npy" for sec, nsec in stamps]  # f"{sec}.{nsec}": 100.5000000, 100.105000000, ...
+    folder = npy_folder(tmp_path / "secnsec", names[::-1])
+    with caplog.at_level(logging.WARNING, logger="gr_graph.datasets.folder"):
+        assert [p.name for p in point_files(folder)] == names
+    assert "seconds.nanoseconds" in caplog.text
 
 
 @pytest.mark.parametrize("names", [

@@ -283,3 +283,28 @@ def test_slam_on_a_vlp16_window_recovers_the_trajectory(tmp_path, synthetic_only
     path = np.sum(np.linalg.norm(np.diff(gt_xyz, axis=0), axis=1))
     assert path > 60 and err.max() < 0.01 * path, f"max error {err.max():.3f} m over {path:.0f} m"
     assert r0["slam"]["ate_rmse"] < 0.1
+
+
+def test_config_yaml_of_earlier_versions_keeps_its_meaning():
+    """A sensor section written out in full (every key, as config.yaml did before it kept only the
+    given keys) at the defaults is read as unsaid: guessed from the data, as in the run that wrote
+    it; and None (guessed) fingerprints like the former defaults, so finished rounds stay finished."""
+    from gr_graph.pipeline import round_fingerprint
+    from gr_graph.sensors import FORMER_FULL_DUMP_KEYS, SENSOR_MODELS
+
+    full = {"model": "hdl64e", "n_beams": 64, "vertical_fov_deg": list(SENSOR_MODELS["hdl64e"].vertical_fov_deg),
+            "elevations_deg": None, "has_ring": None, "has_time": None, "time_unit": "s",
+            "time_reference": "sweep_start", "scan_period": None}
+    assert set(full) == set(FORMER_FULL_DUMP_KEYS)
+    old = load_config(None, {"sensor": full}).sensor
+    assert old.named_beams is None and old.time_unit is None and old.time_reference is None
+    assert old == SlamConfig().sensor
+    vlp = load_config(None, {"sensor": {**full, "model": "vlp16", "n_beams": 16,
+                                        "vertical_fov_deg": list(SENSOR_MODELS["vlp16"].vertical_fov_deg)}}).sensor
+    assert vlp.named_beams == 16 and vlp.time_unit is None  # a named sensor stays named
+    said = load_config(None, {"sensor": {"time_unit": "s"}}).sensor  # a key given alone is said
+    assert said.time_unit == "s"
+    for r in (0, 1):
+        assert round_fingerprint(SlamConfig(), r) == round_fingerprint(
+            load_config(None, {"sensor": {"time_unit": "s", "time_reference": "sweep_start"}}), r)
+    assert round_fingerprint(SlamConfig(), 0) != round_fingerprint(load_config(None, {"sensor": {"time_unit": "ns"}}), 0)

@@ -207,16 +207,13 @@ def test_half_azimuth_kitti_frame_gets_elevation_rings(tmp_path: Path, caplog: p
 
 
 # ---------------------------------------------------------------- 4. ring counts
-def test_ring_count_grows_instead_of_aborting(caplog: pytest.LogCaptureFixture) -> None:
+def test_more_rings_than_the_first_frame_is_an_error_naming_the_fix() -> None:
     s = _sweep(n_rings=64, n_az=60, lowest_first=True)  # Velodyne numbering: ring 0 is the lowest beam
     sky = s["ring"] < 48  # the first frame has no returns on its top 16 beams
     conv = FieldConventions.probe(_cloud(s, sky), PERIOD, "000000.pcd")
     assert conv.n_rings == 48 and conv.flip_rings
-    with caplog.at_level(logging.WARNING):
-        frame = conv.frame(_cloud(s), 1, 0.1, "000001.pcd")
-    assert frame.n_rings == 64 and conv.n_rings == 64
-    np.testing.assert_array_equal(frame.ring, 63 - s["ring"])
-    assert "ring count raised from 48 to 64" in caplog.text
+    with pytest.raises(DatasetError, match=r"000001.pcd: ring 63 >= 48 rings counted in the first frame.*--sensor"):
+        conv.frame(_cloud(s), 1, 0.1, "000001.pcd")  # not renumbered on the fly (stride, flips, threads)
 
 
 def test_named_sensor_fixes_the_ring_count() -> None:
@@ -245,3 +242,22 @@ def test_has_ring_false_drops_the_ring_field(caplog: pytest.LogCaptureFixture) -
     assert frame.ring is None and frame.n_rings == 64
     with pytest.raises(DatasetError, match="sensor.has_ring is true"):
         FieldConventions.probe(_cloud(s, with_ring=False), PERIOD, "a.pcd", SensorConfig(has_ring=True))
+
+
+def test_full_sweep_stamped_a_little_before_its_first_point_maps_as_before() -> None:
+    """A driver's latency (first firing 3 ms after the stamp) does not shift a full sweep."""
+    stamp = 1000.0
+    t = stamp + np.linspace(0.003, 0.1029, 200)
+    frac = normalise_times(t, 0.1, "auto", stamp)
+    np.testing.assert_allclose(frac, (t - t.min()) / 0.1)
+
+
+def test_absolute_stamps_of_a_driver_that_stamps_the_sweep_end() -> None:
+    stamp = 1000.0
+    t = stamp + np.linspace(-0.0999, 0.0, 200)  # the stamp marks the last point (e.g. Robosense, Hesai)
+    frac = normalise_times(t, 0.1, "absolute", stamp, 0.05)
+    assert frac.min() == pytest.approx(0.0) and frac.max() == pytest.approx(0.999)
+    half = stamp + np.linspace(-0.05, 0.0, 100)  # a half sweep stamped at its end: the second half
+    np.testing.assert_allclose(normalise_times(half, 0.1, "absolute", stamp, 0.05), (half - stamp + 0.1) / 0.1)
+    with pytest.raises(ValueError, match="sweep fractions"):  # another clock, said to be the stamps' clock
+        normalise_times(stamp + 5.0 + np.linspace(0, 0.05, 10), 0.1, "absolute", stamp, 0.05)

@@ -20,7 +20,8 @@ Optional side files, given explicitly or found next to the scans (in the folder,
 - timestamps: ``times.txt`` or ``timestamps.txt``, one number a line, strictly increasing, in
   seconds, milliseconds, microseconds or nanoseconds, absolute (e.g. epoch) or relative. The
   unit is the one of s/ms/us/ns that makes the median spacing between frames a LiDAR frame
-  spacing (:data:`PLAUSIBLE_FRAME_SPACING_S`, 0.005-2 s) and is logged; when none does, or when
+  spacing (:data:`PLAUSIBLE_FRAME_SPACING_S`, 0.005-10 s; of two that do, the one in which the
+  first time is a Unix time, else the larger) and is logged; when none does, or when
   that unit puts the first time after :data:`MAX_ABSOLUTE_TIME_S` (the magnitude contradicts
   the spacing), the file is refused. Without a timestamps file, frames are 0.1 s apart (logged);
 - poses: ``poses.txt`` (or ``poses_kitti.txt`` / ``poses_tum.txt``), KITTI (12 numbers a line,
@@ -54,9 +55,14 @@ TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
 TIME_UNITS: tuple[tuple[str, float], ...] = (("s", 1.0), ("ms", 1e-3), ("us", 1e-6), ("ns", 1e-9))
 """Candidate units of a timestamps file (name, seconds per unit)."""
-PLAUSIBLE_FRAME_SPACING_S = (0.005, 2.0)
-"""Median frame spacing (s) a LiDAR sequence can have (200 Hz down to 0.5 Hz, e.g. subsampled
-recordings). Its ratio (400) is below the 1000 between units, so at most one unit fits."""
+PLAUSIBLE_FRAME_SPACING_S = (0.005, 10.0)
+"""Median frame spacing (s) a LiDAR sequence can have (200 Hz down to one frame in 10 s, e.g.
+subsampled recordings). Its ratio (2000) exceeds the 1000 between units, so up to two units fit a
+spacing: the one whose first time is a Unix time (:data:`UNIX_TIME_RANGE_S`) wins, else the larger
+(5 read as 5 s, not 5 ms)."""
+UNIX_TIME_RANGE_S = (1e8, 1e10)
+"""Unix times from 1973 to 2286 (s): a first timestamp in this range, in one of the fitting units,
+is an absolute stamp in that unit (epoch seconds, milliseconds, microseconds or nanoseconds)."""
 MAX_ABSOLUTE_TIME_S = 1e10
 """Times above this many seconds (year 2286 as a Unix time) are not plausible in any unit."""
 _DECIMAL_NAME = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)")
@@ -67,19 +73,43 @@ def natural_key(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
+_SEC_NSEC_NAME = re.compile(r"(\d+)\.(\d{1,9})")
+
+
+def _spacing_irregularity(times: list[float]) -> float:
+    """Spread of the steps between sorted ``times`` over their median (0 for even spacing)."""
+    steps = np.diff(np.sort(np.asarray(times, np.float64)))
+    med = float(np.median(steps)) if len(steps) else 0.0
+    return float(np.std(steps) / med) if med > 0 else float("inf")
+
+
 def sort_point_files(files: list[Path]) -> list[Path]:
     """``files`` in frame order.
 
     When every name without its suffix is a decimal number (``1600000000.1002998``,
     ``1600000000.3``, ``000012``), by that number (exactly, as a ``Decimal``; ties naturally);
     otherwise naturally (:func:`natural_key`), where ``1600000000.3`` would wrongly come before
-    ``1600000000.1002998`` (3 < 1002998).
+    ``1600000000.1002998`` (3 < 1002998). Names such as ``100.5000000`` are ambiguous: a
+    ``str(float)`` stamp (100.5 s) or seconds and unpadded nanoseconds (100.005 s, which the
+    natural order gets right). When the two orders differ, the reading whose times are the more
+    evenly spaced is taken, with a warning naming it.
     """
-    if files and all(_DECIMAL_NAME.fullmatch(p.stem) for p in files):
-        from decimal import Decimal
+    natural = sorted(files, key=lambda p: natural_key(p.name))
+    if not files or not all(_DECIMAL_NAME.fullmatch(p.stem) for p in files):
+        return natural
+    from decimal import Decimal
 
-        return sorted(files, key=lambda p: (Decimal(p.stem), natural_key(p.name)))
-    return sorted(files, key=lambda p: natural_key(p.name))
+    decimal = sorted(files, key=lambda p: (Decimal(p.stem), natural_key(p.name)))
+    if decimal == natural or not all(_SEC_NSEC_NAME.fullmatch(p.stem) for p in files):
+        return decimal
+    as_decimal = [float(Decimal(p.stem)) for p in files]
+    as_sec_nsec = [int(m.group(1)) + int(m.group(2)) * 1e-9 for m in (_SEC_NSEC_NAME.fullmatch(p.stem) for p in files)]
+    nsec = _spacing_irregularity(as_sec_nsec) < _spacing_irregularity(as_decimal)
+    log.warning("%s: file names such as %s read as %s (the order differs from the other reading; chosen because "
+                "it spaces the frames more evenly); zero-padded names avoid the ambiguity", files[0].parent,
+                natural[1].name if len(natural) > 1 else natural[0].name,
+                "seconds.nanoseconds (natural order)" if nsec else "decimal seconds")
+    return natural if nsec else decimal
 
 
 def point_files(folder: Path) -> list[Path]:
@@ -138,7 +168,10 @@ def timestamp_unit(ts: np.ndarray, source: str) -> tuple[str, float]:
         raise DatasetError(f"{source}: the median spacing between timestamps is {spacing:.6g} (file units); no unit "
                            f"gives a LiDAR frame spacing of {lo:g}-{hi:g} s ({tried}): give one time a frame, "
                            "in s, ms, us or ns")
-    name, unit = fitting[0]
+    # two units can fit (e.g. 5 s or 5 ms apart): Unix times say which; else the larger unit
+    lo_epoch, hi_epoch = UNIX_TIME_RANGE_S
+    epoch = [(name, unit) for name, unit in fitting if lo_epoch <= abs(float(ts[0])) * unit <= hi_epoch]
+    name, unit = (epoch or fitting)[0]
     largest = float(np.max(np.abs(ts[[0, -1]]))) * unit
     if largest > MAX_ABSOLUTE_TIME_S:
         raise DatasetError(f"{source}: the frame spacing ({spacing:.6g}) says the times are in {name}, but then "
@@ -258,7 +291,7 @@ class FolderSequence:
 
     @property
     def n_rings(self) -> int:
-        """Rings of the scans (grows, with a warning, when a later scan has more than the first)."""
+        """Rings of the scans (:attr:`gr_graph.datasets.frame_fields.FieldConventions.n_rings`)."""
         return self.conventions.n_rings
 
     def __len__(self) -> int:

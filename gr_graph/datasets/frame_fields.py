@@ -19,7 +19,8 @@ a sequence fixes once, from its first frame and the ``sensor`` section (:class:`
   (``n_rings - 1 - ring``). ``n_rings`` is the named sensor's beam count (``--sensor``,
   ``sensor.model`` / ``n_beams``; a larger ring index is an error), else the first frame's
   highest ring + 1 rounded up to 16, 32, 64 or 128 when one of those is at most 25 % above,
-  raised (logged) when a later frame holds a higher ring. ``sensor.has_ring: false`` drops
+  a later frame with a higher ring is an error that says to name the sensor (renumbering on the
+  fly would change the ``--channels`` stride and flipped rings between frames). ``sensor.has_ring: false`` drops
   the ring field (logged).
 """
 
@@ -88,8 +89,8 @@ class FieldConventions:
     has_ring : bool
         The first frame has a ring field.
     n_rings : int
-        Rings of the sensor; grows (logged) when a frame holds a higher ring, unless
-        ``fixed_rings``.
+        Rings of the sensor: the named sensor's (``fixed_rings``), else the first frame's; a
+        later frame with a higher ring is an error naming the fix (name the sensor).
     flip_rings : bool
         Rings are numbered from the lowest beam and get flipped.
     time_reference : str
@@ -230,12 +231,11 @@ class FieldConventions:
         if highest >= self.n_rings:
             if self.fixed_rings:
                 self._check_named_rings(highest, source)
-            grown = ring_count(highest)
-            log.warning("%s: ring %d: ring count raised from %d to %d (the first frame's highest ring was lower)%s",
-                        source, highest, self.n_rings, grown,
-                        "; frames read before were numbered with the smaller count (rings flipped): name the "
-                        "sensor (--sensor, sensor.n_beams) to fix the count" if self.flip_rings else "")
-            self.n_rings = grown
+            # not grown on the fly: the ring count sets the stride of --channels and the numbering of
+            # flipped rings, and frames read earlier (other threads, the frame cache) would disagree
+            raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings counted in the first frame (which "
+                               "misses some beams, e.g. the sky): name the sensor so the count does not come from "
+                               "the data (--sensor NAME, or sensor: {model: custom, n_beams: N, ...})")
         r = (self.n_rings - 1 - cloud.ring) if self.flip_rings else cloud.ring
         return np.asarray(r).astype(np.int16)
 

@@ -271,7 +271,7 @@ class KittiSequence:
         velo_dir = seq_dir / "velodyne"
         if not velo_dir.is_dir():
             raise DatasetError(f"{velo_dir}: no such folder (is {self.root} a KITTI odometry root?)")
-        self.files = sorted(velo_dir.glob("*.bin"))
+        self.files = sorted(p for p in velo_dir.glob("*.bin") if not p.name.startswith("."))  # not macOS ._ files
         if not self.files:
             raise DatasetError(f"{velo_dir}: no .bin scans")
         expected = [f"{i:06d}.bin" for i in range(len(self.files))]

@@ -158,7 +158,8 @@ class KittiRawSequence:
         data = velo / "data"
         if not data.is_dir():
             raise DatasetError(f"{data}: no such folder (is {self.drive} a KITTI raw drive?)")
-        self.files = sorted(data.glob("*.bin"), key=lambda p: natural_key(p.name))
+        self.files = sorted((p for p in data.glob("*.bin") if not p.name.startswith(".")),  # not macOS ._ files
+                            key=lambda p: natural_key(p.name))
         others = sorted({p.suffix for p in data.iterdir() if p.is_file() and p.suffix != ".bin"})
         if others:
             raise DatasetError(f"{data}: mixed file types (.bin and {', '.join(others)})")

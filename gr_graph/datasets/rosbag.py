@@ -198,7 +198,7 @@ class RosbagSequence:
 
     @property
     def n_rings(self) -> int:
-        """Rings of the sensor (grows when a frame holds a higher ring, see :mod:`.frame_fields`)."""
+        """Rings of the sensor (:attr:`gr_graph.datasets.frame_fields.FieldConventions.n_rings`)."""
         return self.conventions.n_rings
 
     def __iter__(self) -> Iterator[LidarFrame]:
