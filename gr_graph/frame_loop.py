@@ -384,7 +384,9 @@ class _FrameLoop:
         at frame 0 would otherwise see its first deskewed scan jump against them).
         """
         ts = self.sequence.timestamps
-        frame_period = float(ts[i - 1] - ts[i - 2]) if i >= 2 else None
+        frame_period = self.odometry.last_increment_period  # the time the increment spans (after a flagged step too)
+        if frame_period is None:
+            frame_period = float(ts[i - 1] - ts[i - 2]) if i >= 2 else None
         increment = self.odometry.last_increment
         with self.timer("deskew"):
             out = self.deskewer(frame, increment, frame_period)

@@ -216,6 +216,12 @@ class VgicpOdometry:
         return time_scaled_motion(self._delta, guess_time_ratio(dt, self._delta_dt))
 
     @property
+    def last_increment_period(self) -> float | None:
+        """The time [s] :attr:`last_increment` spans (None: not known). After a flagged step the
+        increment is still the last accepted one, and so is its period."""
+        return self._delta_dt
+
+    @property
     def last_increment(self) -> np.ndarray:
         """The last accepted frame-to-frame motion T_{k-1}^-1 T_k (identity before the second
         scan); the constant-velocity guess of the next step and the frame loop's deskew motion."""

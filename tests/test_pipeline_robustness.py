@@ -127,6 +127,8 @@ def test_odometry_across_dropped_frames_follows_the_timestamps():
     odo = odometry_over(scans, times)
     assert all(e.ok for e in odo.edges), [e.reason for e in odo.edges]
     assert pose_errors(np.asarray(odo.poses), gt).max() < 0.05
+    # the last motion and the time it spans (the deskewer scales the one by the other)
+    assert odo.last_increment_period == pytest.approx(times[-1] - times[-2])
     blind = odometry_over(scans, None)
     assert not blind.edges[3].ok or pose_errors(np.asarray(blind.poses), gt).max() > 1.0
 

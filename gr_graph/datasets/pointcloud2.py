@@ -147,11 +147,12 @@ def decode_pointcloud2(msg: Any, source: str) -> DecodedCloud:
         ``is_bigendian``, ``point_step``, ``row_step`` and ``data`` (bytes or uint8 array).
     source : str
         Where the message comes from (bag file, topic, message number), named in errors.
+        An empty message (no points) is an empty cloud, logged.
 
     Raises
     ------
     DatasetError
-        An empty message, a buffer whose size does not match ``height x row_step``, a row
+        A buffer whose size does not match ``height x row_step``, a row
         shorter than ``width x point_step``, or a field layout without x/y/z.
     """
     height, width = int(msg.height), int(msg.width)
@@ -159,7 +160,14 @@ def decode_pointcloud2(msg: Any, source: str) -> DecodedCloud:
     data = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8) if not isinstance(msg.data, np.ndarray) \
         else msg.data.view(np.uint8).reshape(-1)
     if height * width == 0 or len(data) == 0:
-        raise DatasetError(f"{source}: empty message (height {height}, width {width}, {len(data)} data bytes)")
+        # a sensor's warm-up message, a dropped sweep: an empty frame (the odometry marks it unusable)
+        log.warning("%s: empty message (height %d, width %d, %d data bytes): an empty frame", source, height, width,
+                    len(data))
+        fields = [(str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields]
+        if not fields or point_step <= 0:
+            return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
+        return decode_structured(np.zeros(0, dtype=structured_dtype(fields, point_step, bool(msg.is_bigendian),
+                                                                    source)), source)
     if point_step <= 0:
         raise DatasetError(f"{source}: point_step {point_step} <= 0: wrong field layout")
     if row_step < width * point_step:

@@ -127,13 +127,14 @@ class RosbagSequence:
         self.name = f"bag-{self.path.stem}{self.topic.replace('/', '_')}"
         self.T_cam_velo = np.eye(4)
         log_times, stamps = [], []
-        first_cloud = None
+        first_cloud, probe_index = None, 0
         for k, (conn, log_time, raw) in enumerate(self._reader.messages(connections=self._connections)):
             msg = self._deserialize(conn, raw, k)
             log_times.append(int(log_time))
             stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
-            if first_cloud is None:
-                first_cloud = decode_pointcloud2(msg, self._source(0))
+            if first_cloud is None or not len(first_cloud.points):
+                # the first message with points fixes the conventions (a warm-up message may be empty)
+                first_cloud, probe_index = decode_pointcloud2(msg, self._source(k)), k
         if not log_times:
             raise DatasetError(f"{self.path}: topic {self.topic!r} has no messages")
         self.log_times = np.asarray(log_times, np.int64)
@@ -145,7 +146,7 @@ class RosbagSequence:
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
         self.scan_period = frame_period(self.timestamps)
-        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(0), sensor)
+        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(probe_index), sensor)
         self.motion_compensated = self.conventions.motion_compensated
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
