@@ -261,3 +261,21 @@ def test_absolute_stamps_of_a_driver_that_stamps_the_sweep_end() -> None:
     np.testing.assert_allclose(normalise_times(half, 0.1, "absolute", stamp, 0.05), (half - stamp + 0.1) / 0.1)
     with pytest.raises(ValueError, match="sweep fractions"):  # another clock, said to be the stamps' clock
         normalise_times(stamp + 5.0 + np.linspace(0, 0.05, 10), 0.1, "absolute", stamp, 0.05)
+
+
+def test_a_128_ring_recording_opens_without_naming_the_sensor(tmp_path: Path) -> None:
+    from gr_graph.datasets.registry import open_sequence
+
+    s = _sweep(n_rings=128, n_az=90)
+    folder = tmp_path / "os128"
+    folder.mkdir()
+    for k in range(3):
+        cloud = _cloud(s)
+        arr = np.zeros(len(cloud.points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("ring", "<u2")])
+        arr["x"], arr["y"], arr["z"] = cloud.points.T
+        arr["ring"] = cloud.ring
+        np.save(folder / f"{k:06d}.npy", arr)
+    seq, _ = open_sequence(path=folder)  # the default sensor (nothing said): the rings come from the data
+    assert seq[2].n_rings == 128 and int(seq[2].ring.max()) == 127
+    with pytest.raises(DatasetError, match="ring 127 >= 64 rings of the sensor"):  # a named 64-beam sensor
+        open_sequence(path=folder, sensor="os1-64")

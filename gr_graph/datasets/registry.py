@@ -409,8 +409,12 @@ def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int
     start, stop = parse_frames(frames, len(base))
     name = base.name
 
+    named = sensor.named_beams is not None
+
     def transform(frame: LidarFrame) -> LidarFrame:
-        problem = frame_sensor_problem(frame, sensor)
+        # a named sensor bounds the ring indices; the default (nothing said) does not: the loader
+        # counted the data's rings (a 128-ring recording is no error)
+        problem = frame_sensor_problem(frame, sensor, None if named else max(int(frame.n_rings), sensor.beams))
         if problem is not None:
             raise DatasetError(f"{name}, frame {frame.index}: {problem}")
         return frame if n_rings == sensor.beams else subsample_channels(frame, n_rings)
