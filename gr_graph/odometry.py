@@ -210,11 +210,6 @@ class VgicpOdometry:
         self._last_map_pose: np.ndarray | None = None  # pose of the last scan that entered the map
         self.scans_left_out_of_map = 0
 
-    def guess(self, dt: float | None = None) -> np.ndarray:
-        """The constant-velocity guess T̂_{k+1,k} of the next step, ``dt`` seconds after the last
-        scan: the last accepted motion scaled to ``dt`` (module docstring; unscaled without ``dt``)."""
-        return time_scaled_motion(self._delta, guess_time_ratio(dt, self._delta_dt))
-
     @property
     def last_increment_period(self) -> float | None:
         """The time [s] :attr:`last_increment` spans (None: not known). After a flagged step the
@@ -281,7 +276,7 @@ class VgicpOdometry:
 
         ``dt`` is the time since the previous scan [s] when the timestamps are known: the
         constant-velocity guess (initial value and divergence test) is scaled to it
-        (:meth:`guess`); None uses the last accepted motion as it is.
+        (:func:`time_scaled_motion` by :func:`guess_time_ratio`); None uses the last accepted motion as it is.
         """
         k = len(self.poses)
         if k == 0:

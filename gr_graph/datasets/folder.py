@@ -47,14 +47,12 @@ from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
 from gr_graph.datasets.frame_fields import DEFAULT_FRAME_PERIOD_S, FieldConventions, frame_period
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
 from gr_graph.datasets.pointcloud2 import DecodedCloud
-from gr_graph.sensors import SensorConfig
+from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
 
 TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
-TIME_UNITS: tuple[tuple[str, float], ...] = (("s", 1.0), ("ms", 1e-3), ("us", 1e-6), ("ns", 1e-9))
-"""Candidate units of a timestamps file (name, seconds per unit)."""
 PLAUSIBLE_FRAME_SPACING_S = (0.005, 10.0)
 """Median frame spacing (s) a LiDAR sequence can have (200 Hz down to one frame in 10 s, e.g.
 subsampled recordings). Its ratio (2000) exceeds the 1000 between units, so up to two units fit a
@@ -100,7 +98,11 @@ def sort_point_files(files: list[Path]) -> list[Path]:
     from decimal import Decimal
 
     decimal = sorted(files, key=lambda p: (Decimal(p.stem), natural_key(p.name)))
-    if decimal == natural or not all(_SEC_NSEC_NAME.fullmatch(p.stem) for p in files):
+    if decimal == natural:
+        return decimal
+    if not all(_SEC_NSEC_NAME.fullmatch(p.stem) for p in files):
+        log.info("%s: the file names are decimal numbers: ordered by their value (%s)", files[0].parent,
+                 ", ".join(p.name for p in decimal[:3]) + (", ..." if len(decimal) > 3 else ""))
         return decimal
     as_decimal = [float(Decimal(p.stem)) for p in files]
     as_sec_nsec = [int(m.group(1)) + int(m.group(2)) * 1e-9 for m in (_SEC_NSEC_NAME.fullmatch(p.stem) for p in files)]
@@ -133,11 +135,7 @@ def point_files(folder: Path) -> list[Path]:
     if len(kinds) > 1:
         listing = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items()))
         raise DatasetError(f"{folder}: mixed file types ({listing}); keep one type of point file in the folder")
-    ordered = sort_point_files(files)
-    if ordered != sorted(files, key=lambda p: natural_key(p.name)):
-        log.info("%s: the file names are decimal numbers: ordered by their value (%s)", folder,
-                 ", ".join(p.name for p in ordered[:3]) + (", ..." if len(ordered) > 3 else ""))
-    return ordered
+    return sort_point_files(files)
 
 
 def find_side_file(folder: Path, names: tuple[str, ...]) -> Path | None:
@@ -162,9 +160,9 @@ def timestamp_unit(ts: np.ndarray, source: str) -> tuple[str, float]:
         return "s", 1.0  # one frame: its time is 0 whatever the unit
     spacing = float(np.median(np.diff(ts)))
     lo, hi = PLAUSIBLE_FRAME_SPACING_S
-    fitting = [(name, unit) for name, unit in TIME_UNITS if lo <= spacing * unit <= hi]
+    fitting = [(name, unit) for name, unit in TIME_UNITS.items() if lo <= spacing * unit <= hi]
     if not fitting:
-        tried = ", ".join(f"{spacing * unit:.3g} s in {name}" for name, unit in TIME_UNITS)
+        tried = ", ".join(f"{spacing * unit:.3g} s in {name}" for name, unit in TIME_UNITS.items())
         raise DatasetError(f"{source}: the median spacing between timestamps is {spacing:.6g} (file units); no unit "
                            f"gives a LiDAR frame spacing of {lo:g}-{hi:g} s ({tried}): give one time a frame, "
                            "in s, ms, us or ns")
@@ -246,7 +244,7 @@ class FolderSequence:
     motion_compensated : bool
         False when the files carry per-point times.
     scan_period : float
-        The frame spacing (s), used as the sweep duration.
+        The frame spacing (s), or ``sensor.scan_period`` when given: the sweep duration.
     empty_frames : set of int
         Indices of the frames read so far whose file held no points (each logged once).
     """
@@ -276,8 +274,6 @@ class FolderSequence:
             log.warning("%s: no timestamps file (%s): frames taken %.2f s apart", self.folder,
                         " / ".join(TIMESTAMP_FILES), DEFAULT_FRAME_PERIOD_S)
             self.timestamps = np.arange(n) * DEFAULT_FRAME_PERIOD_S
-        self.scan_period = (sensor.scan_period if sensor is not None and sensor.scan_period is not None
-                            else frame_period(self.timestamps))
         self.empty_frames: set[int] = set()
         self._read_ahead: dict[int, DecodedCloud] = {}
         probe_index = 0
@@ -286,7 +282,9 @@ class FolderSequence:
             self._read_ahead = {probe_index: first}
             if len(first.points):
                 break
-        self.conventions = FieldConventions.probe(first, self.scan_period, str(self.files[probe_index]), sensor)
+        self.conventions = FieldConventions.probe(first, frame_period(self.timestamps), str(self.files[probe_index]),
+                                                  sensor)
+        self.scan_period = self.conventions.scan_period  # the frame spacing, or sensor.scan_period when given
         self.motion_compensated = self.conventions.motion_compensated
 
     @property
@@ -318,8 +316,8 @@ class FolderSequence:
             log.warning("%s: empty scan (%s): frame %d is empty (%d empty frame%s so far)", path, what, i,
                         len(self.empty_frames), "s" if len(self.empty_frames) > 1 else "")
         conv = self.conventions  # the fields the sequence's other frames have, empty
-        has_time = conv.has_time and getattr(conv, "use_time", True)
-        has_ring = conv.has_ring and getattr(conv, "use_ring", True)
+        has_time = conv.has_time and conv.use_time
+        has_ring = conv.has_ring and conv.use_ring
         return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=np.zeros((0, 3)),
                           intensity=np.zeros(0, np.float32), ring=np.zeros(0, np.int16) if has_ring else None,
                           n_rings=conv.n_rings, dropped_nonfinite=cloud.dropped_nonfinite,

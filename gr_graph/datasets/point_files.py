@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError
-from gr_graph.datasets.pointcloud2 import DecodedCloud, decode_structured
+from gr_graph.datasets.pointcloud2 import DecodedCloud, decode_structured, empty_cloud
 
 log = logging.getLogger(__name__)
 
@@ -94,11 +94,6 @@ def read_point_file(path: str | Path, point_format: str = "xyzi") -> DecodedClou
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: unreadable ({exc})") from exc
     raise DatasetError(f"{path}: unknown point file type {suffix!r} (supported: {', '.join(POINT_FILE_SUFFIXES)})")
-
-
-def empty_cloud() -> DecodedCloud:
-    """A cloud without points (and without intensity, time or ring fields)."""
-    return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
 
 
 def _columns(values: np.ndarray, names: list[str]) -> np.ndarray:

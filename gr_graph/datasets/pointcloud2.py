@@ -90,6 +90,11 @@ def structured_dtype(fields: list[tuple[str, int, int, int]], point_step: int, b
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": int(point_step)})
 
 
+def empty_cloud() -> DecodedCloud:
+    """A cloud without points (and without intensity, time or ring fields)."""
+    return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
+
+
 def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     """Read x, y, z (+ intensity, time, ring) from a structured array of points.
 
@@ -165,7 +170,7 @@ def decode_pointcloud2(msg: Any, source: str) -> DecodedCloud:
                     len(data))
         fields = [(str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields]
         if not fields or point_step <= 0:
-            return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
+            return empty_cloud()
         return decode_structured(np.zeros(0, dtype=structured_dtype(fields, point_step, bool(msg.is_bigendian),
                                                                     source)), source)
     if point_step <= 0:
