@@ -38,7 +38,7 @@ from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
 
-TIME_UNITS_S = (1.0, 1e-3, 1e-6, 1e-9)
+TIME_UNITS_S = tuple(TIME_UNITS.values())
 """Candidate units of a per-point time field, in seconds (s, ms, us, ns)."""
 COMMON_RING_COUNTS = (16, 32, 64, 128)
 DEFAULT_FRAME_PERIOD_S = 0.1
