@@ -34,7 +34,11 @@ ratio above :data:`MAX_GUESS_RATIO` is clipped to it.
 A registration that returns non-finite values, has an inlier ratio below
 ``min_inlier_ratio``, or ends further than ``max_deviation_*`` from the constant-velocity
 guess is *flagged* (``ok=False``, ``reason`` says why), logged, and replaced by the guess
-with a weak fallback information (``graph.fallback_sigmas``); never silently kept.
+with a weak fallback information (``graph.fallback_sigmas``); never silently kept. Until a first
+registration is accepted no motion is known and the guess (the identity) predicts nothing: the
+divergence test is not applied then (logged once), so a recording that starts at speed (more than
+``max_deviation_translation`` a frame: 72 km/h at 10 Hz, or a folder keeping every other frame)
+is not flagged edge after edge against a standing start; the inlier ratio still guards.
 
 The learned alternative to the registration information is :mod:`gr_graph.edge_noise`.
 """
@@ -205,6 +209,7 @@ class VgicpOdometry:
         self.edges: list[RegistrationEdge] = []
         self._delta = np.eye(4)
         self._delta_dt: float | None = None  # time spanned by _delta [s] (None: unknown)
+        self._motion_known = False  # a registration was accepted: _delta is a measured motion
         self._map: small_gicp.GaussianVoxelMap | None = None
         self._prev: Scan | None = None
         self._last_map_pose: np.ndarray | None = None  # pose of the last scan that entered the map
@@ -270,6 +275,11 @@ class VgicpOdometry:
             vm.insert(scan.cloud)
             self._map = vm
 
+    def _deviates(self, T_rel: np.ndarray, guess_rel: np.ndarray) -> bool:
+        """``T_rel`` is further from ``guess_rel`` than the divergence test allows once motion is known."""
+        return bool(check_registration(T_rel, guess_rel, 1.0, 0.0, self.cfg.max_deviation_translation,
+                                       self.cfg.max_deviation_rotation_deg))
+
     # ------------------------------------------------------------------ step
     def step(self, scan: Scan, dt: float | None = None) -> RegistrationEdge | None:
         """Register ``scan`` onto the past; return its odometry edge (None for the first scan).
@@ -308,14 +318,15 @@ class VgicpOdometry:
             T_rel = np.linalg.inv(T_prev) @ T_res if self.cfg.mode == "map" else T_res
             n = scan.cloud.size()
             inlier_ratio = res.num_inliers / max(n, 1)
-            reason = check_registration(
-                T_rel,
-                guess_rel,
-                inlier_ratio,
-                self.cfg.min_inlier_ratio,
-                self.cfg.max_deviation_translation,
-                self.cfg.max_deviation_rotation_deg,
-            )
+            if self._motion_known:
+                max_dt, max_drot_deg = self.cfg.max_deviation_translation, self.cfg.max_deviation_rotation_deg
+            else:  # the identity guess predicts nothing: no divergence test before a first accepted motion
+                max_dt = max_drot_deg = float("inf")
+            reason = check_registration(T_rel, guess_rel, inlier_ratio, self.cfg.min_inlier_ratio, max_dt, max_drot_deg)
+            if not reason and not self._motion_known and self._deviates(T_rel, guess_rel):
+                log.info("odometry edge (%d, %d): %.2f m / %.1f deg with no motion known before: kept (no "
+                         "divergence test before a first accepted motion)", k, k - 1,
+                         float(np.linalg.norm(T_rel[:3, 3])), float(np.degrees(rotation_angle(T_rel[:3, :3]))))
             if not reason and not np.all(np.isfinite(res.H)):
                 reason = "non-finite Hessian"
         if reason:
@@ -355,6 +366,7 @@ class VgicpOdometry:
                 info={"covariance": model},
             )
             self._delta = T_rel
+            self._motion_known = True
             self._delta_dt = float(dt) if dt is not None and np.isfinite(dt) and dt > 0.0 else None
         T_new = T_prev @ edge.T
         self.poses.append(T_new)

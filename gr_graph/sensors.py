@@ -164,8 +164,9 @@ class SensorConfig(BaseModel):
     has none, or they are to be ignored (folder and bag loaders drop the field, logged).
     Per-point times are read in ``time_unit`` and counted from ``time_reference``
     (:meth:`times_to_fractions` turns them into the sweep fractions of ``LidarFrame.time``).
-    ``scan_period`` is the sweep duration in seconds (None: the sequence's, else the spacing of
-    the frame timestamps). The folder and bag loaders
+    ``scan_period`` is the sweep duration in seconds (None: the sequence's: the spacing of the
+    frame timestamps, or the span of a full revolution's per-point times where the two differ by
+    more than 10 %, :mod:`gr_graph.datasets.frame_fields`). The folder and bag loaders
     (:class:`gr_graph.datasets.frame_fields.FieldConventions`) use ``time_unit`` and
     ``time_reference`` when they are set (None, the default: guessed from the data;
     ``times_to_fractions`` then reads seconds from the sweep's start), and take the ring count
@@ -194,8 +195,9 @@ class SensorConfig(BaseModel):
         None, description="per-point times count from the sweep's start (>= 0), back from its end (<= 0), "
         "or are absolute stamps (same clock as the frame timestamps); None: from what the values show "
         "(times_to_fractions: sweep_start)")
-    scan_period: float | None = Field(None, gt=0.0, description="sweep duration [s]; None: the sequence's, else "
-                                                                "the frame spacing")
+    scan_period: float | None = Field(None, gt=0.0, description="sweep duration [s]; None: the sequence's (the "
+                                                                "frame spacing, or a full revolution's per-point time span "
+                                                                "when they differ by more than 10 %)")
 
     @field_validator("model", mode="before")
     @classmethod

@@ -168,6 +168,66 @@ def test_bag_loader_takes_the_sensor_section(tmp_path: Path, caplog: pytest.LogC
         RosbagSequence(bag, sensor=SensorConfig(time_unit="us"))
 
 
+# ---------------------------------------------------------------- 2b. sweep duration from the times
+def test_a_full_revolution_sets_the_sweep_duration_when_the_spacing_disagrees(
+        caplog: pytest.LogCaptureFixture) -> None:
+    s = _sweep()
+    ns20 = np.round(s["frac"] * 0.05 * 1e9)  # a 20 Hz sweep (0.05 s) in ns, frames taken 0.1 s apart
+    with caplog.at_level(logging.WARNING):
+        conv = FieldConventions.probe(_cloud(s, times=ns20), PERIOD, "a.pcd")
+    assert conv.scan_period == pytest.approx(0.05, rel=0.01) and conv.scan_period_source == "per-point times"
+    assert "a.pcd" in caplog.text and "sensor.scan_period" in caplog.text
+    frac = conv.frame(_cloud(s, times=ns20), 0, 0.0, "a.pcd").time
+    assert frac.min() == 0.0 and frac.max() == pytest.approx(1.0)  # not 0..0.5
+    # the front half of the same sweep is not a revolution: the spacing stays
+    front = np.abs(s["az"]) < np.pi / 2
+    half = FieldConventions.probe(_cloud(s, front, times=ns20), PERIOD, "a.pcd")
+    assert half.scan_period == PERIOD and half.scan_period_source == "frame spacing"
+    # within 10 % of the spacing: the spacing, exactly (results of data that agree do not move)
+    close = FieldConventions.probe(_cloud(s, times=s["frac"] * 0.093), PERIOD, "a.pcd")
+    assert close.scan_period == PERIOD
+    # a given scan period wins over both
+    said = FieldConventions.probe(_cloud(s, times=ns20), PERIOD, "a.pcd", SensorConfig(scan_period=0.08))
+    assert said.scan_period == 0.08 and said.scan_period_source == "sensor.scan_period"
+
+
+def _sweep_folder(folder: Path, sweep_s: float, times_txt: np.ndarray | None) -> Path:
+    s = _sweep()
+    folder.mkdir()
+    arr = np.zeros(len(s["points"]), [("x", "f4"), ("y", "f4"), ("z", "f4"), ("t", "u4")])
+    for i, c in enumerate("xyz"):
+        arr[c] = s["points"][:, i]
+    arr["t"] = np.round(s["frac"] * sweep_s * 1e9)
+    for k in range(3):
+        np.save(folder / f"{k:06d}.npy", arr)
+    if times_txt is not None:
+        np.savetxt(folder / "times.txt", times_txt, fmt="%.3f")
+    return folder
+
+
+def test_folder_and_bag_take_the_sweep_duration(tmp_path: Path) -> None:
+    # 20 Hz, no timestamps file: frames one sweep apart, not 0.1 s
+    hz20 = FolderSequence(_sweep_folder(tmp_path / "hz20", 0.05, None))
+    assert hz20.scan_period == pytest.approx(0.05, rel=0.01)
+    np.testing.assert_allclose(np.diff(hz20.timestamps), hz20.scan_period)
+    # every other frame of a 10 Hz sensor kept: the stamps stay, the sweep is 0.1 s
+    sub = FolderSequence(_sweep_folder(tmp_path / "sub", 0.1, 0.2 * np.arange(3)))
+    assert sub.scan_period == pytest.approx(0.1, rel=0.01)
+    np.testing.assert_allclose(np.diff(sub.timestamps), 0.2)
+    # frames 0.1 s apart, 0.1 s sweeps: the spacing, as before
+    usual = FolderSequence(_sweep_folder(tmp_path / "usual", 0.1, None))
+    assert usual.scan_period == 0.1 and np.array_equal(usual.timestamps, np.arange(3) * 0.1)
+    # a bag: the sensor section's scan period reaches the sequence (and so the deskewer)
+    s = _sweep()
+    arr = np.zeros(len(s["points"]), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<u4")])
+    for i, c in enumerate("xyz"):
+        arr[c] = s["points"][:, i]
+    arr["t"] = np.round(s["frac"] * 0.1 * 1e9)
+    bag = write_bag(tmp_path / "b", {"/points": [arr, arr]})
+    assert RosbagSequence(bag).scan_period == 0.1
+    assert RosbagSequence(bag, sensor=SensorConfig(scan_period=0.12)).scan_period == 0.12
+
+
 # ---------------------------------------------------------------- 3. half-azimuth KITTI frames
 def _kitti_scan(rng: np.random.Generator, n_az: int = 700) -> np.ndarray:
     """An HDL-64E-like scan stored line by line, each line one clockwise turn from azimuth 0."""

@@ -23,7 +23,9 @@ Optional side files, given explicitly or found next to the scans (in the folder,
   spacing (:data:`PLAUSIBLE_FRAME_SPACING_S`, 0.005-10 s; of two that do, the one in which the
   first time is a Unix time, else the larger) and is logged; when none does, or when
   that unit puts the first time after :data:`MAX_ABSOLUTE_TIME_S` (the magnitude contradicts
-  the spacing), the file is refused. Without a timestamps file, frames are 0.1 s apart (logged);
+  the spacing), the file is refused. Without a timestamps file, frames are one sweep apart
+  (logged): ``sensor.scan_period``, else the span of a full revolution's per-point times when it
+  is more than 10 % away from 0.1 s, else 0.1 s;
 - poses: ``poses.txt`` (or ``poses_kitti.txt`` / ``poses_tum.txt``), KITTI (12 numbers a line,
   row-major 3x4) or TUM (``t x y z qx qy qz qw``), told apart by the column count, one pose a
   frame, of the LiDAR in a world frame; they are re-expressed relative to the first (the world
@@ -44,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
-from gr_graph.datasets.frame_fields import DEFAULT_FRAME_PERIOD_S, FieldConventions, frame_period
+from gr_graph.datasets.frame_fields import DEFAULT_FRAME_PERIOD_S, PLAUSIBLE_SWEEP_S, FieldConventions, frame_period
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
 from gr_graph.datasets.pointcloud2 import DecodedCloud
 from gr_graph.sensors import TIME_UNITS, SensorConfig
@@ -53,7 +55,7 @@ log = logging.getLogger(__name__)
 
 TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
-PLAUSIBLE_FRAME_SPACING_S = (0.005, 10.0)
+PLAUSIBLE_FRAME_SPACING_S = PLAUSIBLE_SWEEP_S
 """Median frame spacing (s) a LiDAR sequence can have (200 Hz down to one frame in 10 s, e.g.
 subsampled recordings). Its ratio (2000) exceeds the 1000 between units, so up to two units fit a
 spacing: the one whose first time is a Unix time (:data:`UNIX_TIME_RANGE_S`) wins, else the larger
@@ -244,7 +246,9 @@ class FolderSequence:
     motion_compensated : bool
         False when the files carry per-point times.
     scan_period : float
-        The frame spacing (s), or ``sensor.scan_period`` when given: the sweep duration.
+        The sweep duration (s): ``sensor.scan_period`` when given, else the frame spacing or a full
+        revolution's per-point time span (:attr:`FieldConventions.scan_period_source`). Without a
+        timestamps file the frames are taken this far apart.
     empty_frames : set of int
         Indices of the frames read so far whose file held no points (each logged once).
     """
@@ -271,9 +275,7 @@ class FolderSequence:
         elif pose_times is not None:
             self.timestamps = pose_times
         else:
-            log.warning("%s: no timestamps file (%s): frames taken %.2f s apart", self.folder,
-                        " / ".join(TIMESTAMP_FILES), DEFAULT_FRAME_PERIOD_S)
-            self.timestamps = np.arange(n) * DEFAULT_FRAME_PERIOD_S
+            self.timestamps = np.arange(n) * DEFAULT_FRAME_PERIOD_S  # until the conventions know the sweep
         self.empty_frames: set[int] = set()
         self._read_ahead: dict[int, DecodedCloud] = {}
         probe_index = 0
@@ -284,7 +286,14 @@ class FolderSequence:
                 break
         self.conventions = FieldConventions.probe(first, frame_period(self.timestamps), str(self.files[probe_index]),
                                                   sensor)
-        self.scan_period = self.conventions.scan_period  # the frame spacing, or sensor.scan_period when given
+        self.scan_period = self.conventions.scan_period
+        if times_path is None and pose_times is None:
+            # no stamps: frames one sweep apart (sensor.scan_period, a full revolution's times, else 10 Hz)
+            self.timestamps = np.arange(n) * self.scan_period
+            log.warning("%s: no timestamps file (%s): frames taken %.4g s apart (%s)", self.folder,
+                        " / ".join(TIMESTAMP_FILES), self.scan_period,
+                        "the usual 10 Hz" if self.conventions.scan_period_source == "frame spacing"
+                        else self.conventions.scan_period_source)
         self.motion_compensated = self.conventions.motion_compensated
 
     @property

@@ -13,6 +13,15 @@ a sequence fixes once, from its first frame and the ``sensor`` section (:class:`
   fit one sweep are an error naming the file. ``sensor.has_time: false`` drops the time field
   (logged; the sequence still counts as not motion-compensated, so deskewing takes the times
   from the azimuth).
+- **Sweep duration** (``scan_period``, what maps times to fractions and the odometry's motion to
+  one sweep): ``sensor.scan_period`` when given; else the frame spacing, unless the first frame is
+  a full revolution (points in at least :data:`FULL_REVOLUTION_COVERAGE` of the azimuth sectors)
+  whose per-point times span more than :data:`SWEEP_SPACING_MISMATCH` away from it and a
+  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). That is a 20 Hz
+  sensor without a timestamps file (spacing assumed 0.1 s, sweeps of 0.05 s: the folder then
+  takes its frames 0.05 s apart; before, they were deskewed with half the motion) or a folder
+  that keeps every other frame (spacing 0.2 s, sweeps of 0.1 s: deskewed to the sweep's middle
+  instead of its end; the relative poses were right before too).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first frame's rings rises with the ring number, rings are flipped
@@ -43,6 +52,16 @@ TIME_UNITS_S = tuple(TIME_UNITS.values())
 COMMON_RING_COUNTS = (16, 32, 64, 128)
 DEFAULT_FRAME_PERIOD_S = 0.1
 """Frame spacing assumed (10 Hz, the usual spinning-LiDAR rate) when no timestamps are known."""
+AZIMUTH_SECTORS = 72
+"""5-degree sectors of the azimuth, counted to tell a full revolution from a partial sweep."""
+FULL_REVOLUTION_COVERAGE = 0.9
+"""A frame with points in at least this share of :data:`AZIMUTH_SECTORS` is a full revolution."""
+PLAUSIBLE_SWEEP_S = (0.005, 10.0)
+"""Sweep durations (s) a time span may be taken for (as the frame spacings a timestamps file may
+have): a span outside, e.g. nanoseconds declared as seconds, is not a sweep duration."""
+SWEEP_SPACING_MISMATCH = 0.1
+"""A full revolution's time span more than this (relative) away from the frame spacing is its
+sweep duration; closer, the spacing stays (unchanged results for data that agree)."""
 
 
 def guess_time_unit(times: np.ndarray, frame_period: float) -> float:
@@ -52,6 +71,16 @@ def guess_time_unit(times: np.ndarray, frame_period: float) -> float:
         return 1.0
     errors = [abs(np.log(span * u / frame_period)) for u in TIME_UNITS_S]
     return TIME_UNITS_S[int(np.argmin(errors))]
+
+
+def azimuth_coverage(points: np.ndarray, sectors: int = AZIMUTH_SECTORS) -> float:
+    """Share of ``sectors`` equal azimuth sectors that hold at least one point (0 for no points)."""
+    pts = np.asarray(points, np.float64)
+    if not len(pts):
+        return 0.0
+    azimuth = np.arctan2(pts[:, 1], pts[:, 0])
+    sector = np.clip(np.floor((azimuth + np.pi) / (2.0 * np.pi) * sectors), 0, sectors - 1).astype(np.int64)
+    return float(len(np.unique(sector))) / sectors
 
 
 def ring_count(max_ring: int) -> int:
@@ -86,6 +115,9 @@ class FieldConventions:
         Seconds per unit of the time field.
     scan_period : float
         Sweep duration (s) that maps times to fractions.
+    scan_period_source : str
+        Where ``scan_period`` comes from: ``"sensor.scan_period"``, ``"frame spacing"`` or
+        ``"per-point times"`` (the span of a full revolution's times; see the module docstring).
     has_ring : bool
         The first frame has a ring field.
     n_rings : int
@@ -109,6 +141,7 @@ class FieldConventions:
     has_time: bool = False
     time_unit_s: float = 1.0
     scan_period: float = DEFAULT_FRAME_PERIOD_S
+    scan_period_source: str = "frame spacing"
     has_ring: bool = False
     n_rings: int = 64
     flip_rings: bool = False
@@ -149,10 +182,10 @@ class FieldConventions:
             A field the sensor section requires is missing, the first frame's times do not
             fit one sweep in the given unit, or its rings exceed the named sensor's beams.
         """
-        period = float(frame_period)
+        period, period_source = float(frame_period), "frame spacing"
         if sensor is not None and sensor.scan_period is not None:
-            period = float(sensor.scan_period)
-        conv = cls(scan_period=period)
+            period, period_source = float(sensor.scan_period), "sensor.scan_period"
+        conv = cls(scan_period=period, scan_period_source=period_source)
         conv._probe_time(cloud, frame_period, source, sensor)
         conv._probe_ring(cloud, source, sensor)
         return conv
@@ -177,6 +210,8 @@ class FieldConventions:
                 self.time_reference = sensor.time_reference  # type: ignore[union-attr]
             if unit_given or reference_given:
                 self.time_tolerance = RELATIVE_SLACK
+            if self.scan_period_source == "frame spacing":
+                self._sweep_duration_from_times(cloud, source)
             log.info("%s: per-point time field %r read in units of %g s (%s; span %.4g s, scan period %.4g s, "
                      "frame period %.4g s), counted from %s", source, cloud.time_field, self.time_unit_s,
                      "sensor.time_unit" if unit_given else "guessed", np.ptp(cloud.time) * self.time_unit_s,
@@ -187,6 +222,23 @@ class FieldConventions:
             log.warning("%s: per-point time field %r is constant: ignored", source, cloud.time_field)
         if want and not self.has_time:
             raise DatasetError(f"{source}: no per-point time field that varies (sensor.has_time is true)")
+
+    def _sweep_duration_from_times(self, cloud: DecodedCloud, source: str) -> None:
+        """Take a full revolution's time span as the sweep duration when the frame spacing disagrees."""
+        span = float(np.ptp(cloud.time)) * self.time_unit_s
+        lo, hi = PLAUSIBLE_SWEEP_S
+        if abs(span / self.scan_period - 1.0) <= SWEEP_SPACING_MISMATCH or not lo <= span <= hi:
+            return
+        coverage = azimuth_coverage(cloud.points)
+        if coverage < FULL_REVOLUTION_COVERAGE:
+            log.info("%s: per-point times span %.4g s against a frame spacing of %.4g s, but the frame covers "
+                     "%.0f %% of the azimuth (a partial sweep): the sweep duration stays the frame spacing",
+                     source, span, self.scan_period, 100.0 * coverage)
+            return
+        log.warning("%s: the per-point times of a full revolution span %.4g s, the frames are %.4g s apart: "
+                    "sweep duration %.4g s taken from the times (set sensor.scan_period to say otherwise)",
+                    source, span, self.scan_period, span)
+        self.scan_period, self.scan_period_source = span, "per-point times"
 
     def _probe_ring(self, cloud: DecodedCloud, source: str, sensor: SensorConfig | None) -> None:
         want = None if sensor is None else sensor.has_ring

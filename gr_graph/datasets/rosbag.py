@@ -110,6 +110,8 @@ class RosbagSequence:
     motion_compensated : bool
         False when the clouds carry per-point times.
     scan_period : float
+        The sweep duration (s): ``sensor.scan_period`` when given, else the spacing of the stamps or
+        a full revolution's per-point time span (:attr:`FieldConventions.scan_period_source`).
     """
 
     def __init__(self, path: str | Path, topic: str | None = None, poses: str | Path | None = None,
@@ -145,8 +147,9 @@ class RosbagSequence:
         self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
-        self.scan_period = frame_period(self.timestamps)
-        self.conventions = FieldConventions.probe(first_cloud, self.scan_period, self._source(probe_index), sensor)
+        self.conventions = FieldConventions.probe(first_cloud, frame_period(self.timestamps), self._source(probe_index),
+                                                  sensor)
+        self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
         self.motion_compensated = self.conventions.motion_compensated
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
