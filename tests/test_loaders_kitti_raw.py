@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from gr_graph.datasets.base import DatasetError
 from gr_graph.datasets.kitti_raw import EARTH_RADIUS_M, KittiRawSequence, parse_kitti_datetime
 from gr_graph.datasets.registry import guess_dataset, open_sequence
+from gr_graph.sensors import SensorConfig
 
 LAT0 = 49.011  # Karlsruhe
 
@@ -110,3 +111,20 @@ def test_oxts_file_too_short(tmp_path: Path) -> None:
     (drive / "oxts" / "data" / "0000000001.txt").write_text("49.0 8.4 110\n")
     with pytest.raises(DatasetError, match=r"oxts/data/0000000001.txt: needs at least 6 finite values"):
         KittiRawSequence(drive)
+
+
+def test_kitti_raw_sweep_duration(tmp_path: Path) -> None:
+    """From the start/end stamps when the drive has them, else the frame spacing; sensor.scan_period wins
+    (before, the sensor section did not reach this loader and the deskewer could not be told)."""
+    drive, _, _, seconds = _fake_drive(tmp_path, 4, with_oxts=False)
+    assert KittiRawSequence(drive, recover_ring_index=False).scan_period == pytest.approx(np.median(np.diff(seconds)))
+    velo = drive / "velodyne_points"
+    t0 = datetime(2011, 9, 26, 13, 2, 25)
+    for name, offset_us in (("timestamps_start.txt", 0), ("timestamps_end.txt", 98_500)):
+        (velo / name).write_text("".join((t0 + timedelta(microseconds=103_712 * k + offset_us)).strftime(
+            "%Y-%m-%d %H:%M:%S.%f") + "000\n" for k in range(4)))
+    assert KittiRawSequence(drive, recover_ring_index=False).scan_period == pytest.approx(0.0985)
+    said = KittiRawSequence(drive, recover_ring_index=False, sensor=SensorConfig(scan_period=0.1))
+    assert said.scan_period == 0.1
+    seq, _ = open_sequence(path=drive, sensor=SensorConfig(scan_period=0.09))
+    assert seq.scan_period == 0.09

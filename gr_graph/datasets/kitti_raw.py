@@ -36,6 +36,7 @@ from gr_graph.datasets.channels import RingIndexer
 from gr_graph.datasets.folder import natural_key
 from gr_graph.datasets.frame_fields import frame_period
 from gr_graph.datasets.kitti import probe_points, read_velodyne_scan
+from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +141,10 @@ class KittiRawSequence:
     point_format : {"xyzi", "xyz"}
     recover_ring_index : bool
         Recover rings as :class:`gr_graph.datasets.kitti.KittiSequence` does.
+    sensor : SensorConfig, optional
+        The ``sensor`` section: its ``scan_period``, when given, is the sweep duration the
+        deskewer uses (else the median of ``timestamps_end - timestamps_start``, else the frame
+        spacing). The drive's HDL-64E fixes everything else.
 
     Attributes
     ----------
@@ -150,9 +155,11 @@ class KittiRawSequence:
     motion_compensated : bool
         False.
     scan_period : float
+        Sweep duration (s): ``sensor.scan_period``, the start/end stamps' median span or the frame spacing.
     """
 
-    def __init__(self, drive: str | Path, point_format: str = "xyzi", recover_ring_index: bool = True) -> None:
+    def __init__(self, drive: str | Path, point_format: str = "xyzi", recover_ring_index: bool = True,
+                 sensor: SensorConfig | None = None) -> None:
         self.drive = Path(drive)
         velo = self.drive / "velodyne_points"
         data = velo / "data"
@@ -186,6 +193,10 @@ class KittiRawSequence:
             starts, ends = read_raw_timestamps(start_path), read_raw_timestamps(end_path)
             if len(starts) == len(ends) == n and np.all(ends > starts):
                 self.scan_period = float(np.median(ends - starts)) * 1e-9
+        if sensor is not None and sensor.scan_period is not None:
+            log.info("%s: sweep duration %.4g s from sensor.scan_period (the drive's stamps say %.4g s)",
+                     self.drive, sensor.scan_period, self.scan_period)
+            self.scan_period = float(sensor.scan_period)
         self.gt_poses: np.ndarray | None = None
         oxts = self.drive / "oxts" / "data"
         if oxts.is_dir():

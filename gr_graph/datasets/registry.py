@@ -214,7 +214,7 @@ def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timesta
         from gr_graph.datasets.kitti_raw import KittiRawSequence
 
         drive = p.parent if p.name == "velodyne_points" else p
-        seq: LidarSequence = KittiRawSequence(drive, point_format=point_format)
+        seq: LidarSequence = KittiRawSequence(drive, point_format=point_format, sensor=sensor)
         source = f"KITTI raw drive {drive}"
     elif kind == "folder":
         from gr_graph.datasets.folder import FolderSequence
