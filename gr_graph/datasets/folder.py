@@ -270,12 +270,8 @@ class FolderSequence:
         pose_times = None
         if pose_path is not None:
             self.gt_poses, pose_times = read_pose_file(pose_path, n)
-        if times_path is not None:
-            self.timestamps = read_timestamps_file(times_path, n)
-        elif pose_times is not None:
-            self.timestamps = pose_times
-        else:
-            self.timestamps = np.arange(n) * DEFAULT_FRAME_PERIOD_S  # until the conventions know the sweep
+        stamps = read_timestamps_file(times_path, n) if times_path is not None else pose_times
+        at_10hz = np.arange(n) * DEFAULT_FRAME_PERIOD_S  # the frames' times when neither they nor the sweep are known
         self.empty_frames: set[int] = set()
         self._read_ahead: dict[int, DecodedCloud] = {}
         probe_index = 0
@@ -284,16 +280,19 @@ class FolderSequence:
             self._read_ahead = {probe_index: first}
             if len(first.points):
                 break
-        self.conventions = FieldConventions.probe(first, frame_period(self.timestamps), str(self.files[probe_index]),
-                                                  sensor)
+        self.conventions = FieldConventions.probe(first, frame_period(at_10hz if stamps is None else stamps),
+                                                  str(self.files[probe_index]), sensor)
         self.scan_period = self.conventions.scan_period
-        if times_path is None and pose_times is None:
-            # no stamps: frames one sweep apart (sensor.scan_period, a full revolution's times, else 10 Hz)
-            self.timestamps = np.arange(n) * self.scan_period
+        if stamps is None:
+            # frames one sweep apart when sensor.scan_period or a full revolution's times say how long one
+            # lasts; else exactly 0.1 s (not the median spacing's rounding: the same times, and data
+            # fingerprint, as before the sweep was known)
+            source = self.conventions.scan_period_source
+            stamps = at_10hz if source == "frame spacing" else np.arange(n) * self.scan_period
             log.warning("%s: no timestamps file (%s): frames taken %.4g s apart (%s)", self.folder,
-                        " / ".join(TIMESTAMP_FILES), self.scan_period,
-                        "the usual 10 Hz" if self.conventions.scan_period_source == "frame spacing"
-                        else self.conventions.scan_period_source)
+                        " / ".join(TIMESTAMP_FILES), float(stamps[1] - stamps[0]) if n > 1 else DEFAULT_FRAME_PERIOD_S,
+                        "the usual 10 Hz" if source == "frame spacing" else source)
+        self.timestamps = stamps
         self.motion_compensated = self.conventions.motion_compensated
 
     @property
