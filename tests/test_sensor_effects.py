@@ -363,6 +363,27 @@ def test_preset_reaches_open_sequence_config_and_cli(monkeypatch, tmp_path):
         SlamConfig(data={"synthetic_preset": "foggy"})
 
 
+def test_open_sequence_renders_only_the_kept_channels(monkeypatch, tmp_path):
+    # fewer channels cast only the kept rings; the frames must be those of every ring rendered and
+    # subsampled (what the registry did before), every field bit for bit, on the kitti world
+    # (moving actors, every sensor effect, per-point times)
+    from gr_graph.datasets.channels import subsample_channels
+    from gr_graph.datasets.registry import KITTI_ROOT_ENV, open_sequence
+
+    monkeypatch.delenv(KITTI_ROOT_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    every_ring = SyntheticSequence(seed=0, preset="raw")
+    for channels in (32, 16):
+        view, desc = open_sequence(channels=channels, frames="5:7", synthetic_preset="raw")
+        assert f"({channels} of 64 beams" in desc  # the renderer casts the kept rings only
+        for k in range(len(view)):
+            got, want = view[k], subsample_channels(every_ring[5 + k], channels)
+            assert (got.index, got.timestamp, got.n_rings) == (want.index, want.timestamp, channels)
+            for field in ("points", "intensity", "ring", "time"):
+                a, b = getattr(got, field), getattr(want, field)
+                assert a.dtype == b.dtype and np.array_equal(a, b), (channels, k, field)
+
+
 def test_vertical_angle_error_is_undone_by_the_published_kitti_correction():
     """KISS-ICP / CT-ICP correct KITTI scans by rotating every point up by ~0.22 deg about
     ``p x z``; applied to our render of flat ground with only the global offset, it restores

@@ -383,8 +383,12 @@ def open_sequence(
         if sensor.model == CUSTOM:
             raise DatasetError("the synthetic sequence renders catalogue sensors only (sensor.model: "
                                "hdl64e, vlp16, os1-64), not a custom sensor")
+        # fewer channels: only the kept rings are cast. Each ray keeps its draws from the full beam
+        # grid, so the frames equal those of every ring rendered and subsampled, bit for bit (tested),
+        # in a third of the time at 16 channels
         synth = SyntheticSequence(seed=synthetic_seed, route_seed=route_seed, trajectory=trajectory,
-                                  preset=synthetic_preset, sensor=sensor.model)
+                                  preset=synthetic_preset, sensor=sensor.model,
+                                  n_rings=n_rings if n_rings < sensor.beams else None)
         base = synth
         source = (
             f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
