@@ -62,6 +62,10 @@ class DataConfig(_Section):
         2, ge=1, description="worker threads reading ahead where a sequence's frames can be made concurrently (the "
         "densified scans of the learning rounds: the network pass of each frame); other sequences read in one. "
         "Changes no result (each frame's densification is seeded by its index)")
+    render_process: bool | None = Field(
+        None, description="synthetic worlds: render the frames in a separate process, ahead of the reads (ray casting "
+        "and the SLAM would otherwise take turns holding Python's GIL); the same frames. None: on when 500 frames or "
+        "more are read. Other sequences ignore it")
     frame_cache: bool | None = Field(
         None, description="keep every frame read in <out>/frames (uncompressed: ~1 MB a 16-channel frame, deleted "
         "when the run ends) so that the learning rounds read it back instead of making it again; None: on for "

@@ -55,8 +55,9 @@ import numpy as np
 from gr_graph.atomic import atomic_write_bytes
 from gr_graph.config import GraphConfig, SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
-from gr_graph.datasets.base import LidarSequence, release_render_cache, velo_to_cam_poses
+from gr_graph.datasets.base import LidarSequence, find_in_chain, release_render_cache, velo_to_cam_poses
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
+from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, UnusableScansError, frames_read_ahead, run_slam
@@ -88,7 +89,7 @@ class ResumeDataError(RuntimeError):
 
 
 #: ``data`` options that change how frames are read, never what is read: in no fingerprint or cache key.
-READ_OPTIONS = {"prefetch", "frame_cache", "read_threads"}
+READ_OPTIONS = {"prefetch", "frame_cache", "read_threads", "render_process"}
 # (section, option) -> the default it had in effect before it existed; at that value it is left out of
 # the round fingerprint
 _ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
@@ -359,6 +360,9 @@ class SlamPipeline:
             previous_poses = poses
         if self.frame_cache is not None:
             metrics["frame_cache"] = self.frame_cache.stats()
+        renderer = find_in_chain(self.sequence, "release_cache")
+        if isinstance(renderer, RenderProcessSequence):  # frames served by it and its peak memory
+            metrics["render_process"] = renderer.stats()
         self.write_final(metrics)
         if not self.keep_frame_cache:
             self.remove_frame_cache()

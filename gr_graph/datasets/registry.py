@@ -35,6 +35,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 KITTI_ROOT_ENV = "GR_GRAPH_KITTI_ROOT"
+
+RENDER_PROCESS_MIN_FRAMES = 500
+"""``render_process=None``: the synthetic sequence renders in a separate process when at least this many
+frames are read (starting the process and building the town there cost seconds; a short read is
+faster in this process, which also keeps its town for the next sequence)."""
 DATASETS = ("auto", "kitti", "kitti_raw", "folder", "rosbag", "synthetic")
 """Values of ``data.dataset`` / ``--dataset``."""
 _DEFAULT_ROOTS = (Path("data/kitti"), Path("~/data/kitti"))
@@ -260,6 +265,7 @@ def open_sequence(
     timestamps: str | os.PathLike[str] | None = None,
     poses: str | os.PathLike[str] | None = None,
     sensor: SensorConfig | str | None = None,
+    render_process: bool | None = False,
 ) -> tuple[LidarSequence, str]:
     """Open a sequence for SLAM: ``path`` of any supported format, else KITTI if a root is given or
     found, else the synthetic sequence.
@@ -310,6 +316,10 @@ def open_sequence(
         sequence renders with its beam model (catalogue models only); a KITTI-layout folder is
         read with its beam count (ring recovery expects ``n_beams`` scan lines). Frames are
         checked against its ``has_ring`` / ``has_time``. The view's ``sensor`` attribute.
+    render_process : bool or None
+        The synthetic sequence: render the frames in a separate process, ahead of the reads
+        (:mod:`gr_graph.datasets.synthetic.render_process`; the same frames); None: when
+        :data:`RENDER_PROCESS_MIN_FRAMES` or more are read. Other sequences ignore it.
 
     Returns
     -------
@@ -390,6 +400,11 @@ def open_sequence(
                                   preset=synthetic_preset, sensor=sensor.model,
                                   n_rings=n_rings if n_rings < sensor.beams else None)
         base = synth
+        start, stop = parse_frames(frames, len(synth))
+        if render_process or (render_process is None and stop - start >= RENDER_PROCESS_MIN_FRAMES):
+            from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
+
+            base = RenderProcessSequence(synth)
         source = (
             f"no KITTI root given or found: using the {synth.preset!r} preset of the synthetic world (ray cast "
             f"along {synth.path.source}, town seed {synthetic_seed}, the {synth.world} world"
@@ -401,7 +416,7 @@ def open_sequence(
             from gr_graph.datasets.kitti import correct_vertical_angle
 
             angle = float(kitti_vertical_correction_deg)
-            base = SequenceView(synth, transform=lambda f: replace(f, points=correct_vertical_angle(f.points, angle)))
+            base = SequenceView(base, transform=lambda f: replace(f, points=correct_vertical_angle(f.points, angle)))
             source += f", vertical-angle correction {angle:g} deg"
     return _view(base, source, frames, sensor, n_rings)
 
@@ -442,4 +457,5 @@ def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0,
                          kitti_vertical_correction_deg=data.kitti_vertical_correction_deg,
                          route_seed=data.route_seed, trajectory=data.trajectory,
                          synthetic_preset=data.synthetic_preset, path=data.path, dataset=data.dataset,
-                         topic=data.topic, timestamps=data.timestamps, poses=data.poses, sensor=sensor)
+                         topic=data.topic, timestamps=data.timestamps, poses=data.poses, sensor=sensor,
+                         render_process=data.render_process)

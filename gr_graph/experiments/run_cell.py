@@ -262,13 +262,17 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
 
 
 def peak_rss_mb() -> float | None:
-    """Peak resident memory of this process so far [MiB] (``getrusage``; None where it is not
-    available): with several cells in one process, the peak of all run so far."""
+    """Peak resident memory of this process so far plus the largest peak of its finished child
+    processes (the synthetic world's render process) [MiB] (``getrusage``; None where it is not
+    available): an upper bound of the memory used at once, as the two peaks need not coincide.
+    With several cells in one process, the peak of all run so far."""
     try:
         import resource
     except ImportError:  # not on Windows
         return None
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    usage = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+             + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    return usage / 1024.0  # KiB on Linux
 
 
 def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "") -> dict[str, Any]:

@@ -237,6 +237,17 @@ class SyntheticSequence:
     def n_rings(self) -> int:
         return self.beams.n_rings
 
+    def __getstate__(self) -> dict:
+        """State for pickling (the render process of :mod:`.render_process`): moving actors built
+        from ``actors_config`` and the actors' albedo table are left out and rebuilt on first use
+        (they hold ray-casting scenes); actors given as an object are kept. The town is never in
+        the state (it lives in the module's cache)."""
+        state = self.__dict__.copy()
+        if self.actors_config is not None:
+            state["_actors"] = None
+        state["_material_albedo"] = None
+        return state
+
     def release_cache(self) -> bool:
         """Drop this sequence's town and ray-casting scene from the cache (about 2 GB on the
         default route), e.g. once a SLAM round has read every frame. The next frame read
