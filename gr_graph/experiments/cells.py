@@ -52,7 +52,7 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # KISS-ICP 227 s before the cache), 64 channels on 64ch-s0 (179 s, 110 s, 581 s, 278 s before the
 # cache). The learning-round and baseline figures are those measurements less what the cache
 # saved per frame on the 16-channel rerun (0.049 s a learning-round frame, 0.081 s a baseline
-# frame; the same 64 beams are rendered at every channel count): measured with the cache only for
+# frame; the same 64 beams were rendered at every channel count until 5df8a2b): measured with the cache only for
 # 16 channels' round 2 and baseline. The 16-channel figure is the mean of rounds 1 and 2 before the
 # cache less that saving (0.281 - 0.049 s; the rerun's round 2 alone: 0.247 s). Training cost hardly depends on the channel
 # count (the network sees a fixed number of points a scan); rendering dominates round 0. (The
@@ -65,10 +65,14 @@ PAPER_REGISTRATION = {16: {"raw": 79.0, "best_step": 83.0}, 32: {"raw": 90.0, "b
 # (frame_loop.SLAM_BLAS_THREADS; rerun alone on 2026-12-04: rounds 1 and 2 181 and 220 s, i.e.
 # 0.134 s a frame; the cell 25.0 min, every figure equal to the record's; its training, unchanged
 # code, was 15 % faster than the run before: part of the gain is the machine's). The other channel
-# counts keep their figures (not rerun).
+# counts keep their figures (not rerun). Round 0 since the loader renders only the kept rings
+# (5df8a2b): the full-route cell rerun on 2026-12-05 (Intel Xeon) took 324 s for round 0 (478 s
+# before; every pose identical), i.e. 0.071 s a 16-channel frame; at 32 channels the render saving
+# per frame (0.031 s, render_channels.md) is taken off the former figure (not rerun). The render
+# process (data.render_process, 0.83x on round 0 of a 1,500-frame window) is not in these figures.
 _S_PER_FRAME: dict[int, dict[str, float]] = {
-    16: {"round0": 0.102, "epoch": 0.090, "round": 0.134, "kiss": 0.064},
-    32: {"round0": 0.107, "epoch": 0.074, "round": 0.249, "kiss": 0.070},
+    16: {"round0": 0.071, "epoch": 0.090, "round": 0.134, "kiss": 0.064},
+    32: {"round0": 0.076, "epoch": 0.074, "round": 0.249, "kiss": 0.070},
     64: {"round0": 0.119, "epoch": 0.074, "round": 0.338, "kiss": 0.104},
 }
 _S_TOWN = 40.0  # building the synthetic town and importing, once a cell
