@@ -565,7 +565,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     import hashlib
 
     keyframes = {"map_keyframe_translation", "map_keyframe_rotation_deg"}
-    d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"}, "training": True,
+    d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
+                                                                    "render_process"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
                                                                       "cluster_size", "min_clusters"},
                                            "odometry": keyframes})
@@ -585,7 +586,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
-    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads"},
+    d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
+                                                                     "render_process"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
                                                       "min_clusters"}, "odometry": keyframes,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
