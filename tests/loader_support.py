@@ -19,6 +19,17 @@ FRAME_PERIOD_S = 0.1
 START_NS = 1_700_000_000_000_000_000
 
 
+def assert_same_frame(a: LidarFrame, b: LidarFrame) -> None:
+    """Two frames agree in every field, bit for bit (arrays and their dtypes; None only where both are)."""
+    assert (a.index, a.timestamp, a.n_rings, a.dropped_nonfinite) == (b.index, b.timestamp, b.n_rings, b.dropped_nonfinite)
+    for name in ("points", "intensity", "ring", "time"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            assert x.dtype == y.dtype, name
+            np.testing.assert_array_equal(x, y, err_msg=name)
+
+
 def write_short_trajectory(path: Path, n_frames: int, speed: float = 8.0) -> Path:
     """A TUM file of ``n_frames`` poses 0.1 s apart along a gentle S-curve at ``speed`` m/s."""
     from gr_graph.trajectory import write_tum_poses

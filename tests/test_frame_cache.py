@@ -14,6 +14,7 @@ from gr_graph.datasets.base import LidarFrame, release_render_cache
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
 from gr_graph.datasets.registry import SequenceView
 from gr_graph.datasets.synthetic import SyntheticSequence
+from loader_support import assert_same_frame
 
 
 class CountingSequence:
@@ -38,16 +39,6 @@ class CountingSequence:
     def __getitem__(self, i: int) -> LidarFrame:
         self.made[i] += 1
         return self.frames[i]
-
-
-def assert_same_frame(a: LidarFrame, b: LidarFrame) -> None:
-    assert (a.index, a.timestamp, a.n_rings, a.dropped_nonfinite) == (b.index, b.timestamp, b.n_rings, b.dropped_nonfinite)
-    for name in ("points", "intensity", "ring", "time"):
-        x, y = getattr(a, name), getattr(b, name)
-        assert (x is None) == (y is None), name
-        if x is not None:
-            assert x.dtype == y.dtype, name
-            np.testing.assert_array_equal(x, y, err_msg=name)
 
 
 def test_frames_read_back_are_bit_identical_and_made_once(tmp_path):

@@ -11,16 +11,8 @@ from gr_graph.datasets.base import DatasetError, LidarFrame, release_render_cach
 from gr_graph.datasets.synthetic import SyntheticSequence
 from gr_graph.datasets.synthetic.actors import ActorsConfig
 from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
+from loader_support import assert_same_frame
 
-FIELDS = ("points", "intensity", "ring", "time")
-
-
-def _same(a: LidarFrame, b: LidarFrame) -> bool:
-    for field in FIELDS:
-        x, y = getattr(a, field), getattr(b, field)
-        if (x is None) != (y is None) or (x is not None and (x.dtype != y.dtype or not np.array_equal(x, y))):
-            return False
-    return (a.index, a.timestamp, a.n_rings) == (b.index, b.timestamp, b.n_rings)
 
 
 class NumberedFrames:
@@ -59,10 +51,10 @@ def test_the_synthetic_worlds_frames_from_the_render_process_are_bit_identical()
     assert wrapped.stats()["frames_from_process"] == len(order) and wrapped.fallback is None
     assert seq._actors is None  # the actors were built in the child only
     for i, frame in zip(order, got):
-        assert _same(frame, seq[i]), i
+        assert_same_frame(frame, seq[i])
     assert release_render_cache(wrapped) is True  # stops the child
     assert wrapped._process is None and wrapped.child_peak_rss_mb > 0
-    assert _same(wrapped[41], seq[41])  # a read after the release starts another child
+    assert_same_frame(wrapped[41], seq[41])  # a read after the release starts another child
     assert wrapped.stats()["frames_from_process"] == len(order) + 1
     wrapped.release_cache()
 
@@ -86,10 +78,10 @@ def test_a_child_that_dies_leaves_the_frames_to_this_process(caplog):
     wrapped._process.join()
     with caplog.at_level(logging.WARNING):
         frame = wrapped[1]
-    assert _same(frame, NumberedFrames()[1])
+    assert_same_frame(frame, NumberedFrames()[1])
     assert "exit code -9" in wrapped.fallback and "rendering in this process" in caplog.text
     assert wrapped.stats()["frames_in_this_process"] == 1 and wrapped.stats()["frames_from_process"] == 1
-    assert _same(wrapped[5], NumberedFrames()[5])  # no new child after a fallback
+    assert_same_frame(wrapped[5], NumberedFrames()[5])  # no new child after a fallback
     assert wrapped._process is None
 
 
@@ -98,7 +90,7 @@ def test_a_sequence_that_cannot_be_pickled_is_rendered_here(caplog):
     seq.transform = lambda f: f  # lambdas do not pickle
     wrapped = RenderProcessSequence(seq)
     with caplog.at_level(logging.WARNING):
-        assert _same(wrapped[7], NumberedFrames()[7])
+        assert_same_frame(wrapped[7], NumberedFrames()[7])
     assert "cannot be sent to a render process" in wrapped.fallback and wrapped._process is None
     assert wrapped.stats()["frames_in_this_process"] == 1
 
@@ -130,7 +122,7 @@ def test_open_sequence_renders_in_a_process_for_long_reads(monkeypatch, tmp_path
     assert RenderProcessSequence in chain(short)
     plain, _ = opened([10, 13], render_process=False)
     for k in range(3):
-        assert _same(short[k], plain[k])
+        assert_same_frame(short[k], plain[k])
     assert release_render_cache(short) is True
     # how frames are made is not what they are: no round's fingerprint changes
     base = load_config(overrides={"data": {"channels": 16}})
