@@ -78,6 +78,7 @@ from gr_graph.round_output import (
     write_round_summary,
 )
 from gr_graph.trajectory import write_kitti_poses
+from training.config import ADDED_TRAIN_OPTIONS
 
 log = logging.getLogger(__name__)
 
@@ -112,8 +113,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
-    options, ``odometry.map_keyframe_*``) count only when they are not at their
-    default, so that rounds finished before the option existed stay finished; ``sensor.time_unit``
+    options, ``odometry.map_keyframe_*``; the trainer's
+    :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default, so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as their former
     defaults (``s``, ``sweep_start``).
     """
@@ -133,6 +134,10 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     for (section, key), default in _ADDED_OPTIONS.items():
         if section in d and d[section].get(key) == default:
             d[section].pop(key)
+    trainer = d.get("training", {}).get("trainer", {})
+    for key, default in ADDED_TRAIN_OPTIONS.items():
+        if trainer.get(key) == default:
+            trainer.pop(key)
     for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed) hashes as the former default
         if d.get("sensor", {}).get(key, before) is None:
             d["sensor"][key] = before

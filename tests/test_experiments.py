@@ -111,6 +111,7 @@ def test_ablation_overrides_reach_the_config():
     assert ab["densify-off-s0"].densify is False and ab["default-s0"].densify is True
     assert ab["densify-adds-s0"].keep_original and ab["densify-adds-s0"].keep_dropped
     assert not (ab["default-s0"].keep_original or ab["default-s0"].keep_dropped)
+    assert ab["student-t-s0"].trainer.corr_likelihood == "student_t" and ab["default-s0"].trainer.corr_likelihood == "gaussian"
     smoke = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "smoke")}
     assert smoke["cholesky-s0"].trainer.net.head == "cholesky" and smoke["cholesky-s0"].trainer.net.c0 == 8
 
@@ -441,6 +442,15 @@ def test_published_report_names_no_path_of_the_machine(tmp_path, monkeypatch):
                         "python -m gr_graph.experiments ablations --root exp", publish=True)
     doc = json.loads(published[1].read_text())
     assert doc["command"] == "python -m gr_graph.experiments ablations --root ROOT"
+    # another budget publishes beside the paper's table, never over it
+    before = published[0].read_bytes()
+    t_cells = [c for c in cells_for("ablations", "student-t") if c.group == "default" and c.seed in (0, 1)]
+    assert all(load_config(None, c.overrides).training.trainer.corr_likelihood == "student_t" for c in t_cells)
+    report.write_report("ablations", "exp", BUDGETS["student-t"], t_cells,
+                        "python -m gr_graph.experiments ablations --budget student-t --root exp", publish=True)
+    assert published[0].read_bytes() == before
+    assert "--budget student-t" in (tmp_path / "published" / "ablations_student-t.md").read_text()
+    assert report.published_name("table1", BUDGETS["paper"]) == "table1"
 
 
 def _write_round_marginals(round_dir, edge_error: float, position_error: float) -> None:
@@ -593,7 +603,13 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")
+    for key in ("corr_likelihood", "corr_dof"):  # the trainer's options added later, likewise
+        d1["training"]["trainer"].pop(key)
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]
+    t = load_config(None, {"training": {"rounds": 2, "trainer": {"corr_likelihood": "student_t"}}})
+    assert round_fingerprint(t, 1) != round_fingerprint(a, 1) and round_fingerprint(t, 0) == round_fingerprint(a, 0)
+    t5 = load_config(None, {"training": {"rounds": 2, "trainer": {"corr_likelihood": "student_t", "corr_dof": 5.0}}})
+    assert round_fingerprint(t5, 1) != round_fingerprint(t, 1)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]
@@ -633,4 +649,4 @@ def test_smoke_cell_end_to_end_through_the_cli(tmp_path, capsys):
     assert "| raw |" in md and "KISS-ICP 1.3.0" in md and "seeds 0" in md
     rep = json.loads((root / "table1" / "report.json").read_text())
     assert rep["summary"]["16ch"]["seeds"] == [0]
-    assert (root / "table1" / "figures" / "table1_trajectories_16ch-s0.png").is_file()
+    assert (root / "table1" / "figures" / "table1_smoke_trajectories_16ch-s0.png").is_file()

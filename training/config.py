@@ -33,10 +33,14 @@ if TYPE_CHECKING:
 
     from training.neighbors import Neighborhoods
 
-__all__ = ["NetConfig", "TrainOptions", "TrainConfig", "TrainConfigError", "RUN_KEYS", "load_train_config"]
+__all__ = ["NetConfig", "TrainOptions", "TrainConfig", "TrainConfigError", "RUN_KEYS", "ADDED_TRAIN_OPTIONS", "load_train_config"]
 
 # TrainConfig keys that belong to one run rather than to the method; gr_graph sets them itself.
 RUN_KEYS = ("epochs", "seed", "device", "progress", "init_checkpoint")
+
+#: trainer options added after runs were published, with their defaults: they count in checkpoint
+#: resume keys and round fingerprints only when not at their default
+ADDED_TRAIN_OPTIONS: dict[str, Any] = {"corr_likelihood": "gaussian", "corr_dof": 4.0}
 
 
 class TrainConfigError(ValueError):
@@ -90,6 +94,10 @@ class TrainOptions(_Strict):
     gamma_rot_std: float = Field(2e-3, gt=0.0, description="std of the pose observation noise, rotation [rad]")
     gamma_trans_std: float = Field(2e-2, gt=0.0, description="std of the pose observation noise, translation [m]")
     corr_reduction: Literal["mean", "sum"] = Field("mean", description="over a pair's correspondences; 'sum' is the paper's")
+    corr_likelihood: Literal["gaussian", "student_t"] = Field(
+        "gaussian", description="distribution of the correspondence residuals: 'gaussian' (the paper's) or 'student_t' "
+        "(heavy-tailed: correspondences on another surface weigh little; training.losses)")
+    corr_dof: float = Field(4.0, gt=0.0, description="degrees of freedom of corr_likelihood 'student_t'")
     max_corr: int = Field(1024, ge=3, description="correspondences per pair used at most (random subset above)")
     min_corr: int = Field(16, ge=3, description="pairs with fewer correspondences are skipped")
     pairs_per_step: int = Field(1, ge=1, description="pairs whose losses are averaged per Adam step (per process)")
@@ -149,6 +157,9 @@ class TrainConfig(TrainOptions):
         d = self.to_dict()
         for k in ("epochs", "progress", "device", "num_threads", "checkpoint_every", "max_skip_fraction"):
             d.pop(k)
+        for k, default in ADDED_TRAIN_OPTIONS.items():  # count only when set: older checkpoints stay resumable
+            if d.get(k) == default:
+                d.pop(k)
         if d.get("init_checkpoint"):  # the starting weights' content, not only their path
             p = Path(d["init_checkpoint"])
             d["init_checkpoint_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None

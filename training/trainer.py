@@ -240,7 +240,7 @@ class Trainer:
         try:
             loss = torch.zeros((), dtype=torch.float64, device=self.device)
             if cfg.lambda_corr > 0:
-                lc = corr_nll(Cq, d, cfg.corr_reduction)
+                lc = corr_nll(Cq, d, cfg.corr_reduction, cfg.corr_likelihood, cfg.corr_dof)
                 loss = loss + cfg.lambda_corr * lc
                 info["corr"] = float(lc.detach())
             if cfg.lambda_pose > 0:

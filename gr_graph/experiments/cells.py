@@ -11,8 +11,10 @@ sensor noise and calibration) and the training (``training.seed``).
 
 Budgets: ``paper`` is the issue's protocol (Table I: 1,500-frame window with a revisit at 16 and
 32 channels, 3 seeds; 64 channels rounds 0-1, 1 seed; the full 4,541-frame 16-channel run;
-Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``smoke`` keeps the structure with tiny
-sizes (a few dozen frames, 2 seeds, 1 epoch, a tiny network) to test the machinery in minutes.
+Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``student-t`` is the same protocol with the
+correspondence NLL a Student t (``training.trainer.corr_likelihood: student_t``, the ``student-t``
+ablation) for every cell; ``smoke`` keeps the structure with tiny sizes (a few dozen frames,
+2 seeds, 1 epoch, a tiny network) to test the machinery in minutes.
 """
 
 from __future__ import annotations
@@ -85,7 +87,7 @@ _S_PAIR: dict[int, float] = {16: 1.3, 32: 1.2, 64: 1.8}
 
 @dataclass(frozen=True)
 class Budget:
-    """Sizes of one budget (see the module docstring)."""
+    """Sizes (and trainer settings) of one budget (see the module docstring)."""
 
     name: str
     window: tuple[int, int]
@@ -99,6 +101,8 @@ class Budget:
 
 BUDGETS: dict[str, Budget] = {
     "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100),
+    "student-t": Budget("student-t", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100,
+                        trainer={"corr_likelihood": "student_t"}),
     "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,
                     trainer={"max_corr": 200, "num_threads": 1,
                              "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16, "c2": 16,
@@ -116,6 +120,8 @@ ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {
     "densify-off": ("densification off (raw scans, learned edge noise)", {"densify": False}, "round1_training"),
     "densify-adds": ("densification that only adds (every point kept, samples added: training.keep_original and "
                      "keep_dropped)", {"keep_original": True, "keep_dropped": True}, "round1_training"),
+    "student-t": ("correspondence likelihood a Student t (4 degrees of freedom) instead of the paper's Gaussian "
+                  "(training.trainer.corr_likelihood)", {"trainer": {"corr_likelihood": "student_t"}}, "round0"),
 }
 
 

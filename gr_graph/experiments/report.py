@@ -1,5 +1,6 @@
 """The report of a table: markdown + JSON in ``ROOT/<table>/`` (and, with ``publish``, in
-``benchmarks/results/<table>.md`` with its figures in ``benchmarks/results/figures/``).
+``benchmarks/results/<table>.md`` with its figures in ``benchmarks/results/figures/``; another
+budget than ``paper`` publishes ``<table>_<budget>.md``, figures prefixed likewise).
 
 Every report states the exact command, the seeds, the budget (cells, frames, seeds, estimated
 and measured time), the machine, which cells are missing, and the conventions of
@@ -20,7 +21,7 @@ from gr_graph.experiments.records import RecordSet, read_records, write_records
 from gr_graph.provenance import machine_line
 from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, cell_dir, read_cell_result, with_noise_consistency
 
-__all__ = ["write_report", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
+__all__ = ["write_report", "published_name", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
 RESULTS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
@@ -233,24 +234,24 @@ def _ablations_md(summary: dict[str, Any]) -> list[str]:
 
 
 def _figures(table: str, root: Path, cells: list[Cell], results: dict[str, dict[str, Any]],
-             summary: dict[str, Any], device: str) -> dict[str, Path]:
+             summary: dict[str, Any], device: str, stem: str) -> dict[str, Path]:
     from gr_graph.experiments import figures as fig
 
     out: dict[str, Path] = {}
     fdir = root / table / "figures"
     if table == "table1":
-        p = fig.plot_rpe_over_rounds(summary, fdir / "table1_rpe_over_rounds.png")
+        p = fig.plot_rpe_over_rounds(summary, fdir / f"{stem}_rpe_over_rounds.png")
         if p is not None:
             out["error over rounds (RPE-300, ATE)"] = p
         for c in cells:
             if c.key in results and c.seed == cells[0].seed:
-                p = fig.plot_round_trajectories(cell_dir(root, c), fdir / f"table1_trajectories_{c.key}.png",
+                p = fig.plot_round_trajectories(cell_dir(root, c), fdir / f"{stem}_trajectories_{c.key}.png",
                                                 title=f"{c.what}: each round against ground truth")
                 if p is not None:
                     out[f"trajectories {c.key}"] = p
         c32 = next((c for c in cells if c.channels == 32 and c.key in results), None)
         if c32 is not None:
-            p = _raw_vs_densified(root, c32, fdir / "table1_raw_vs_densified_32ch.png", device)
+            p = _raw_vs_densified(root, c32, fdir / f"{stem}_raw_vs_densified_32ch.png", device)
             if p is not None:
                 out["raw vs densified 32-channel scan"] = p
     return out
@@ -284,6 +285,11 @@ TITLES = {"table1": "Table I: trajectory error over learning rounds, gr_graph vs
           "ablations": "Ablations: what the self-supervised learning contributes (16 channels)"}
 
 
+def published_name(table: str, budget: Budget) -> str:
+    """File stem of a published table: ``table1`` for the paper budget, ``table1_student-t`` for another."""
+    return table if budget.name == "paper" else f"{table}_{budget.name}"
+
+
 def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell], command: str,
                  publish: bool = False, device: str = "cpu", records_dir: str | Path | None = None) -> Path:
     """Aggregate the finished cells of ``table``; write ``ROOT/<table>/report.md`` and
@@ -313,7 +319,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         summary = agg.ablation_summary(res_list)
         lines += _ablations_md(summary)
     lines += _runtime_md(cells, results)
-    figs = _figures(table, root, cells, local, summary, device)  # pictures need the cells' files
+    figs = _figures(table, root, cells, local, summary, device, published_name(table, budget))  # needs the cells' files
     md_dir = root / table
     pub_dir = RESULTS_DIR
     fig_lines = list(figs.items())
@@ -338,8 +344,9 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
             shutil.copyfile(p, pub_dir / "figures" / p.name)
-        atomic_write_text(pub_dir / f"{table}.md", "\n".join(pub_header + lines + fig_md) + "\n")
-        atomic_write_json(pub_dir / f"{table}.json",
+        name = published_name(table, budget)
+        atomic_write_text(pub_dir / f"{name}.md", "\n".join(pub_header + lines + fig_md) + "\n")
+        atomic_write_json(pub_dir / f"{name}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
         publish_records(root, budget, cells, local)
     return md

@@ -148,6 +148,35 @@ def test_bad_config_is_rejected():
         TrainConfig.from_dict({"corr_reduction": "median"})
 
 
+def test_student_t_correspondence_likelihood_reaches_the_loss(memory_dir, tmp_path):
+    """``corr_likelihood: student_t`` makes a pair's correspondence term the t's (losses.corr_nll, checked
+    against scipy there); the options enter the checkpoint resume key only when set."""
+    from training.losses import corr_nll
+
+    mem = load_memory(memory_dir)
+    terms = {}
+    for name, kw in {"gaussian": {}, "t4": {"corr_likelihood": "student_t"},
+                     "t9": {"corr_likelihood": "student_t", "corr_dof": 9.0}}.items():
+        tr = Trainer(mem, tmp_path / name, _cfg(lambda_pose=0.0, **kw))
+        sample = tr.dataset.sample(1, epoch=0)
+        with torch.no_grad():
+            C = tr.forward(sample)
+            _, info = tr.pair_loss(sample, C)
+        T = torch.as_tensor(sample.T_hat)
+        d = torch.as_tensor(sample.q_corr) - torch.as_tensor(sample.p_corr) @ T[:3, :3].T - T[:3, 3]
+        Cq = C.to(torch.float64)[torch.as_tensor(sample.q_index)]
+        want = corr_nll(Cq, d, "mean", tr.config.corr_likelihood, tr.config.corr_dof).item()
+        assert info["corr"] == pytest.approx(want, rel=1e-12)
+        terms[name] = info["corr"]
+        key = tr.config.resume_key()
+        assert ("corr_likelihood" in key) == (name != "gaussian") and ("corr_dof" in key) == (name == "t9")
+    assert len({round(v, 9) for v in terms.values()}) == 3
+    with pytest.raises(TrainConfigError, match="corr_likelihood: Input should be 'gaussian' or 'student_t'"):
+        TrainConfig.from_dict({"corr_likelihood": "cauchy"})
+    with pytest.raises(TrainConfigError, match="corr_dof"):
+        TrainConfig.from_dict({"corr_likelihood": "student_t", "corr_dof": 0})
+
+
 def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
     mem = _memory(n_scans=3)
     # edge 2: no correspondences; edge 3: correspondences on 20 collinear-ish points only
