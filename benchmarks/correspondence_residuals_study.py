@@ -16,7 +16,7 @@ target point (``gr_graph.densify.surface_orientation`` of the PCA covariance of 
 
 Run::
 
-    python benchmarks/correspondence_residuals_study.py RUN [--model LABEL=PATH ...] [--edges 60] [--write]
+    python benchmarks/correspondence_residuals_study.py RUN [RUN ...] [--model LABEL=PATH ...] [--edges 60] [--write]
 
 ``RUN``: a ``gr_graph.slam`` output folder (``config.yaml``, ``round_0/memory``). ``--write``
 writes ``benchmarks/results/correspondence_residuals.md`` and ``.json`` (several runs: call once with
@@ -159,8 +159,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path, help="gr_graph.slam output folders (round_0/memory is read)")
     ap.add_argument("--model", action="append", default=[], metavar="LABEL=PATH",
-                    help="a trained network to compare, e.g. gaussian=RUN/round_1/training/model.pt; "
-                         "a relative PATH is read inside each RUN")
+                    help="a trained network to compare, e.g. gaussian=round_1/training/model.pt: a relative "
+                         "PATH is read inside each RUN, {seed} becomes the run's seed")
     ap.add_argument("--edges", type=int, default=60, help="edges sampled per run (default 60)")
     ap.add_argument("--write", action="store_true",
                     help="write benchmarks/results/correspondence_residuals.md and .json")
@@ -171,9 +171,13 @@ def main(argv: list[str] | None = None) -> None:
         if not sep or not label or not path:
             ap.error(f"--model {spec!r}: expected LABEL=PATH")
         models[label] = Path(path)
+    from gr_graph.config import load_config
+
     results = []
     for run in args.runs:
-        resolved = {lab: (p if p.is_absolute() else run / p) for lab, p in models.items()}
+        seed = load_config(run / "config.yaml").seed
+        resolved = {lab: Path(str(p).replace("{seed}", str(seed))) for lab, p in models.items()}
+        resolved = {lab: (p if p.is_absolute() else run / p) for lab, p in resolved.items()}
         for lab, p in resolved.items():
             if not p.is_file():
                 raise FileNotFoundError(f"{p}: no network {lab!r} for {run}")
