@@ -31,7 +31,6 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
 CLASS_NAMES = {1: "horizontal", 2: "vertical", 3: "oblique", 0: "no normal"}
 AXES = ("normal", "tangent", "other")
 
@@ -184,13 +183,9 @@ def main(argv: list[str] | None = None) -> None:
         results.append(study(run, resolved, args.edges))
     command = ("python benchmarks/correspondence_residuals_study.py " + " ".join(str(r) for r in args.runs)
                + "".join(f" --model {s}" for s in args.model) + f" --edges {args.edges}")
-    text = markdown(results, command)
-    print(text)
-    if args.write:
-        from gr_graph.atomic import atomic_write_json, atomic_write_text
+    from results_io import print_and_write
 
-        atomic_write_text(RESULTS / "correspondence_residuals.md", text + "\n")
-        atomic_write_json(RESULTS / "correspondence_residuals.json", {"command": command, "results": results})
+    print_and_write("correspondence_residuals", markdown(results, command), {"command": command, "results": results}, args.write)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
 CLASS_NAMES = {1: "horizontal", 2: "vertical", 3: "oblique", 0: "no normal"}
 
 
@@ -132,13 +131,9 @@ def main(argv: list[str] | None = None) -> None:
     results = [study(r, args.round, args.scans) for r in args.runs]
     command = (f"python benchmarks/densify_filter_study.py {' '.join(str(r) for r in args.runs)} --round {args.round} "
                f"--scans {args.scans}")
-    text = markdown(results, command)
-    print(text)
-    if args.write:
-        from gr_graph.atomic import atomic_write_json, atomic_write_text
+    from results_io import print_and_write
 
-        atomic_write_text(RESULTS / "densify_filter.md", text + "\n")
-        atomic_write_json(RESULTS / "densify_filter.json", {"command": command, "results": results})
+    print_and_write("densify_filter", markdown(results, command), {"command": command, "results": results}, args.write)
 
 
 if __name__ == "__main__":

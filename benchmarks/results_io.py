@@ -1,0 +1,23 @@
+"""Writing a study's result beside the others: ``benchmarks/results/<name>.md`` and ``.json``.
+
+Shared by the benchmark and study scripts (run as ``python benchmarks/<script>.py``, so this folder
+is on ``sys.path``); the files are written atomically (``gr_graph.atomic``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def print_and_write(name: str, text: str, document: dict[str, Any], write: bool) -> None:
+    """Print the markdown ``text``; with ``write``, also store it as ``results/<name>.md`` and
+    ``document`` as ``results/<name>.json``."""
+    print(text)
+    if write:
+        from gr_graph.atomic import atomic_write_json, atomic_write_text
+
+        atomic_write_text(RESULTS / f"{name}.md", text + "\n")
+        atomic_write_json(RESULTS / f"{name}.json", document)
