@@ -114,7 +114,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
     options, ``odometry.map_keyframe_*``; the trainer's
-    :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default, so that rounds finished before the option existed stay finished; ``sensor.time_unit``
+    :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
+    so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as their former
     defaults (``s``, ``sweep_start``).
     """
