@@ -122,6 +122,8 @@ ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {
                      "keep_dropped)", {"keep_original": True, "keep_dropped": True}, "round1_training"),
     "student-t": ("correspondence likelihood a Student t (4 degrees of freedom) instead of the paper's Gaussian "
                   "(training.trainer.corr_likelihood)", {"trainer": {"corr_likelihood": "student_t"}}, "round0"),
+    "student-t-8ep": ("the Student t trained 8 epochs a round instead of 3", {"epochs": 8,
+                      "trainer": {"corr_likelihood": "student_t"}}, "round0"),
 }
 
 
@@ -246,7 +248,7 @@ def ablation_cells(budget: Budget) -> list[Cell]:
     for s in budget.seeds:
         for name, (what, training, reuse) in ABLATIONS.items():
             rounds = 2
-            epochs = 0 if training.get("covariances") == "pca" or training.get("epochs") == 0 else budget.epochs
+            epochs = 0 if training.get("covariances") == "pca" else training.get("epochs", budget.epochs)
             est = estimate_slam_minutes(w[1] - w[0], 16, rounds, epochs, False)
             if reuse is not None:  # round 0 reused (the town is still built)
                 est -= (w[1] - w[0]) * _S_PER_FRAME[16]["round0"] / 60.0
