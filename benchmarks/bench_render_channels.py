@@ -22,17 +22,14 @@ from __future__ import annotations
 import argparse
 import resource
 import time
-from pathlib import Path
 
 import numpy as np
 
-from gr_graph.atomic import atomic_write_json, atomic_write_text
 from gr_graph.datasets.channels import subsample_channels
 from gr_graph.datasets.registry import open_sequence
 from gr_graph.datasets.synthetic import SyntheticSequence
 from gr_graph.provenance import machine_line
 
-RESULTS = Path(__file__).resolve().parent / "results"
 FIELDS = ("points", "intensity", "ring", "time")
 
 
@@ -96,11 +93,9 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {r['channels']} | {r['median_ms']['every ring']:.1f} | {r['median_ms']['kept rings']:.1f} | "
                      f"{r['ratio_median']:.2f} | {r['frames_differing']} of {args.frames} | {r['mean_points']:.0f} |")
     lines += ["", f"Peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0:.0f} MB."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.write:
-        atomic_write_text(RESULTS / "render_channels.md", text)
-        atomic_write_json(RESULTS / "render_channels.json", {"machine": machine_line(), "rows": rows})
+    from results_io import print_and_write
+
+    print_and_write("render_channels", "\n".join(lines), {"machine": machine_line(), "rows": rows}, args.write)
     return 1 if any(r["frames_differing"] for r in rows) else 0
 
 

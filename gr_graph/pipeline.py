@@ -91,14 +91,15 @@ class ResumeDataError(RuntimeError):
 
 #: ``data`` options that change how frames are read, never what is read: in no fingerprint or cache key.
 READ_OPTIONS = {"prefetch", "frame_cache", "read_threads", "render_process"}
-# (section, option) -> the default it had in effect before it existed; at that value it is left out of
-# the round fingerprint
-_ADDED_OPTIONS: dict[tuple[str, str], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
+# path of an option (sections, then its key) -> the default it had in effect before it existed; at that
+# value it is left out of the round fingerprint
+_ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
                                               ("graph", "registration_covariance"): "scaled_hessian",
                                               **{("graph", k): GraphConfig.model_fields[k].default
                                                  for k in ("cluster_size", "min_clusters")},
                                               ("odometry", "map_keyframe_translation"): 0.0,
-                                              ("odometry", "map_keyframe_rotation_deg"): 0.0}
+                                              ("odometry", "map_keyframe_rotation_deg"): 0.0,
+                                              **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
 
 # sensor options whose default became None (guessed from the data) after runs were published: None
 # hashes as the value the default was, so that rounds finished before stay finished
@@ -132,13 +133,12 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
 
             d["weights_sha256"] = weights_sha256(tc.weights)
             d["fine_tune"] = tc.fine_tune
-    for (section, key), default in _ADDED_OPTIONS.items():
-        if section in d and d[section].get(key) == default:
-            d[section].pop(key)
-    trainer = d.get("training", {}).get("trainer", {})
-    for key, default in ADDED_TRAIN_OPTIONS.items():
-        if trainer.get(key) == default:
-            trainer.pop(key)
+    for (*sections, key), default in _ADDED_OPTIONS.items():
+        node = d
+        for section in sections:
+            node = node.get(section, {})
+        if node.get(key) == default:
+            node.pop(key)
     for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed) hashes as the former default
         if d.get("sensor", {}).get(key, before) is None:
             d["sensor"][key] = before

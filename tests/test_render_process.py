@@ -14,7 +14,6 @@ from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
 from loader_support import assert_same_frame
 
 
-
 class NumberedFrames:
     """A small picklable sequence: frame i holds i + 1 points; ``broken`` frames raise DatasetError."""
 

@@ -319,7 +319,8 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         summary = agg.ablation_summary(res_list)
         lines += _ablations_md(summary)
     lines += _runtime_md(cells, results)
-    figs = _figures(table, root, cells, local, summary, device, published_name(table, budget))  # needs the cells' files
+    name = published_name(table, budget)
+    figs = _figures(table, root, cells, local, summary, device, name)  # pictures need the cells' files
     md_dir = root / table
     pub_dir = RESULTS_DIR
     fig_lines = list(figs.items())
@@ -344,7 +345,6 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
             shutil.copyfile(p, pub_dir / "figures" / p.name)
-        name = published_name(table, budget)
         atomic_write_text(pub_dir / f"{name}.md", "\n".join(pub_header + lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{name}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
