@@ -113,6 +113,8 @@ def test_ablation_overrides_reach_the_config():
     assert not (ab["default-s0"].keep_original or ab["default-s0"].keep_dropped)
     assert ab["student-t-s0"].trainer.corr_likelihood == "student_t" and ab["default-s0"].trainer.corr_likelihood == "gaussian"
     assert ab["student-t-8ep-s0"].epochs == 8 and ab["student-t-8ep-s0"].trainer.corr_likelihood == "student_t"
+    t8 = {c.key: load_config(None, c.overrides).training for c in cells_for("table1", "student-t-8ep")}
+    assert t8["16ch-s0"].epochs == 8 and t8["16ch-s0"].trainer.corr_likelihood == "student_t"
     est = {c.key: c.est_minutes for c in cells_for("ablations", "paper")}
     assert est["student-t-8ep-s0"] > est["student-t-s0"] > est["untrained-s0"]  # the estimate counts the epochs
     smoke = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "smoke")}
