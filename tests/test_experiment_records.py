@@ -38,6 +38,7 @@ def _report(monkeypatch, tmp_path, root_results: dict, cells, records_dir=None, 
     monkeypatch.setattr(report, "RESULTS_DIR", tmp_path / "published")
     monkeypatch.setattr(report, "read_cell_result", lambda root, c: root_results.get(c.key))
     monkeypatch.setattr(report, "with_noise_consistency", lambda root, c, r: r)  # the results carry it
+    monkeypatch.setattr(report, "with_short_range_rpe", lambda root, c, r: r)
     return report.write_report("ablations", tmp_path / "root", BUDGETS["paper"], cells, "cmd", publish=publish,
                                records_dir=records_dir).read_text()
 
@@ -135,6 +136,7 @@ def test_publish_records_writes_records_and_leaves_the_table(tmp_path, monkeypat
     monkeypatch.setattr(report, "RESULTS_DIR", tmp_path / "published")
     monkeypatch.setattr(report, "read_cell_result", lambda r, c: res if c.key == c0.key else None)
     monkeypatch.setattr(report, "with_noise_consistency", lambda r, c, x: x)
+    monkeypatch.setattr(report, "with_short_range_rpe", lambda r, c, x: x)
     assert cli.main(["ablations", "--root", str(root), "--publish-records"]) == 0
     assert capsys.readouterr().out.strip() == str(record_path(tmp_path / "published" / "cells", "paper", c0))
     rec = json.loads(record_path(tmp_path / "published" / "cells", "paper", c0).read_text())

@@ -521,6 +521,55 @@ def test_reports_carry_nees_of_every_round_from_the_marginals(tmp_path, monkeypa
     assert t1["default"]["steps"]["1-step"]["nees_position_mean"]["mean"] == pytest.approx(4.0)
 
 
+def _write_round_poses(path, y_offsets) -> None:
+    """KITTI poses along x, 1 m a frame, moved by ``y_offsets`` [m] sideways."""
+    from gr_graph.trajectory import write_kitti_poses
+
+    T = np.stack([np.eye(4)] * len(y_offsets))
+    T[:, 0, 3] = np.arange(len(y_offsets), dtype=float)
+    T[:, 1, 3] = y_offsets
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_kitti_poses(path, T)
+
+
+def test_reports_carry_short_range_rpe_of_every_round_from_the_poses(tmp_path, monkeypatch):
+    # round 0 drifts 1 cm a frame sideways: RPE-1 0.01 m, RPE-10 0.10 m; round 1 jitters +-1 cm around
+    # the truth: RPE-1 0.02 m (worse), RPE-10 0 (frames 10 apart share the sign: better); round 2 has no poses
+    cells = [c for c in cells_for("ablations", "paper") if c.group == "default" and c.seed in (0, 1)]
+    k = np.arange(14)
+    res = {}
+    for c in cells:
+        res[c.seed] = _t1_result(c.seed, [0.40, 0.30, 0.20], [True, True], group="default")
+        res[c.seed]["what"] = "default method, 16 channels"
+        slam = rc.cell_dir(tmp_path, c) / "slam"
+        _write_round_poses(slam / "gt_poses_kitti.txt", np.zeros(len(k)))
+        _write_round_poses(slam / "round_0" / "poses_kitti.txt", 0.01 * k)
+        _write_round_poses(slam / "round_1" / "poses_kitti.txt", 0.01 * (-1.0) ** k)
+    got = rc.with_short_range_rpe(tmp_path, cells[0], res[0])
+    assert got["rounds"]["0"]["short_range"] == pytest.approx({"rpe1_all_pairs_mean": 0.01, "rpe10_all_pairs_mean": 0.1})
+    assert got["rounds"]["1"]["short_range"] == pytest.approx({"rpe1_all_pairs_mean": 0.02, "rpe10_all_pairs_mean": 0.0},
+                                                              abs=1e-12)
+    assert got["rounds"]["2"]["short_range"] == dict.fromkeys(rc.SHORT_RANGE_KEYS)  # no poses: None, no failure
+    assert "short_range" not in res[0]["rounds"]["0"]  # the cell's result is not changed
+    (rc.cell_dir(tmp_path, cells[1]) / "slam" / "gt_poses_kitti.txt").write_text("1 2 3\n")  # damaged truth
+    broken = rc.with_short_range_rpe(tmp_path, cells[1], res[1])
+    assert all(v["short_range"] == dict.fromkeys(rc.SHORT_RANGE_KEYS) for v in broken["rounds"].values())
+    _write_round_poses(rc.cell_dir(tmp_path, cells[1]) / "slam" / "gt_poses_kitti.txt", np.zeros(len(k)))
+    s = agg.ablation_summary([rc.with_short_range_rpe(tmp_path, c, res[c.seed]) for c in cells])["default"]
+    one = s["steps"]["1-step"]
+    assert one["reduction_rpe1_all_pairs_mean"]["values"] == pytest.approx([-100.0, -100.0])
+    assert one["reduction_rpe10_all_pairs_mean"]["values"] == pytest.approx([100.0, 100.0])
+    assert s["steps"]["2-step"]["rpe1_all_pairs_mean"]["n"] == 0
+    t1 = agg.table1_summary([rc.with_short_range_rpe(tmp_path, c, res[c.seed]) for c in cells])["default"]
+    assert t1["steps"]["1-step"]["rpe1_all_pairs_mean"]["mean"] == pytest.approx(0.02)
+    monkeypatch.setattr(report, "_figures", lambda *a, **k: {})
+    monkeypatch.setattr(report, "read_cell_result", lambda root, c: res[c.seed])
+    md = report.write_report("ablations", tmp_path, BUDGETS["paper"], cells, "cmd").read_text()
+    assert "## Short-range accuracy (RPE over 1 and 10 frames)" in md
+    assert "| round 0 (all) | raw | 0.0100 ± 0.0000 | 0.1000 ± 0.0000 |  |  |" in md
+    assert "| default | 1-step | 0.0200 ± 0.0000 | 0.0000 ± 0.0000 | -100.0 ± 0.0 % | 100.0 ± 0.0 % |" in md
+
+
 def test_acceptance_count_judges_against_the_last_accepted_round():
     # round 1 rejected and worse than round 0; round 2 better than round 1 but still worse than
     # round 0 (the test's reference): worse; an equal round brings nothing: worse

@@ -22,10 +22,11 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from gr_graph.experiments.cells import PAPER_REDUCTIONS, PAPER_REGISTRATION
-from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS
+from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS
 
 __all__ = ["mean_std", "reduction_percent", "select_round", "table1_summary", "table2_summary",
-           "ablation_summary", "fmt_ms", "round_nees", "STEPS", "METRIC_LABELS", "NEES_LABELS", "NEES_IDEAL"]
+           "ablation_summary", "fmt_ms", "round_diagnostics", "STEPS", "METRIC_LABELS", "NEES_LABELS", "NEES_IDEAL",
+           "SHORT_RANGE_LABELS", "DIAGNOSTIC_KEYS"]
 
 STEPS = ("raw", "1-step", "2-step", "2-step guarded")
 METRIC_LABELS = {
@@ -36,6 +37,9 @@ METRIC_LABELS = {
     "ate_rmse": "ATE RMSE [m]",
     "kitti_t_err_percent": "KITTI [%]",
 }
+SHORT_RANGE_LABELS = {"rpe1_all_pairs_mean": "RPE-1 mean [m]", "rpe10_all_pairs_mean": "RPE-10 mean [m]"}
+#: figures computed from a round's files when a report is written (noise consistency, short-range RPE)
+DIAGNOSTIC_KEYS = NEES_KEYS + SHORT_RANGE_KEYS
 NEES_LABELS = {"nees_odometry_mean": "odometry edges", "nees_loop_mean": "loop edges",
                "nees_position_mean": "marginal positions", "odometry_path_error_percent": "odometry path error [%]"}
 #: Smallest gap to the baseline that counts, as a fraction of the baseline's own mean value: gaps
@@ -88,10 +92,20 @@ def select_round(rounds: dict[str, Any], step: str) -> tuple[int | None, str | N
     return earlier[-1], f"round {want} not run (the run stopped after round {earlier[-1]}, e.g. converged)"
 
 
-def round_nees(cell: dict[str, Any], r: int | None) -> dict[str, float | None]:
-    """The mean NEES figures (:data:`NEES_KEYS`) of round ``r`` of ``cell`` (None where absent)."""
-    nees = (cell["rounds"].get(str(r), {}).get("nees") or {}) if r is not None else {}
-    return {k: nees.get(k) for k in NEES_KEYS}
+def round_diagnostics(cell: dict[str, Any], r: int | None) -> dict[str, float | None]:
+    """The mean NEES figures (:data:`NEES_KEYS`) and the short-range RPE (:data:`SHORT_RANGE_KEYS`)
+    of round ``r`` of ``cell`` (None where absent)."""
+    rnd = cell["rounds"].get(str(r), {}) if r is not None else {}
+    nees, short = rnd.get("nees") or {}, rnd.get("short_range") or {}
+    return {**{k: nees.get(k) for k in NEES_KEYS}, **{k: short.get(k) for k in SHORT_RANGE_KEYS}}
+
+
+def _reductions(cell: dict[str, Any], fig: dict[str, Any], diagnostics: dict[str, Any]) -> dict[str, float | None]:
+    """Per-seed reduction [%] against the cell's round 0 of every metric and short-range RPE."""
+    raw = cell["rounds"].get("0", {}).get("slam", {})
+    raw_short = round_diagnostics(cell, 0)
+    return {**{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k)) for k in METRIC_KEYS},
+            **{f"reduction_{k}": reduction_percent(raw_short.get(k), diagnostics.get(k)) for k in SHORT_RANGE_KEYS}}
 
 
 def fmt_ms(d: dict[str, Any] | None, fmt: str = "{:.3f}", pct: bool = False) -> str:
@@ -129,15 +143,15 @@ def table1_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
             for c in cells:
                 r, note = select_round(c["rounds"], step)
                 fig = c["rounds"][str(r)]["slam"] if r is not None else {}
-                raw = c["rounds"]["0"]["slam"]
-                per_seed.append({"seed": c["definition"]["seed"], "round": r, **fig, **round_nees(c, r),
-                                 **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k)) for k in METRIC_KEYS}})
+                diag = round_diagnostics(c, r)
+                per_seed.append({"seed": c["definition"]["seed"], "round": r, **fig, **diag,
+                                 **_reductions(c, fig, diag)})
                 if note:
                     notes.append(f"seed {c['definition']['seed']}: {note}")
             steps[step] = {"per_seed": per_seed, "notes": notes,
-                           **{k: mean_std(p.get(k) for p in per_seed) for k in METRIC_KEYS + NEES_KEYS},
+                           **{k: mean_std(p.get(k) for p in per_seed) for k in METRIC_KEYS + DIAGNOSTIC_KEYS},
                            **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
-                              for k in METRIC_KEYS}}
+                              for k in METRIC_KEYS + SHORT_RANGE_KEYS}}
         kiss = [c.get("kiss_icp") for c in cells if c.get("kiss_icp")]
         out[g] = {"channels": ch, "seeds": [c["definition"]["seed"] for c in cells],
                   "frames": cells[0]["definition"]["frames"], "steps": steps,
@@ -217,10 +231,9 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
             for seed, c in sorted(cells.items()):
                 r, note = select_round(c["rounds"], step)
                 fig = c["rounds"][str(r)]["slam"] if r is not None else {}
-                raw = c["rounds"].get("0", {}).get("slam", {})
-                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig, **round_nees(c, r),
-                                       **{f"reduction_{k}": reduction_percent(raw.get(k), fig.get(k))
-                                          for k in METRIC_KEYS}}
+                diag = round_diagnostics(c, r)
+                row: dict[str, Any] = {"seed": seed, "round": r, "note": note, **fig, **diag,
+                                       **_reductions(c, fig, diag)}
                 b = base.get(seed)
                 if b is not None:
                     rb, _ = select_round(b["rounds"], step)
@@ -230,9 +243,9 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                                             else fig[k] - bfig[k])
                 per_seed.append(row)
             entry: dict[str, Any] = {"per_seed": per_seed, **{k: mean_std(p.get(k) for p in per_seed)
-                                                              for k in METRIC_KEYS + NEES_KEYS},
+                                                              for k in METRIC_KEYS + DIAGNOSTIC_KEYS},
                                      **{f"reduction_{k}": mean_std(p.get(f"reduction_{k}") for p in per_seed)
-                                        for k in METRIC_KEYS}}
+                                        for k in METRIC_KEYS + SHORT_RANGE_KEYS}}
             for k in METRIC_KEYS:
                 diff = mean_std(p.get(f"diff_{k}") for p in per_seed)
                 vals = diff["values"]

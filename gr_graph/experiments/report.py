@@ -19,7 +19,8 @@ from gr_graph.experiments import aggregate as agg
 from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
 from gr_graph.experiments.records import RecordSet, read_records, write_records
 from gr_graph.provenance import machine_line
-from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, cell_dir, read_cell_result, with_noise_consistency
+from gr_graph.experiments.run_cell import (METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS, cell_dir, read_cell_result,
+                                          with_noise_consistency, with_short_range_rpe)
 
 __all__ = ["write_report", "published_name", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
@@ -98,6 +99,7 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
                       f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
                       f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
         lines.append("")
+        lines += _short_range_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
         lines += _nees_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
     return lines
 
@@ -154,6 +156,27 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
                          f"{'best step %.0f' % paper['best_step'] if paper else ''} |")
     lines.append("")
     return lines
+
+
+def _short_range_md(rows: list[tuple[str, str, dict[str, Any]]], heading: str = "##") -> list[str]:
+    """The short-range accuracy table: per (name, step, step summary) the mean translational RPE over
+    1 and 10 frames ± std over seeds, and its reduction against round 0."""
+    if not any(d.get(k, {}).get("n") for _, _, d in rows for k in SHORT_RANGE_KEYS):
+        return []
+    lines = [f"{heading} Short-range accuracy (RPE over 1 and 10 frames)", "",
+             "Mean translational RPE of the SLAM trajectory over every pair of frames 1 and 10 apart (frame-to-frame "
+             "registration, local maps), then mean ± std over seeds; reduction against the same seed's round 0 "
+             "(positive = better). RPE-300 measures drift; a round can reduce drift and still register "
+             "consecutive frames worse.", "",
+             "| run | step | " + " | ".join(agg.SHORT_RANGE_LABELS[k] for k in SHORT_RANGE_KEYS) + " | "
+             + " | ".join(f"reduction {agg.SHORT_RANGE_LABELS[k].split(' [')[0]}" for k in SHORT_RANGE_KEYS) + " |",
+             "|---|---|" + "---|" * (2 * len(SHORT_RANGE_KEYS))]
+    for name, step, d in rows:
+        reductions = [("" if step == "raw" else agg.fmt_ms(d.get(f"reduction_{k}"), "{:.1f}", pct=True))
+                      for k in SHORT_RANGE_KEYS]
+        lines.append(f"| {name} | {step} | " + " | ".join(agg.fmt_ms(d.get(k), "{:.4f}") for k in SHORT_RANGE_KEYS)
+                     + " | " + " | ".join(reductions) + " |")
+    return lines + [""]
 
 
 def _nees_md(rows: list[tuple[str, str, dict[str, Any]]], heading: str = "##") -> list[str]:
@@ -220,8 +243,10 @@ def _ablations_md(summary: dict[str, Any]) -> list[str]:
                          + " | ".join(agg.fmt_ms(d[k]) for k in keys) + " | " + " | ".join(diffs) + " |")
         lines.append("")
     first = next(iter(summary), None)  # every cell of a seed shares round 0: its row once
-    lines += _nees_md([("round 0 (all)" if step == "raw" else name, step, d) for name, s in summary.items()
-                       for step, d in s["steps"].items() if step != "raw" or name == first])
+    rows = [("round 0 (all)" if step == "raw" else name, step, d) for name, s in summary.items()
+            for step, d in s["steps"].items() if step != "raw" or name == first]
+    lines += _short_range_md(rows)
+    lines += _nees_md(rows)
     reuse = {n: s["reuse"] for n, s in summary.items() if any(v for v in s["reuse"].values())}
     if reuse:
         lines += ["Reuse: " + "; ".join(f"{n} seed {seed}: {r.get('copied') or r.get('note')}"
@@ -353,8 +378,10 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
 
 
 def local_results(root: str | Path, cells: list[Cell]) -> dict[str, dict[str, Any]]:
-    """The cells finished in ``root`` (key -> ``cell.json`` with the noise consistency of every round)."""
-    return {c.key: with_noise_consistency(root, c, r) for c in cells if (r := read_cell_result(root, c)) is not None}
+    """The cells finished in ``root`` (key -> ``cell.json`` with the noise consistency and the short-range
+    RPE of every round)."""
+    return {c.key: with_short_range_rpe(root, c, with_noise_consistency(root, c, r))
+            for c in cells if (r := read_cell_result(root, c)) is not None}
 
 
 def publish_records(root: str | Path, budget: Budget, cells: list[Cell],

@@ -43,7 +43,7 @@ from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METRIC_KEYS", "NEES_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done",
+__all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done",
            "run_cell", "prune_cell", "prune_finished", "round_figures", "with_noise_consistency"]
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
@@ -51,6 +51,10 @@ METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all
 #: mean NEES per run of the odometry edges, loop edges and marginal positions (ideal 6, 6, 3), and
 #: the odometry's path length against ground truth in percent (ideal 0)
 NEES_KEYS = ("nees_odometry_mean", "nees_loop_mean", "nees_position_mean", "odometry_path_error_percent")
+#: short-range accuracy of a round's SLAM trajectory: the mean translational RPE over every pair of
+#: frames 1 and 10 apart [m] (frame-to-frame registration and local maps; RPE-300 measures drift)
+SHORT_RANGE_DELTAS = (1, 10)
+SHORT_RANGE_KEYS = tuple(f"rpe{d}_all_pairs_mean" for d in SHORT_RANGE_DELTAS)
 CELL_JSON = "cell.json"
 DEFINITION_JSON = "definition.json"
 
@@ -139,6 +143,41 @@ def with_noise_consistency(root: str | Path, cell: Cell, result: dict[str, Any])
                            "nees_loop_mean": nc["edges"]["loop"]["mean"],
                            "nees_position_mean": nc["position"]["mean"],
                            "odometry_path_error_percent": nc["edges"]["odometry"].get("path_error_percent")}
+    return out
+
+
+def with_short_range_rpe(root: str | Path, cell: Cell, result: dict[str, Any]) -> dict[str, Any]:
+    """``result`` (a SLAM cell's ``cell.json``) with ``rounds[r]["short_range"]``: the mean
+    translational RPE of the round's SLAM poses over every pair of frames 1 and 10 apart
+    (:data:`SHORT_RANGE_KEYS`, from ``slam/round_<r>/poses_kitti.txt`` and
+    ``slam/gt_poses_kitti.txt``, which pruning keeps).
+
+    Computed when a report is written, so cells finished before it existed get it too; a round
+    whose poses are missing or unreadable gets None values (logged), never a failed report."""
+    from gr_graph.metrics import rpe_translation
+    from gr_graph.trajectory import read_kitti_poses
+
+    if cell.kind != "slam":
+        return result
+    out = {**result, "rounds": {r: dict(v) for r, v in result.get("rounds", {}).items()}}
+    slam = cell_dir(root, cell) / "slam"
+    try:
+        gt = read_kitti_poses(slam / "gt_poses_kitti.txt")
+    except Exception as exc:  # a diagnostic: a missing or damaged file must not cost the report
+        log.warning("%s/%s: no short-range RPE (%s: %s)", cell.table, cell.key, type(exc).__name__, exc)
+        gt = None
+    for r, figures in out["rounds"].items():
+        figures["short_range"] = dict.fromkeys(SHORT_RANGE_KEYS)
+        if gt is None:
+            continue
+        try:
+            poses = read_kitti_poses(slam / f"round_{r}" / "poses_kitti.txt")
+            for d, k in zip(SHORT_RANGE_DELTAS, SHORT_RANGE_KEYS):
+                figures["short_range"][k] = rpe_translation(poses, gt, delta=d, all_pairs=True).mean
+        except Exception as exc:
+            log.warning("%s/%s round %s: no short-range RPE (%s: %s)", cell.table, cell.key, r,
+                        type(exc).__name__, exc)
+            figures["short_range"] = dict.fromkeys(SHORT_RANGE_KEYS)
     return out
 
 
