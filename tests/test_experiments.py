@@ -115,6 +115,12 @@ def test_ablation_overrides_reach_the_config():
     assert ab["student-t-8ep-s0"].epochs == 8 and ab["student-t-8ep-s0"].trainer.corr_likelihood == "student_t"
     t8 = {c.key: load_config(None, c.overrides).training for c in cells_for("table1", "student-t-8ep")}
     assert t8["16ch-s0"].epochs == 8 and t8["16ch-s0"].trainer.corr_likelihood == "student_t"
+    assert not (t8["16ch-s0"].keep_original or t8["16ch-s0"].keep_dropped)
+    t8a = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "student-t-8ep-adds")}
+    assert t8a["default-s0"].epochs == 8 and t8a["default-s0"].trainer.corr_likelihood == "student_t"
+    assert t8a["default-s0"].keep_original and t8a["default-s0"].keep_dropped
+    # a cell's own trainer settings merge with the budget's
+    assert t8a["cholesky-s0"].trainer.net.head == "cholesky" and t8a["cholesky-s0"].trainer.corr_likelihood == "student_t"
     est = {c.key: c.est_minutes for c in cells_for("ablations", "paper")}
     assert est["student-t-8ep-s0"] > est["student-t-s0"] > est["untrained-s0"]  # the estimate counts the epochs
     smoke = {c.key: load_config(None, c.overrides).training for c in cells_for("ablations", "smoke")}

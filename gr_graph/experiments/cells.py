@@ -14,7 +14,8 @@ Budgets: ``paper`` is the issue's protocol (Table I: 1,500-frame window with a r
 Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``student-t`` is the same protocol with the
 correspondence NLL a Student t (``training.trainer.corr_likelihood: student_t``, the ``student-t``
 ablation) for every cell; ``student-t-8ep`` the same with 8 training epochs a round instead of 3
-(the ``student-t-8ep`` ablation); ``smoke`` keeps the structure with tiny sizes (a few dozen frames,
+(the ``student-t-8ep`` ablation); ``student-t-8ep-adds`` that with densification that only adds
+(``training.keep_original`` and ``keep_dropped``: every point kept, the samples added); ``smoke`` keeps the structure with tiny sizes (a few dozen frames,
 2 seeds, 1 epoch, a tiny network) to test the machinery in minutes.
 """
 
@@ -88,7 +89,8 @@ _S_PAIR: dict[int, float] = {16: 1.3, 32: 1.2, 64: 1.8}
 
 @dataclass(frozen=True)
 class Budget:
-    """Sizes (and trainer settings) of one budget (see the module docstring)."""
+    """Sizes (and training settings) of one budget (see the module docstring); ``training``: overrides of
+    the ``training`` section for every cell (nested ``trainer`` keys merge with a cell's own)."""
 
     name: str
     window: tuple[int, int]
@@ -97,19 +99,22 @@ class Budget:
     seeds: tuple[int, ...]
     epochs: int
     n_pairs: int
-    trainer: dict[str, Any] = field(default_factory=dict)
+    training: dict[str, Any] = field(default_factory=dict)
 
 
 BUDGETS: dict[str, Budget] = {
     "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100),
     "student-t": Budget("student-t", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100,
-                        trainer={"corr_likelihood": "student_t"}),
+                        training={"trainer": {"corr_likelihood": "student_t"}}),
     "student-t-8ep": Budget("student-t-8ep", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=8,
-                            n_pairs=100, trainer={"corr_likelihood": "student_t"}),
+                            n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"}}),
+    "student-t-8ep-adds": Budget("student-t-8ep-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2),
+                                 epochs=8, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
+                                                                  "keep_original": True, "keep_dropped": True}),
     "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,
-                    trainer={"max_corr": 200, "num_threads": 1,
-                             "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16, "c2": 16,
-                                     "kw": 8}}),
+                    training={"trainer": {"max_corr": 200, "num_threads": 1,
+                                          "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16,
+                                                  "c2": 16, "kw": 8}}}),
 }
 
 ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {
@@ -187,15 +192,14 @@ def _slam_overrides(budget: Budget, seed: int, channels: int, frames: tuple[int,
     # convergence stop (a 2-step cell computes round 2 even when round 1 barely moved)
     tr: dict[str, Any] = {"rounds": rounds, "seed": seed, "epochs": budget.epochs, "stop_on_reject": False,
                           "convergence_delta": 0.0}
-    if budget.trainer:
-        tr["trainer"] = json.loads(json.dumps(budget.trainer))
-    for k, v in (training or {}).items():
-        if k == "trainer":
-            t = tr.setdefault("trainer", {})
-            for kk, vv in v.items():
-                t[kk] = {**t.get(kk, {}), **vv} if isinstance(vv, dict) else vv
-        else:
-            tr[k] = v
+    for overrides in (json.loads(json.dumps(budget.training)), training or {}):  # the budget's, then the cell's
+        for k, v in overrides.items():
+            if k == "trainer":
+                t = tr.setdefault("trainer", {})
+                for kk, vv in v.items():
+                    t[kk] = {**t.get(kk, {}), **vv} if isinstance(vv, dict) else vv
+            else:
+                tr[k] = v
     return {"seed": seed, "data": {"seq": "00", "channels": channels, "frames": list(frames),
                                    "synthetic_preset": "kitti"},
             "training": tr}
