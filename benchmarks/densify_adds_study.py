@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_io import change_percent  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results"
 METRICS = ("ate_rmse", "rpe300_all_pairs_mean", "rpe300_consecutive_mean", "kitti_t_err_percent")
 
@@ -95,10 +98,7 @@ def table(rows: list[dict]) -> str:
         lines += ["", f"Change against round 0 (negative = better), mean ± std over {len(rows)} seeds (sample std):", "",
                   "| step | ATE RMSE | RPE-300 all pairs | RPE-300 consec. | KITTI |", "|---|---|---|---|---|"]
         for name, key in (("1-step, paper (replace)", "default"), ("1-step, only adds", "adds")):
-            cells = []
-            for m in METRICS:
-                v = np.array([100 * (row[key][m] / row["round0"][m] - 1) for row in rows])
-                cells.append(f"{v.mean():+.1f} ± {v.std(ddof=1):.1f} %")
+            cells = [change_percent([row[key][m] for row in rows], [row["round0"][m] for row in rows]) for m in METRICS]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

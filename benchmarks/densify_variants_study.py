@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import print_and_write  # noqa: E402
+from results_io import change_percent, print_and_write  # noqa: E402
 
 DELTAS = (1, 10, 100, 300)
 KEYS = tuple(f"rpe{d}" for d in DELTAS) + ("ate_rmse",)
@@ -113,10 +113,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                   "|" + "---|" * (len(KEYS) + 2)]
         for lb in labels:
             mine = [r for r in rows if r["label"] == lb]
-            cells = []
-            for k in KEYS:
-                v = np.array([100 * (r["figures"][k] / r["round0"][k] - 1) for r in mine])
-                cells.append(f"{v.mean():+.1f} ± {v.std(ddof=1):.1f} %" if len(v) > 1 else f"{v[0]:+.1f} %")
+            cells = [change_percent([r["figures"][k] for r in mine], [r["round0"][k] for r in mine]) for k in KEYS]
             lines.append(f"| {lb} | {len(mine)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -21,3 +21,12 @@ def print_and_write(name: str, text: str, document: dict[str, Any], write: bool)
 
         atomic_write_text(RESULTS / f"{name}.md", text + "\n")
         atomic_write_json(RESULTS / f"{name}.json", document)
+
+
+def change_percent(values: list[float] | tuple[float, ...], reference: list[float] | tuple[float, ...]) -> str:
+    """``+m ± s %``: the per-run change of ``values`` against ``reference`` in percent, mean ± sample
+    std over the runs (one run: the change alone, no spread)."""
+    import numpy as np
+
+    v = 100.0 * (np.asarray(values, float) / np.asarray(reference, float) - 1.0)
+    return f"{v.mean():+.1f} ± {v.std(ddof=1):.1f} %" if len(v) > 1 else f"{v[0]:+.1f} %"
