@@ -426,7 +426,7 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
             raise ValueError(f"{p}: a config file must hold a mapping of sections")
         data = loaded
     if overrides:
-        data = _merge(data, overrides)
+        data = merge_config(data, overrides)
     try:
         return SlamConfig.model_validate(data)
     except ValidationError as exc:
@@ -434,11 +434,13 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         raise ConfigError(describe_validation_error(exc, SlamConfig, what=source)) from None
 
 
-def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+def merge_config(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """``a`` with ``b`` laid over it, nested sections merged key by key (neither input is changed;
+    values only in ``b`` are taken as they are)."""
     out = dict(a)
     for k, v in b.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
+            out[k] = merge_config(out[k], v)
         else:
             out[k] = v
     return out

@@ -15,16 +15,20 @@ Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``student-t`` is the same 
 correspondence NLL a Student t (``training.trainer.corr_likelihood: student_t``, the ``student-t``
 ablation) for every cell; ``student-t-8ep`` the same with 8 training epochs a round instead of 3
 (the ``student-t-8ep`` ablation); ``student-t-8ep-adds`` that with densification that only adds
-(``training.keep_original`` and ``keep_dropped``: every point kept, the samples added); ``smoke`` keeps the structure with tiny sizes (a few dozen frames,
-2 seeds, 1 epoch, a tiny network) to test the machinery in minutes.
+(``training.keep_original`` and ``keep_dropped``: every point kept, the samples added); ``smoke``
+keeps the structure with tiny sizes (a few dozen frames, 2 seeds, 1 epoch, a tiny network) to test
+the machinery in minutes.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
+
+from gr_graph.config import merge_config
 
 __all__ = ["Budget", "BUDGETS", "Cell", "TABLES", "cells_for", "table1_cells", "table2_cells", "ablation_cells",
            "PAPER_REDUCTIONS", "PAPER_REGISTRATION", "TABLE1_WINDOW", "ABLATION_WINDOW", "ABLATIONS",
@@ -192,14 +196,7 @@ def _slam_overrides(budget: Budget, seed: int, channels: int, frames: tuple[int,
     # convergence stop (a 2-step cell computes round 2 even when round 1 barely moved)
     tr: dict[str, Any] = {"rounds": rounds, "seed": seed, "epochs": budget.epochs, "stop_on_reject": False,
                           "convergence_delta": 0.0}
-    for overrides in (json.loads(json.dumps(budget.training)), training or {}):  # the budget's, then the cell's
-        for k, v in overrides.items():
-            if k == "trainer":
-                t = tr.setdefault("trainer", {})
-                for kk, vv in v.items():
-                    t[kk] = {**t.get(kk, {}), **vv} if isinstance(vv, dict) else vv
-            else:
-                tr[k] = v
+    tr = copy.deepcopy(merge_config(merge_config(tr, budget.training), training or {}))  # the budget's, then the cell's
     return {"seed": seed, "data": {"seq": "00", "channels": channels, "frames": list(frames),
                                    "synthetic_preset": "kitti"},
             "training": tr}

@@ -99,8 +99,8 @@ def _table1_md(summary: dict[str, Any], acceptance: bool) -> list[str]:
                       f"& better {a['accepted_better']}, accepted & worse {a['accepted_worse']}, rejected & "
                       f"better {a['rejected_better']}, rejected & worse {a['rejected_worse']}."]
         lines.append("")
-        lines += _short_range_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
-        lines += _nees_md([(g, step, d) for step, d in s["steps"].items()], heading="###")
+        rows = [(g, step, d) for step, d in s["steps"].items()]
+        lines += _short_range_md(rows, heading="###") + _nees_md(rows, heading="###")
     return lines
 
 

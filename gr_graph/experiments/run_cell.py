@@ -43,8 +43,9 @@ from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir", "read_cell_result", "is_done",
-           "run_cell", "prune_cell", "prune_finished", "round_figures", "with_noise_consistency"]
+__all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir",
+           "read_cell_result", "is_done", "run_cell", "prune_cell", "prune_finished", "round_figures",
+           "with_noise_consistency", "with_short_range_rpe"]
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
                "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
