@@ -11,10 +11,14 @@ samples added), and compares the rounds' accuracy at every scale: the mean trans
 ``run`` copies ``round_0`` (with its memory: the acceptance test reads the raw scans there) from
 ``BASE_RUN`` and the network's training folder (``checkpoint.pt``, trained with the settings of
 ``BASE_RUN/config.yaml`` plus the ``--set`` options, so it resumes as finished: no retraining)
-into ``OUT``, and runs round 1 there with the ``--set`` options::
+into ``OUT``, and runs round 1 there with the ``--set`` options. Without ``--training-dir`` the
+network is a finished ``model.pt`` used as it is (``--set weights=PATH --set fine_tune=false``:
+the harness's cells keep ``model.pt`` but prune ``checkpoint.pt``)::
 
     python benchmarks/densify_variants_study.py run BASE_RUN OUT --training-dir DIR \\
         [--set tau_ani=0] [--set keep_original=true ...]
+    python benchmarks/densify_variants_study.py run BASE_RUN OUT --set weights=MODEL_PT --set fine_tune=false \\
+        [--set keep_original=true ...]
     python benchmarks/densify_variants_study.py report LABEL=RUN [LABEL=RUN ...] [--write]
 
 ``report`` takes runs labelled ``LABEL`` (several runs of one label: one per seed; the label
@@ -49,7 +53,7 @@ def _parse_value(text: str) -> Any:
     return yaml.safe_load(text)
 
 
-def run(base_run: Path, out: Path, training_dir: Path, settings: dict[str, Any]) -> None:
+def run(base_run: Path, out: Path, training_dir: Path | None, settings: dict[str, Any]) -> None:
     """Round 1 of ``base_run``'s configuration with ``settings`` in its ``training`` section, in ``out``."""
     import yaml
 
@@ -58,12 +62,17 @@ def run(base_run: Path, out: Path, training_dir: Path, settings: dict[str, Any])
 
     if not (base_run / "round_0" / "memory").is_dir():
         raise FileNotFoundError(f"{base_run}: needs round_0/memory (a run whose memories are not pruned)")
-    if not (training_dir / "checkpoint.pt").is_file():
+    if training_dir is None:
+        if settings.get("weights") is None or settings.get("fine_tune", True):
+            raise ValueError("without --training-dir give the network as --set weights=MODEL_PT --set fine_tune=false")
+        if not Path(settings["weights"]).is_file():
+            raise FileNotFoundError(f"{settings['weights']}: no such model file (weights)")
+    elif not (training_dir / "checkpoint.pt").is_file():
         raise FileNotFoundError(f"{training_dir}: no checkpoint.pt (a finished training folder)")
     out.mkdir(parents=True, exist_ok=True)
     if not (out / "round_0").is_dir():
         shutil.copytree(base_run / "round_0", out / "round_0")
-    if not (out / "round_1" / "training").is_dir():
+    if training_dir is not None and not (out / "round_1" / "training").is_dir():
         shutil.copytree(training_dir, out / "round_1" / "training")
     cfg = yaml.safe_load((base_run / "config.yaml").read_text())
     cfg["training"]["rounds"] = 1
@@ -124,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("run")
     r.add_argument("base_run", type=Path)
     r.add_argument("out", type=Path)
-    r.add_argument("--training-dir", type=Path, required=True, help="a finished training folder (checkpoint.pt)")
+    r.add_argument("--training-dir", type=Path, default=None,
+                   help="a finished training folder (checkpoint.pt); without it --set weights=MODEL_PT fine_tune=false")
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a training option (dots for nested keys: trainer.corr_likelihood=student_t)")
     p = sub.add_parser("report")

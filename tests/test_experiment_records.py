@@ -159,3 +159,36 @@ def test_cells_refuse_to_run_on_a_kitti_root_found_on_the_machine(tmp_path, monk
     monkeypatch.setenv("GR_GRAPH_KITTI_ROOT", str(tmp_path / "kitti"))
     with pytest.raises(RuntimeError, match="run on the synthetic world"):
         rc._require_synthetic(cfg, cell)
+
+
+def test_every_published_record_matches_its_cell_and_the_cells_pin_the_training_they_were_run_with():
+    """The records in ``benchmarks/results/cells`` count only while their fingerprints equal the cells'
+    (a changed library default must not silently change what a published cell means, nor orphan it)."""
+    from pathlib import Path
+
+    from gr_graph.experiments.cells import CELL_TRAINING_PINS, TABLES
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "cells"
+    records = sorted(root.glob("*/*/*.json"))
+    if not records:
+        pytest.skip(f"no published records under {root}")
+    stale = []
+    for path in records:
+        budget, table = path.parent.parent.name, path.parent.name
+        assert budget in BUDGETS and table in TABLES, path
+        cells = {c.key: c for c in cells_for(table, budget)}
+        doc = json.loads(path.read_text())
+        if cells[doc["key"]].fingerprint() != doc["fingerprint"]:
+            stale.append(str(path.relative_to(root)))
+    assert not stale, f"records whose cell changed: {stale}"
+    # every SLAM cell states the pinned training explicitly, the paper budget's at the pinned (paper) values
+    paper = [c for t in ("table1", "ablations") for c in cells_for(t, "paper")]
+    default = next(c for c in paper if c.key == "default-s0")
+    tr = default.overrides["training"]
+    assert tr["trainer"]["corr_likelihood"] == CELL_TRAINING_PINS["trainer"]["corr_likelihood"] == "gaussian"
+    assert tr["keep_original"] is tr["keep_dropped"] is False
+    adds = next(c for c in cells_for("table1", "student-t-8ep-adds") if c.key == "16ch-s0")
+    assert adds.overrides["training"]["keep_original"] is True
+    # a pin that differs from the pinned value changes the fingerprint
+    changed = dataclasses.replace(default, overrides={**default.overrides, "training": {**tr, "keep_dropped": True}})
+    assert changed.fingerprint() != default.fingerprint()
