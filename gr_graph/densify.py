@@ -17,13 +17,12 @@ cached. Same ``len``, ``timestamps``, ``gt_poses`` and ``T_cam_velo`` as the inp
    (``training.densify.densify``), with the generator seeded by ``(seed, frame index)``,
    so a frame is the same whenever, and in whatever order, it is read.
 
-**The kept points themselves are not included** by default (the paper's S+ holds only the
-samples); ``training.keep_original: true`` adds them. **The points the filter drops are
-dropped** by default too (the paper's Algorithm 2); ``training.keep_dropped: true`` keeps them
-unchanged, so that with both options the scan keeps every point and gains the samples
-(densification that adds, never removes, structure). Intensity: every output point inherits
-the intensity of its source point (the raw point nearest to the downsampled point); ``ring``
-is None.
+**By default the scan keeps every point and gains the samples** (``training.keep_original`` and
+``training.keep_dropped`` true: densification that adds, never removes, structure; the default since
+2026-12-05, measured in the README's Results). The paper's Algorithm 2 (both false) does not include
+the kept points themselves (its S+ holds only their samples) and drops the points the filter drops.
+Intensity: every output point inherits the intensity of its source point (the raw point nearest to
+the downsampled point); ``ring`` is None.
 
 Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.fallbacks`,
 ``{frame index: reason}``; :meth:`DensifiedSequence.stats` counts them):

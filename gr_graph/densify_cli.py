@@ -35,7 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     t, pre = TrainingConfig(), PreprocessConfig()
     p = make_parser("gr-densify",
                     "Densify one point cloud (Algorithm 2): a trained network predicts a covariance per point; "
-                    "points with anisotropy above --tau-ani are each replaced by --samples samples of N(s, C). "
+                    "points with anisotropy above --tau-ani each gain --samples samples of N(s, C) (by default every "
+                    "point is kept too; --no-keep-original --no-keep-dropped: the paper's, the samples replace the "
+                    "anisotropic points and the others are dropped). "
                     "The cloud is first preprocessed like a SLAM scan (range crop around the origin, voxel "
                     "downsampling), which is the network's training input.",
                     EXAMPLES)
@@ -49,9 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"anisotropy threshold: keep points with 1 - l_min/l_max > A (default: {t.tau_ani})")
     p.add_argument("--samples", type=int, default=None, metavar="M",
                    help=f"samples ~ N(s, C) per kept point (default: {t.samples_per_point})")
-    p.add_argument("--keep-original", action="store_true", help="also write the kept points themselves")
-    p.add_argument("--keep-dropped", action="store_true",
-                   help="also write the points the anisotropy filter drops, unchanged")
+    p.add_argument("--keep-original", action=argparse.BooleanOptionalAction, default=None,
+                   help=f"also write the kept points themselves (default: {t.keep_original}; the paper: no)")
+    p.add_argument("--keep-dropped", action=argparse.BooleanOptionalAction, default=None,
+                   help=f"also write the points the anisotropy filter drops, unchanged (default: {t.keep_dropped}; "
+                        "the paper: no)")
     p.add_argument("--covariances", default=None, metavar="FILE.npy",
                    help="also write the (M, 3, 3) covariance of every output point [m^2]")
     p.add_argument("--ply-covariances", action="store_true",
@@ -88,8 +92,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     points, intensity = read_cloud(args.input, args.point_format)
     try:
         res = densify_cloud(points, args.weights, intensity=intensity, tau_ani=args.tau_ani,
-                            samples_per_point=args.samples, keep_original=args.keep_original or None,
-                            keep_dropped=args.keep_dropped or None, seed=args.seed, device=args.device, preprocess=pre)
+                            samples_per_point=args.samples, keep_original=args.keep_original,
+                            keep_dropped=args.keep_dropped, seed=args.seed, device=args.device, preprocess=pre)
     except (ValueError, FloatingPointError) as exc:
         raise ValueError(f"{args.input}: {exc}") from None
     C = res.covariances

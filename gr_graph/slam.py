@@ -41,7 +41,7 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.config import SlamConfig, config_to_yaml, load_config
+from gr_graph.config import PAPER_TRAINING, SlamConfig, config_to_yaml, load_config, merge_config
 from gr_graph.datasets.registry import DATASETS, parse_frames
 
 
@@ -107,6 +107,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--densify", action="store_true",
                    help="with --weights: exactly one learning round, which densifies with the weights as they "
                         "are, without training")
+    p.add_argument("--paper-method", action="store_true",
+                   help="learning rounds with the paper's Gaussian correspondence likelihood and densification "
+                        "(samples replace the anisotropic points, the others are dropped) instead of the defaults "
+                        "(a Student t; every point kept, the samples added); see the README's 'Defaults that are "
+                        "not the paper's'")
     add_out(p, f"output directory (default: {d.output.out_dir})")
     add_seed(p, f"seed of the synthetic data and of the learning rounds: sets seed and training.seed "
                 f"(default: {d.seed})", default=None)
@@ -181,6 +186,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         if args.rounds not in (None, 1):
             raise ValueError(f"--densify runs exactly one learning round (--rounds {args.rounds} given)")
         o["training"]["rounds"] = 1
+    if args.paper_method:
+        o["training"] = merge_config(o["training"], PAPER_TRAINING)
     if args.out is not None:
         o["output"]["out_dir"] = args.out
     if args.device is not None:

@@ -164,6 +164,15 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"graph": {"registration_covariance": "cluster_robust"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--map-keyframe", "0.1", "1"]))
     assert o == {"odometry": {"map_keyframe_translation": 0.1, "map_keyframe_rotation_deg": 1.0}}
+    # --paper-method: the paper's Gaussian NLL and densification instead of the defaults, merged with the rest
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--paper-method", "--rounds", "2"]))
+    assert o == {"training": {"rounds": 2, "keep_original": False, "keep_dropped": False,
+                              "trainer": {"corr_likelihood": "gaussian"}}}
+    from gr_graph.config import load_config
+
+    paper, default = load_config(None, o).training, load_config(None, {"training": {"rounds": 2}}).training
+    assert (paper.trainer.corr_likelihood, paper.keep_original, paper.keep_dropped) == ("gaussian", False, False)
+    assert (default.trainer.corr_likelihood, default.keep_original, default.keep_dropped) == ("student_t", True, True)
     # the old spelling still works, hidden, and says which one to use
     assert slam.build_parser().parse_args(["--quiet"]).no_progress is True
     assert "--quiet is deprecated, use --no-progress" in capsys.readouterr().err

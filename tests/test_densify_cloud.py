@@ -82,6 +82,10 @@ def pcd_file(tmp_path_factory) -> Path:
     return path
 
 
+#: the paper's Algorithm 2 (the samples replace the anisotropic points, the others are dropped), not the default
+PAPER = {"keep_original": False, "keep_dropped": False}
+
+
 def _median_anisotropy(model_path: Path, points: np.ndarray) -> float:
     s = preprocess_scan(points, PreprocessConfig()).points
     return float(np.median(anisotropy(predict_covariances(model_path, s, seed=0))))
@@ -90,7 +94,7 @@ def _median_anisotropy(model_path: Path, points: np.ndarray) -> float:
 def test_densify_cloud_is_algorithm_2_on_the_preprocessed_cloud(model_path: Path) -> None:
     pts, inten = street_cloud()
     tau = _median_anisotropy(model_path, pts)  # about half the points pass
-    res = densify_cloud(pts, model_path, intensity=inten, tau_ani=tau, samples_per_point=3, seed=2)
+    res = densify_cloud(pts, model_path, intensity=inten, tau_ani=tau, samples_per_point=3, seed=2, **PAPER)
     # independent reference: preprocessing, the network, the filter, per-point Gaussians
     s = preprocess_scan(pts, PreprocessConfig()).points
     C = predict_covariances(load_model(model_path), s, seed=2)
@@ -114,13 +118,13 @@ def test_densify_cloud_is_algorithm_2_on_the_preprocessed_cloud(model_path: Path
     assert (tied & (inten[j] == res.intensity[:, None])).any(1).all()
     assert tied[:, 1].mean() < 0.5  # the check above has teeth: most points have one nearest raw point
     # same as frame 0 of the pipeline's densified view with the same settings
-    cfg = TrainingConfig(tau_ani=tau, samples_per_point=3, seed=2)
+    cfg = TrainingConfig(tau_ani=tau, samples_per_point=3, seed=2, **PAPER)
     view = densified_sequence(OneFrame(pts, inten), model_path, cfg)
     np.testing.assert_array_equal(view[0].points, res.points)
     # deterministic; another seed samples differently
-    np.testing.assert_array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=2).points,
+    np.testing.assert_array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=2, **PAPER).points,
                                   res.points)
-    assert not np.array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=3).points,
+    assert not np.array_equal(densify_cloud(pts, model_path, tau_ani=tau, samples_per_point=3, seed=3, **PAPER).points,
                               res.points)
 
 
@@ -142,10 +146,10 @@ def test_gr_densify_pcd_to_ply_with_covariances(model_path: Path, pcd_file: Path
     assert len(pts) == len(street_cloud()[0]) and inten is not None
     out, cov = tmp_path / "dense.ply", tmp_path / "dense_cov.npy"
     argv = [str(pcd_file), str(out), "--weights", str(model_path), "--tau-ani", "0.0", "--samples", "2",
-            "--covariances", str(cov), "--ply-covariances", "--seed", "1"]
+            "--covariances", str(cov), "--ply-covariances", "--seed", "1", "--no-keep-original", "--no-keep-dropped"]
     assert densify_main(argv) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    ref = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.0, samples_per_point=2, seed=1)
+    ref = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.0, samples_per_point=2, seed=1, **PAPER)
     assert summary["input_points"] == len(pts) and summary["kept_points"] == ref.n_kept
     assert summary["output_points"] == 2 * ref.n_kept == len(ref.points)
     # the PLY as open3d reads it (legacy reader: positions only; tensor reader: the properties)
@@ -162,14 +166,16 @@ def test_gr_densify_pcd_to_ply_with_covariances(model_path: Path, pcd_file: Path
 
 def test_gr_densify_keep_dropped_and_original_adds_samples_to_every_point(model_path: Path, pcd_file: Path,
                                                                           tmp_path: Path, capsys) -> None:
-    """``--keep-original --keep-dropped``: the network's whole input comes back, plus M samples per
-    point above the anisotropy threshold (the same samples as without the flags)."""
+    """By default (``--keep-original --keep-dropped``) the network's whole input comes back, plus M samples
+    per point above the anisotropy threshold (the same samples as the paper's densification draws)."""
     pts, inten = read_cloud(pcd_file)
-    out = tmp_path / "dense.npy"
+    out, out_flags = tmp_path / "dense.npy", tmp_path / "dense_flags.npy"
     argv = [str(pcd_file), str(out), "--weights", str(model_path), "--tau-ani", "0.5", "--samples", "2", "--seed", "1"]
-    assert densify_main(argv + ["--keep-original", "--keep-dropped"]) == 0
+    assert densify_main(argv) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    plain = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.5, samples_per_point=2, seed=1)
+    assert densify_main([str(pcd_file), str(out_flags), *argv[2:], "--keep-original", "--keep-dropped"]) == 0
+    np.testing.assert_array_equal(np.load(out_flags), np.load(out))
+    plain = densify_cloud(pts, model_path, intensity=inten, tau_ani=0.5, samples_per_point=2, seed=1, **PAPER)
     n_in, n_kept = len(plain.network_input), plain.n_kept
     assert 0 < n_kept < n_in  # the threshold splits the cloud: both branches are exercised
     assert summary["output_points"] == n_in + 2 * n_kept

@@ -623,9 +623,15 @@ def test_densify_off_returns_raw_frames_and_keeps_predictions():
 def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     from gr_graph.pipeline import round_fingerprint
 
-    a = load_config(None, {"training": {"rounds": 2}})
-    b = load_config(None, {"training": {"rounds": 2, "stop_on_reject": False}})
-    c = load_config(None, {"training": {"rounds": 2, "densify": False}})
+    # the training options at the defaults of the runs published before 2026-12-05 (the paper's Gaussian and
+    # densification): the fingerprint those runs were written with
+    legacy = {"keep_original": False, "keep_dropped": False, "trainer": {"corr_likelihood": "gaussian"}}
+    a = load_config(None, {"training": {"rounds": 2, **legacy}})
+    b = load_config(None, {"training": {"rounds": 2, "stop_on_reject": False, **legacy}})
+    c = load_config(None, {"training": {"rounds": 2, "densify": False, **legacy}})
+    # today's defaults (the t, densification that only adds) are other learning rounds, the same round 0
+    now = load_config(None, {"training": {"rounds": 2}})
+    assert round_fingerprint(now, 1) != round_fingerprint(a, 1) and round_fingerprint(now, 0) == round_fingerprint(a, 0)
     assert round_fingerprint(a, 1) == round_fingerprint(b, 1) != round_fingerprint(c, 1)
     assert round_fingerprint(a, 0) == round_fingerprint(c, 0)
     # graph.loop_variance: the default leaves the fingerprint as it was before the option existed
@@ -654,7 +660,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                                    "map_keyframe_rotation_deg": 1.0}})
     assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
-    k = load_config(None, {"training": {"rounds": 2, "keep_dropped": True}})
+    k = load_config(None, {"training": {"rounds": 2, **legacy, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
     d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                      "render_process"},
@@ -666,12 +672,13 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     for key in ("corr_likelihood", "corr_dof"):  # the trainer's options added later, likewise
         d1["training"]["trainer"].pop(key)
     assert round_fingerprint(a, 1) == hashlib.sha256(json.dumps(d1, sort_keys=True).encode()).hexdigest()[:16]
-    t = load_config(None, {"training": {"rounds": 2, "trainer": {"corr_likelihood": "student_t"}}})
+    t = load_config(None, {"training": {"rounds": 2, **legacy, "trainer": {"corr_likelihood": "student_t"}}})
     assert round_fingerprint(t, 1) != round_fingerprint(a, 1) and round_fingerprint(t, 0) == round_fingerprint(a, 0)
-    t5 = load_config(None, {"training": {"rounds": 2, "trainer": {"corr_likelihood": "student_t", "corr_dof": 5.0}}})
+    t5 = load_config(None, {"training": {"rounds": 2, **legacy,
+                                         "trainer": {"corr_likelihood": "student_t", "corr_dof": 5.0}}})
     assert round_fingerprint(t5, 1) != round_fingerprint(t, 1)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
-    t = load_config(None, {"training": {"rounds": 2}, "data": {"read_threads": 1, "prefetch": 2}})
+    t = load_config(None, {"training": {"rounds": 2, **legacy}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]
 
 

@@ -65,7 +65,10 @@ PRE = PreprocessConfig()
 
 
 def _cfg(**kw) -> TrainingConfig:
-    return TrainingConfig(**{"tau_ani": 0.9, "samples_per_point": 8, "seed": 3, **kw})
+    """The paper's densification (samples replace the anisotropic points, the rest dropped) unless ``kw`` says
+    otherwise; the default keeps every point (``keep_original``, ``keep_dropped``)."""
+    return TrainingConfig(**{"tau_ani": 0.9, "samples_per_point": 8, "seed": 3, "keep_original": False,
+                             "keep_dropped": False, **kw})
 
 
 def test_view_metadata_and_lazy():

@@ -95,8 +95,9 @@ class TrainOptions(_Strict):
     gamma_trans_std: float = Field(2e-2, gt=0.0, description="std of the pose observation noise, translation [m]")
     corr_reduction: Literal["mean", "sum"] = Field("mean", description="over a pair's correspondences; 'sum' is the paper's")
     corr_likelihood: Literal["gaussian", "student_t"] = Field(
-        "gaussian", description="distribution of the correspondence residuals: 'gaussian' (the paper's) or 'student_t' "
-        "(heavy-tailed: correspondences on another surface weigh little; training.losses)")
+        "student_t", description="distribution of the correspondence residuals: 'student_t' (heavy-tailed: "
+        "correspondences on another surface weigh little; training.losses) or 'gaussian' (the paper's; the default "
+        "until 2026-12-05)")
     corr_dof: float = Field(4.0, gt=0.0, description="degrees of freedom of corr_likelihood 'student_t'")
     max_corr: int = Field(1024, ge=3, description="correspondences per pair used at most (random subset above)")
     min_corr: int = Field(16, ge=3, description="pairs with fewer correspondences are skipped")

@@ -13,7 +13,8 @@ Pose NLL (paper Eq. pose_nll, without its 1/2, as in Algorithm 1)::
 the covariance of the pose observation ``T̂`` in gtsam's tangent order ``[omega, v]``:
 rad^2 for the three rotation entries, m^2 for the three translation entries.
 
-Robust variant (``corr_likelihood="student_t"``, not the paper's): ``d~_i`` follows a multivariate
+Robust variant (``corr_likelihood="student_t"``, not the paper's; the trainer's default since
+2026-12-05, ``"gaussian"`` gives the paper's): ``d~_i`` follows a multivariate
 Student t with ``nu`` degrees of freedom and scale matrix ``2 C_qi`` (twice its negative log
 density without the constant, so that it tends to ``L_corr`` as ``nu -> inf``)::
 

@@ -95,7 +95,9 @@ _S_PAIR: dict[int, float] = {16: 1.3, 32: 1.2, 64: 1.8}
 # The ``training`` defaults in effect when these budgets' cells were defined and their records published.
 # Every SLAM cell carries them unless its budget or ablation sets another value, so a cell keeps its meaning
 # when the library's defaults change; in :meth:`Cell.fingerprint` an entry at this value is left out, so the
-# fingerprints of the cells published before the pins existed stay as they were.
+# fingerprints of the cells published before the pins existed stay as they were. (They equal today's
+# gr_graph.config.PAPER_TRAINING, but are kept apart and literal: they record history, which must not move
+# if the paper's settings are ever extended.)
 CELL_TRAINING_PINS: dict[str, Any] = {"trainer": {"corr_likelihood": "gaussian"}, "keep_original": False,
                                       "keep_dropped": False}
 
