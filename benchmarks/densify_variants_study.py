@@ -59,14 +59,14 @@ def run(base_run: Path, out: Path, training_dir: Path | None, settings: dict[str
 
     from gr_graph.config import load_config
     from gr_graph.pipeline import SlamPipeline
+    from gr_graph.pretrained import resolve_weights
 
     if not (base_run / "round_0" / "memory").is_dir():
         raise FileNotFoundError(f"{base_run}: needs round_0/memory (a run whose memories are not pruned)")
     if training_dir is None:
         if settings.get("weights") is None or settings.get("fine_tune", True):
             raise ValueError("without --training-dir give the network as --set weights=MODEL_PT --set fine_tune=false")
-        if not Path(settings["weights"]).is_file():
-            raise FileNotFoundError(f"{settings['weights']}: no such model file (weights)")
+        resolve_weights(settings["weights"])  # before round 0 is copied: a missing file is an error naming it
     elif not (training_dir / "checkpoint.pt").is_file():
         raise FileNotFoundError(f"{training_dir}: no checkpoint.pt (a finished training folder)")
     out.mkdir(parents=True, exist_ok=True)
