@@ -282,7 +282,8 @@ class TrainingConfig(_Section):
         "2026-12-05: dropped); with keep_original the scan keeps every point and gains the samples"
     )
     min_kept_points: int = Field(
-        200, ge=1, description="fewer points pass the filter: the frame falls back to its unfiltered points (logged)"
+        200, ge=1, description="fewer points pass the filter and keep_dropped is false: the frame falls back to its "
+        "unfiltered points (logged); with keep_dropped every point stays, so no fallback"
     )
     slam_voxel_size: float | None = Field(
         None, gt=0.0, description="voxel size of SLAM preprocessing on densified scans [m]; None: preprocess.voxel_size"

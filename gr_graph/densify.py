@@ -30,9 +30,12 @@ Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.f
 * ``"nonfinite_covariance"`` / ``"non_pd_covariance"``: the network produced non-finite
   covariances for the frame, or covariances that are not positive definite
   (:func:`covariance_problem`): the **raw frame** is returned unchanged;
-* ``"few_kept"``: fewer than ``min_kept_points`` points passed the anisotropy filter (too
-  few for registration): the **unfiltered preprocessed points** (the scan as the network saw
-  it, no sampling) are returned;
+* ``"few_kept"``: fewer than ``min_kept_points`` points passed the anisotropy filter and the
+  filter's dropped points are not kept (``keep_dropped`` false, the paper's densification: the
+  output would be too few points for registration): the **unfiltered preprocessed points** (the
+  scan as the network saw it, no sampling) are returned. With ``keep_dropped`` (the default)
+  every point stays in the output however few pass the filter, so there is no fallback: the
+  frame is its points plus the few samples;
 * ``"unusable_scan"``: preprocessing left fewer than ``preprocess.min_points`` points (SLAM
   would flag the scan anyway): the raw frame is returned.
 
@@ -238,7 +241,8 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     DensifiedPoints
         With ``fallback`` set as in the module docstring: non-finite or not positive
         definite covariances give ``"nonfinite_covariance"`` / ``"non_pd_covariance"`` (no output points), fewer than
-        ``min_kept_points`` kept points give ``"few_kept"`` (the input points, unfiltered).
+        ``min_kept_points`` kept points give ``"few_kept"`` (the input points, unfiltered) unless
+        ``keep_dropped`` keeps every input point anyway.
     """
     from training.densify import densify
 
@@ -261,7 +265,7 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     except np.linalg.LinAlgError as exc:  # positive definite to eigvalsh, not to the Cholesky factorisation
         log.debug("densify frame %d: %s", index, exc)
         return DensifiedPoints(np.zeros((0, 3)), np.zeros(0, np.int64), s, None, no_kept, "non_pd_covariance")
-    if int(kept.sum()) < cfg.min_kept_points:
+    if int(kept.sum()) < cfg.min_kept_points and not cfg.keep_dropped:  # the output would be too few points
         return DensifiedPoints(s, np.arange(len(s), dtype=np.int64), s, C, kept, "few_kept")
     kept_rows = np.flatnonzero(kept)
     source = np.repeat(kept_rows, cfg.samples_per_point)

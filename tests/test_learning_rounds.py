@@ -270,6 +270,27 @@ def test_fallbacks_are_counted():
     assert view.stats()["fallbacks"]["few_kept"] == 1
 
 
+def test_few_kept_points_need_no_fallback_when_every_point_is_kept():
+    """With ``keep_original`` and ``keep_dropped`` (the defaults) a frame where nothing passes the filter
+    keeps all its preprocessed points: no ``few_kept`` fallback, and a frame with a plane gains samples."""
+    seq = PlaneScenes(n=2, clutter_only=(1,))
+    adds = _cfg(keep_original=True, keep_dropped=True)
+    view = densified_sequence(seq, plane_predictor, adds, preprocess=PRE)
+    for i in range(2):
+        s = preprocess_scan(seq[i].points, PRE, index=i).points
+        f = view[i]
+        on_ground = np.abs(s[:, 2] - GROUND_Z) < 0.1
+        n_samples = adds.samples_per_point * int(on_ground.sum())
+        assert len(f.points) == len(s) + n_samples  # every point, plus M samples per planar point
+        kept_and_dropped = np.concatenate([s[on_ground], s[~on_ground]])  # kept rows first, dropped rows last
+        np.testing.assert_array_equal(f.points[:on_ground.sum()], kept_and_dropped[:on_ground.sum()])
+        np.testing.assert_array_equal(f.points[len(f.points) - int((~on_ground).sum()):], s[~on_ground])
+    assert view.fallbacks == {} and view.stats()["fallbacks"] == {}
+    paper = densified_sequence(seq, plane_predictor, _cfg(), preprocess=PRE)
+    _ = paper[1]
+    assert paper.fallbacks == {1: "few_kept"}  # the paper's densification would leave no points: fallback
+
+
 def test_real_network_checkpoint_is_accepted(tmp_path):
     """A trainer model.pt path goes through training.predict (same points -> same C -> same frame)."""
     import torch
