@@ -279,12 +279,11 @@ def test_few_kept_points_need_no_fallback_when_every_point_is_kept():
     for i in range(2):
         s = preprocess_scan(seq[i].points, PRE, index=i).points
         f = view[i]
-        on_ground = np.abs(s[:, 2] - GROUND_Z) < 0.1
-        n_samples = adds.samples_per_point * int(on_ground.sum())
-        assert len(f.points) == len(s) + n_samples  # every point, plus M samples per planar point
-        kept_and_dropped = np.concatenate([s[on_ground], s[~on_ground]])  # kept rows first, dropped rows last
-        np.testing.assert_array_equal(f.points[:on_ground.sum()], kept_and_dropped[:on_ground.sum()])
-        np.testing.assert_array_equal(f.points[len(f.points) - int((~on_ground).sum()):], s[~on_ground])
+        on_ground = np.abs(s[:, 2] - GROUND_Z) < 0.1  # the planar points: the ones the filter keeps
+        n_kept, n_dropped = int(on_ground.sum()), int((~on_ground).sum())
+        assert len(f.points) == len(s) + adds.samples_per_point * n_kept  # every point, plus M samples per kept one
+        np.testing.assert_array_equal(f.points[:n_kept], s[on_ground])  # the kept points first
+        np.testing.assert_array_equal(f.points[len(f.points) - n_dropped:], s[~on_ground])  # the dropped ones last
     assert view.fallbacks == {} and view.stats()["fallbacks"] == {}
     paper = densified_sequence(seq, plane_predictor, _cfg(), preprocess=PRE)
     _ = paper[1]
