@@ -13,8 +13,8 @@ Acceptance: every learning round is tested against the last accepted round witho
 truth (:mod:`gr_graph.round_acceptance`, ``training.acceptance``); its summary carries
 ``accepted`` and ``acceptance`` (the test's figures). After a rejected round the rounds stop (the
 next round would train on the rejected round's memory) unless ``training.stop_on_reject`` is
-false (the harness's unguarded rounds: later rounds are then tested against the last accepted one). The run's final trajectory, the accepted
-round with the lowest mean map entropy (round 0 when none is accepted), is copied to
+false (the harness's unguarded rounds: later rounds are then tested against the last accepted one). The run's final trajectory, the last
+round of the unbroken run of accepted rounds (round 0 when round 1 is rejected), is copied to
 ``poses_kitti.txt`` / ``poses_tum.txt`` at the top of ``--out`` and named in ``metrics.json``
 (``final_round``).
 
@@ -483,25 +483,17 @@ class SlamPipeline:
         return [np.array(mem.scan(k)) for k in range(mem.n_scans)]
 
     def write_final(self, metrics: dict[str, Any]) -> None:
-        """The run's final trajectory at the top of ``--out``: the accepted round with the lowest
-        mean map entropy (:mod:`gr_graph.round_acceptance`; round 0 when no learning round was
-        accepted or tested), ``poses_kitti.txt`` and ``poses_tum.txt`` (atomic copies);
-        ``metrics["final_round"]`` names it."""
+        """The run's final trajectory at the top of ``--out``: the last round of the unbroken run
+        of accepted rounds (:func:`gr_graph.round_acceptance.guarded_round`; round 0 when round 1
+        was rejected), ``poses_kitti.txt`` and ``poses_tum.txt`` (atomic copies);
+        ``metrics["final_round"]`` names it and ``metrics["final_round_reason"]`` says why."""
+        from gr_graph.round_acceptance import guarded_round
+
         rounds = metrics["rounds"]
         accepted = sorted(int(k) for k, s in rounds.items() if s.get("accepted", True))
-        entropy = {0: None}
-        for k in accepted:
-            a = rounds[str(k)].get("acceptance")
-            if a is not None:
-                entropy[k] = a.get("mean_entropy")
-                entropy.setdefault(a["reference_round"], a.get("reference_mean_entropy"))
-        if self.cfg.training.acceptance.enabled:
-            scored = [k for k in accepted if entropy.get(k) is not None]
-            final = min(scored, key=lambda k: (entropy[k], k)) if scored else 0
-            reason = ("the accepted round with the lowest mean map entropy" if scored else
-                      "no learning rounds" if len(rounds) == 1 else "no learning round accepted")
-        else:
-            final, reason = accepted[-1], "acceptance test disabled: the last round"
+        final, reason = guarded_round({int(k): bool(s.get("accepted", True)) for k, s in rounds.items()})
+        if not self.cfg.training.acceptance.enabled:
+            reason = "acceptance test disabled: the last round"
         rd = self.round_dir(final)
         for name in ("poses_kitti.txt", "poses_tum.txt"):
             atomic_write_bytes(self.out / name, (rd / name).read_bytes())

@@ -37,6 +37,12 @@ minus reference, per window, averaged) is at most ``max_mean_entropy_increase``,
 worst standstill stretch crept by at most ``max_standstill_creep`` a frame, and the
 registration-failure rate grew by at most ``max_flagged_rate_increase``. Thresholds:
 ``training.acceptance`` in :mod:`gr_graph.config`; how they were chosen: README.
+
+The run's final trajectory (:func:`guarded_round`) is the last round of the unbroken run of
+accepted rounds: what a run that stops at the first rejection ends with, and the Table I
+harness's "2-step guarded". It is not picked by map entropy: an accepted round's entropy change
+lies within the test's tolerance, and on Table I's runs it did not order the rounds by ground
+truth (findings: "Which round is final").
 """
 
 from __future__ import annotations
@@ -55,7 +61,7 @@ from gr_graph.config import AcceptanceConfig
 log = logging.getLogger(__name__)
 
 __all__ = ["window_centres", "map_sharpness", "standstill_creep", "relative_pose_agreement", "round_figures", "decide",
-           "evaluate_round", "CHI2_6_999"]
+           "evaluate_round", "guarded_round", "CHI2_6_999"]
 
 #: chi-square quantile, 6 degrees of freedom, 99.9 %.
 CHI2_6_999 = 22.4577
@@ -307,6 +313,41 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
             "stretches": creep["stretches"], "creep_per_frame_m": [round(c, 6) for c in creep["creep_per_frame"]],
             "worst_creep_per_frame_m": round(creep["worst_creep_per_frame"], 6)},
     }
+
+
+def guarded_round(accepted: dict[int, bool], last: int | None = None) -> tuple[int, str]:
+    """The final round of a run: the last round r such that rounds 1..r were all accepted.
+
+    Parameters
+    ----------
+    accepted
+        Round number -> whether the GT-free test accepted it (round 0 may be absent; a round
+        missing from the mapping ends the run there).
+    last
+        Consider rounds up to this one only (None: all).
+
+    Returns
+    -------
+    (round, reason)
+        Round 0 when round 1 was rejected or there are no learning rounds; ``reason`` says which
+        case holds, for logs and ``metrics.json``.
+    """
+    final, rejected = 0, None
+    top = max(accepted, default=0) if last is None else last
+    for k in range(1, top + 1):
+        if k not in accepted:
+            break
+        if not accepted[k]:
+            rejected = k
+            break
+        final = k
+    if rejected is not None:
+        reason = f"round {rejected} rejected: the last accepted round before it"
+    elif final == 0:
+        reason = "no learning rounds"
+    else:
+        reason = "the last learning round; every learning round accepted"
+    return final, reason
 
 
 def _raw_scans(out: Path) -> list[np.ndarray]:

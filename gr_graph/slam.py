@@ -12,7 +12,7 @@ stops with an error (exit code 2) asking for a new ``--out`` or ``--no-resume``.
 too few scans are usable for a trajectory (e.g. scans in millimetres, all cropped away by
 ``preprocess.max_range``) stops with an error too (exit code 2) instead of writing a trajectory of guesses. Each learning round is accepted or rejected by a test without ground
 truth (:mod:`gr_graph.round_acceptance`); a rejection stops the rounds, and the final trajectory
-(the best accepted round) is written to ``--out``/poses_kitti.txt and named in the one-line JSON
+(the last round of the unbroken run of accepted rounds) is written to ``--out``/poses_kitti.txt and named in the one-line JSON
 summary printed at the end (``final_round``, ``final_poses``).
 
 Examples: see ``EXAMPLES`` (shown by ``--help``).

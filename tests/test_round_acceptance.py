@@ -11,6 +11,7 @@ import pytest
 from gr_graph.config import AcceptanceConfig
 from gr_graph.round_acceptance import (
     decide,
+    guarded_round,
     map_sharpness,
     relative_pose_agreement,
     standstill_creep,
@@ -183,6 +184,54 @@ def test_relative_pose_agreement_closed_form():
     assert a["fraction_beyond_chi2_999"] == 0.0
     b = relative_pose_agreement(ref, ref)
     assert b["p95_translation_difference_m"] == 0.0 and "median_mahalanobis2" not in b
+
+
+def test_guarded_round_is_the_last_of_the_unbroken_accepted_rounds():
+    assert guarded_round({0: True, 1: True, 2: True}) == (2, "the last learning round; every learning round accepted")
+    assert guarded_round({0: True, 1: True, 2: False}) == (1, "round 2 rejected: the last accepted round before it")
+    # stop_on_reject: false goes on after a rejection; a later accepted round was trained on the
+    # rejected round's memory, and a run that stops would have ended at round 0
+    assert guarded_round({0: True, 1: False, 2: True})[0] == 0
+    assert guarded_round({0: True}) == (0, "no learning rounds")
+    assert guarded_round({}) == (0, "no learning rounds")
+    assert guarded_round({0: True, 1: True, 2: True}, last=1)[0] == 1
+    assert guarded_round({0: True, 1: True, 3: True})[0] == 1  # a missing round ends the run there
+
+
+def test_final_trajectory_is_the_last_accepted_round_not_the_sharpest_map(tmp_path):
+    """Regression: the final round was the learning round with the lowest map entropy, with
+    round 0 left out of the comparison although the log named it "the lowest"; on Table I's
+    runs that returned round 1 where round 2 was accepted and better (findings: "Which round is
+    final"). Now it is the last round of the unbroken run of accepted rounds."""
+    from types import SimpleNamespace
+
+    from gr_graph.config import SlamConfig
+    from gr_graph.pipeline import SlamPipeline
+
+    out = tmp_path / "run"
+    for r in range(3):
+        (out / f"round_{r}").mkdir(parents=True)
+        for name in ("poses_kitti.txt", "poses_tum.txt"):
+            (out / f"round_{r}" / name).write_text(f"{name} of round {r}\n")
+
+    def acceptance(ref: int, h: float, h_ref: float) -> dict:
+        return {"reference_round": ref, "mean_entropy": h, "reference_mean_entropy": h_ref}
+
+    rounds = {"0": {"accepted": True},
+              "1": {"accepted": True, "acceptance": acceptance(0, -2.50, -2.52)},  # sharper map than round 2's
+              "2": {"accepted": True, "acceptance": acceptance(1, -2.49, -2.50)}}
+    fake = SimpleNamespace(cfg=SlamConfig(), out=out, round_dir=lambda r: out / f"round_{r}")
+    metrics = {"rounds": json.loads(json.dumps(rounds))}
+    SlamPipeline.write_final(fake, metrics)
+    assert metrics["final_round"] == 2 and "every learning round accepted" in metrics["final_round_reason"]
+    assert (out / "poses_kitti.txt").read_text() == "poses_kitti.txt of round 2\n"
+    assert json.loads((out / "metrics.json").read_text())["final_round"] == 2
+
+    rounds["2"]["accepted"] = False
+    metrics = {"rounds": rounds}
+    SlamPipeline.write_final(fake, metrics)
+    assert metrics["final_round"] == 1 and metrics["rejected_rounds"] == [2]
+    assert (out / "poses_tum.txt").read_text() == "poses_tum.txt of round 1\n"
 
 
 @pytest.mark.slow
