@@ -17,6 +17,7 @@ the same convention (for KITTI: camera-0 poses, like the official ground truth).
   ref_l)``; translation error ``|t(E)| / L`` and rotation error ``angle(R(E)) / L``
   averaged over all segments, reported in % and deg / 100 m. (The angle is computed with
   atan2 instead of the devkit's acos: same value, no precision loss near zero.)
+- :func:`ate_by_axis`: that ATE split into height and the horizontal plane.
 - :func:`trajectory_metrics`: all of the above as a JSON-serialisable dict.
 
 Inputs that cannot give a value (fewer than ``delta + 1`` frames, a path shorter than the
@@ -230,6 +231,49 @@ def ate(
     metric.process_data((ref_path, est_path))
     err = np.asarray(metric.error, dtype=np.float64)
     return ATEStats(**_stats(err), n=int(err.size), aligned=bool(align), scale=scale)
+
+
+def ate_by_axis(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, vertical_axis: int = 1) -> dict[str, float]:
+    """The SE(3)-aligned ATE split into height and the horizontal plane.
+
+    ``est`` is Umeyama-aligned to ``ref`` as in :func:`ate`; the position errors are then split
+    along ``vertical_axis`` of the reference frame (1: KITTI camera poses, whose y axis points
+    down; 2: LiDAR / TUM-style poses, z up) and the other two axes.
+
+    Returns
+    -------
+    dict
+        ``rmse`` (equal to ``ate(est, ref).rmse``), ``vertical_rmse`` and ``horizontal_rmse``
+        (metres; ``vertical_rmse**2 + horizontal_rmse**2 == rmse**2``).
+
+    Raises
+    ------
+    ValueError
+        Mismatched lengths, invalid poses, or ``vertical_axis`` not 0, 1 or 2.
+    InsufficientTrajectoryError
+        Fewer than 3 poses.
+    DegenerateAlignmentError
+        Collinear or coincident reference positions.
+    """
+    from evo.core.geometry import GeometryException
+
+    if vertical_axis not in (0, 1, 2):
+        raise ValueError(f"vertical_axis must be 0, 1 or 2, got {vertical_axis}")
+    e, r = _pair(est, ref)
+    if len(e) < 3:
+        raise InsufficientTrajectoryError(f"alignment needs at least 3 poses, got {len(e)}")
+    ref_path, est_path = to_evo_path(r), to_evo_path(e)
+    try:
+        est_path.align(ref_path)
+    except GeometryException as exc:
+        raise DegenerateAlignmentError(f"Umeyama alignment is not possible ({exc}); the reference positions are "
+                                       "collinear or coincident") from exc
+    err = np.asarray(est_path.positions_xyz) - np.asarray(ref_path.positions_xyz)
+    vertical = err[:, vertical_axis]
+    horizontal = np.delete(err, vertical_axis, axis=1)
+    return {"rmse": float(math.sqrt(np.mean(np.sum(err**2, axis=1)))),
+            "vertical_rmse": float(math.sqrt(np.mean(vertical**2))),
+            "horizontal_rmse": float(math.sqrt(np.mean(np.sum(horizontal**2, axis=1))))}
 
 
 # ----------------------------------------------------------------------------- KITTI devkit
