@@ -176,6 +176,31 @@ def rpe_translation(
     return RPEStats(**_stats(err), n=int(err.size), delta=delta, all_pairs=bool(all_pairs))
 
 
+def _aligned_paths(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, align: bool = True,
+                   correct_scale: bool = False) -> tuple[Any, Any, float]:
+    """evo paths of ``ref`` and ``est`` with ``est`` Umeyama-aligned to ``ref`` (SE(3), or Sim(3)
+    with ``correct_scale``; with ``align=False`` and ``correct_scale``: scale only), and the scale."""
+    e, r = _pair(est, ref)
+    ref_path, est_path = to_evo_path(r), to_evo_path(e)
+    scale = 1.0
+    if align or correct_scale:
+        if len(e) < 3:
+            raise InsufficientTrajectoryError(f"alignment needs at least 3 poses, got {len(e)}")
+        from evo.core.geometry import GeometryException
+
+        try:
+            _, _, s = est_path.align(
+                ref_path, correct_scale=correct_scale, correct_only_scale=correct_scale and not align
+            )
+        except GeometryException as exc:
+            raise DegenerateAlignmentError(
+                f"Umeyama alignment is not possible ({exc}); the reference positions are "
+                "collinear or coincident"
+            ) from exc
+        scale = float(s)
+    return ref_path, est_path, scale
+
+
 def ate(
     est: np.ndarray | Trajectory,
     ref: np.ndarray | Trajectory,
@@ -209,24 +234,7 @@ def ate(
     """
     from evo.core import metrics as evo_metrics
 
-    e, r = _pair(est, ref)
-    ref_path, est_path = to_evo_path(r), to_evo_path(e)
-    scale = 1.0
-    if align or correct_scale:
-        if len(e) < 3:
-            raise InsufficientTrajectoryError(f"alignment needs at least 3 poses, got {len(e)}")
-        from evo.core.geometry import GeometryException
-
-        try:
-            _, _, s = est_path.align(
-                ref_path, correct_scale=correct_scale, correct_only_scale=correct_scale and not align
-            )
-        except GeometryException as exc:
-            raise DegenerateAlignmentError(
-                f"Umeyama alignment is not possible ({exc}); the reference positions are "
-                "collinear or coincident"
-            ) from exc
-        scale = float(s)
+    ref_path, est_path, scale = _aligned_paths(est, ref, align, correct_scale)
     metric = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     metric.process_data((ref_path, est_path))
     err = np.asarray(metric.error, dtype=np.float64)
@@ -237,8 +245,10 @@ def ate_by_axis(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, vert
     """The SE(3)-aligned ATE split into height and the horizontal plane.
 
     ``est`` is Umeyama-aligned to ``ref`` as in :func:`ate`; the position errors are then split
-    along ``vertical_axis`` of the reference frame (1: KITTI camera poses, whose y axis points
-    down; 2: LiDAR / TUM-style poses, z up) and the other two axes.
+    along axis ``vertical_axis`` of the frame ``ref``'s positions are expressed in (its world
+    frame: for KITTI camera poses the first camera frame, whose y axis points down; 2 for LiDAR /
+    TUM-style poses, z up) and the other two axes. That axis is the vertical only as far as the
+    first frame stood level (on KITTI within about a degree).
 
     Returns
     -------
@@ -255,19 +265,9 @@ def ate_by_axis(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, vert
     DegenerateAlignmentError
         Collinear or coincident reference positions.
     """
-    from evo.core.geometry import GeometryException
-
     if vertical_axis not in (0, 1, 2):
         raise ValueError(f"vertical_axis must be 0, 1 or 2, got {vertical_axis}")
-    e, r = _pair(est, ref)
-    if len(e) < 3:
-        raise InsufficientTrajectoryError(f"alignment needs at least 3 poses, got {len(e)}")
-    ref_path, est_path = to_evo_path(r), to_evo_path(e)
-    try:
-        est_path.align(ref_path)
-    except GeometryException as exc:
-        raise DegenerateAlignmentError(f"Umeyama alignment is not possible ({exc}); the reference positions are "
-                                       "collinear or coincident") from exc
+    ref_path, est_path, _ = _aligned_paths(est, ref)
     err = np.asarray(est_path.positions_xyz) - np.asarray(ref_path.positions_xyz)
     vertical = err[:, vertical_axis]
     horizontal = np.delete(err, vertical_axis, axis=1)

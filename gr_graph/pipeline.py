@@ -13,8 +13,9 @@ Acceptance: every learning round is tested against the last accepted round witho
 truth (:mod:`gr_graph.round_acceptance`, ``training.acceptance``); its summary carries
 ``accepted`` and ``acceptance`` (the test's figures). After a rejected round the rounds stop (the
 next round would train on the rejected round's memory) unless ``training.stop_on_reject`` is
-false (the harness's unguarded rounds: later rounds are then tested against the last accepted one). The run's final trajectory, the last
-round of the unbroken run of accepted rounds (round 0 when round 1 is rejected), is copied to
+false (the harness's unguarded rounds: later rounds are then tested against the last accepted
+one). The run's final trajectory, the last round of the unbroken run of accepted rounds (round 0
+when round 1 is rejected), is copied to
 ``poses_kitti.txt`` / ``poses_tum.txt`` at the top of ``--out`` and named in ``metrics.json``
 (``final_round``).
 
@@ -487,11 +488,12 @@ class SlamPipeline:
         of accepted rounds (:func:`gr_graph.round_acceptance.guarded_round`; round 0 when round 1
         was rejected), ``poses_kitti.txt`` and ``poses_tum.txt`` (atomic copies);
         ``metrics["final_round"]`` names it and ``metrics["final_round_reason"]`` says why."""
-        from gr_graph.round_acceptance import guarded_round
+        from gr_graph.round_acceptance import accepted_flags, guarded_round
 
         rounds = metrics["rounds"]
-        accepted = sorted(int(k) for k, s in rounds.items() if s.get("accepted", True))
-        final, reason = guarded_round({int(k): bool(s.get("accepted", True)) for k, s in rounds.items()})
+        flags = accepted_flags(rounds)
+        accepted = sorted(k for k, ok in flags.items() if ok)
+        final, reason = guarded_round(flags)
         if not self.cfg.training.acceptance.enabled:
             reason = "acceptance test disabled: the last round"
         rd = self.round_dir(final)
@@ -500,7 +502,7 @@ class SlamPipeline:
         metrics["final_round"] = final
         metrics["final_round_reason"] = reason
         metrics["accepted_rounds"] = accepted
-        metrics["rejected_rounds"] = sorted(int(k) for k, s in rounds.items() if not s.get("accepted", True))
+        metrics["rejected_rounds"] = sorted(k for k, ok in flags.items() if not ok)
         metrics["marginals_fallback_rounds"] = sorted(
             int(k) for k, s in rounds.items() if (s.get("marginals") or {}).get("status", "ok") != "ok")
         write_metrics(self.out, metrics)

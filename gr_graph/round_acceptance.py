@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +61,7 @@ from gr_graph.config import AcceptanceConfig
 log = logging.getLogger(__name__)
 
 __all__ = ["window_centres", "map_sharpness", "standstill_creep", "relative_pose_agreement", "round_figures", "decide",
-           "evaluate_round", "guarded_round", "CHI2_6_999"]
+           "evaluate_round", "accepted_flags", "guarded_round", "CHI2_6_999"]
 
 #: chi-square quantile, 6 degrees of freedom, 99.9 %.
 CHI2_6_999 = 22.4577
@@ -315,14 +315,20 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> d
     }
 
 
-def guarded_round(accepted: dict[int, bool], last: int | None = None) -> tuple[int, str]:
+def accepted_flags(rounds: Mapping[str, Mapping[str, Any]]) -> dict[int, bool]:
+    """Round number -> accepted, from per-round summaries (``metrics.json["rounds"]``); a summary
+    without ``accepted`` (runs from before the test, or the test disabled) counts as accepted."""
+    return {int(k): s.get("accepted") is not False for k, s in rounds.items()}
+
+
+def guarded_round(accepted: Mapping[int, bool], last: int | None = None) -> tuple[int, str]:
     """The final round of a run: the last round r such that rounds 1..r were all accepted.
 
     Parameters
     ----------
     accepted
-        Round number -> whether the GT-free test accepted it (round 0 may be absent; a round
-        missing from the mapping ends the run there).
+        Round number -> whether the GT-free test accepted it (:func:`accepted_flags`; round 0
+        may be absent; a round missing from the mapping ends the run there).
     last
         Consider rounds up to this one only (None: all).
 
@@ -332,22 +338,19 @@ def guarded_round(accepted: dict[int, bool], last: int | None = None) -> tuple[i
         Round 0 when round 1 was rejected or there are no learning rounds; ``reason`` says which
         case holds, for logs and ``metrics.json``.
     """
-    final, rejected = 0, None
     top = max(accepted, default=0) if last is None else last
+    final = 0
     for k in range(1, top + 1):
         if k not in accepted:
-            break
+            return final, f"round {k} missing: the last round before it" if final else "no learning rounds"
         if not accepted[k]:
-            rejected = k
-            break
+            return final, f"round {k} rejected: the last accepted round before it"
         final = k
-    if rejected is not None:
-        reason = f"round {rejected} rejected: the last accepted round before it"
-    elif final == 0:
-        reason = "no learning rounds"
-    else:
-        reason = "the last learning round; every learning round accepted"
-    return final, reason
+    if final == 0:
+        return 0, "no learning rounds"
+    later = last is not None and any(k > last for k in accepted)
+    return final, (f"round {last}, the last considered; rounds 1-{last} accepted" if later
+                   else "the last learning round; every learning round accepted")
 
 
 def _raw_scans(out: Path) -> list[np.ndarray]:

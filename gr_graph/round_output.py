@@ -5,7 +5,8 @@ Output directory (``--out``)::
     config.yaml              the resolved configuration
     gt_poses_kitti.txt       ground truth of the run's frames, camera frame (when known)
     metrics.json             per round: trajectory metrics, loops, runtimes, acceptance (rewritten per round)
-    poses_kitti.txt          the final trajectory (metrics.json "final_round": the last accepted round)
+    poses_kitti.txt          the final trajectory (metrics.json "final_round": the last round of the
+                             unbroken run of accepted rounds)
     poses_tum.txt            the same in TUM form
     trajectory.png           the final round against ground truth (top-down, LiDAR frame), with the
                              3-sigma position ellipses (magnified, the legend says by how much)

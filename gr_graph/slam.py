@@ -12,8 +12,8 @@ stops with an error (exit code 2) asking for a new ``--out`` or ``--no-resume``.
 too few scans are usable for a trajectory (e.g. scans in millimetres, all cropped away by
 ``preprocess.max_range``) stops with an error too (exit code 2) instead of writing a trajectory of guesses. Each learning round is accepted or rejected by a test without ground
 truth (:mod:`gr_graph.round_acceptance`); a rejection stops the rounds, and the final trajectory
-(the last round of the unbroken run of accepted rounds) is written to ``--out``/poses_kitti.txt and named in the one-line JSON
-summary printed at the end (``final_round``, ``final_poses``).
+(the last round of the unbroken run of accepted rounds) is written to ``--out``/poses_kitti.txt
+and named in the one-line JSON summary printed at the end (``final_round``, ``final_poses``).
 
 Examples: see ``EXAMPLES`` (shown by ``--help``).
 """
@@ -288,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
         from gr_graph.round_output import round_dir
         from gr_graph.viewer import show_map
 
-        show_map(map_path(round_dir(cfg.output.out_dir, int(max(metrics["rounds"], key=int)))), title=f"gr_graph map: {cfg.output.out_dir}")
+        show_map(map_path(round_dir(cfg.output.out_dir, int(metrics["final_round"]))),
+                 title=f"gr_graph map: {cfg.output.out_dir}, round {metrics['final_round']} (the final trajectory)")
     return 0
 
 

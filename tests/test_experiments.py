@@ -91,10 +91,14 @@ def test_paper_budget_follows_the_protocol():
         assert all(c.frames == TABLE1_WINDOW and c.params["rounds"] == 2 for c in t1.values() if c.group == f"{ch}ch")
     assert [(c.params["rounds"], c.seed) for c in t1.values() if c.group == "64ch"] == [(1, b.seeds[0])]
     # the defaults' budget runs 64 channels at every seed (the claim needs the spread), and their Table II cells
+    adds = BUDGETS["student-t-adds"]
     t1_adds = cells_for("table1", "student-t-adds")
-    assert [(c.params["rounds"], c.seed) for c in t1_adds if c.group == "64ch"] == [(1, s) for s in b.seeds]
+    assert [(c.params["rounds"], c.seed) for c in t1_adds if c.group == "64ch"] == [(1, s) for s in adds.seeds]
+    assert len(adds.seeds) >= 3
     assert {c.key for c in cells_for("table2", "student-t-adds") if c.channels == 64} == {
-        f"64ch-s{s}-r{r}" for s in b.seeds for r in (0, 1)}
+        f"64ch-s{s}-r{r}" for s in adds.seeds for r in (0, 1)}
+    with pytest.raises(ValueError, match="seeds_64ch"):
+        dataclasses.replace(adds, seeds_64ch=4)
     full = t1[f"full-16ch-s{b.seeds[0]}"]
     assert full.frames == (0, 4541) and full.params["rounds"] == 2 and full.params["kiss_icp"]
     t2 = cells_for("table2", "paper")

@@ -148,9 +148,9 @@ def test_ate_rigid_and_similarity_copies() -> None:
 
 def test_ate_by_axis_splits_height_from_the_plane_in_the_reference_frame() -> None:
     """A flat drive (camera frame: y is height) with an alternating error of 0.3 m in height and
-    0.04 m sideways, seen through a rigid motion G: after alignment the split gives back the two
-    injected sizes (alternating errors are nearly orthogonal to any rigid motion), the parts add up
-    to evo's ATE, and a rigid copy has no error in either part."""
+    0.04 m along the world x axis (in the plane), seen through a rigid motion G: after alignment
+    the split gives back the two injected sizes (alternating errors are nearly orthogonal to any
+    rigid motion), the parts add up to evo's ATE, and a rigid copy has no error in either part."""
     K = 600
     rng = np.random.default_rng(3)
     yaw = np.cumsum(rng.normal(scale=0.01, size=K))

@@ -10,6 +10,7 @@ import pytest
 
 from gr_graph.config import AcceptanceConfig
 from gr_graph.round_acceptance import (
+    accepted_flags,
     decide,
     guarded_round,
     map_sharpness,
@@ -194,8 +195,11 @@ def test_guarded_round_is_the_last_of_the_unbroken_accepted_rounds():
     assert guarded_round({0: True, 1: False, 2: True})[0] == 0
     assert guarded_round({0: True}) == (0, "no learning rounds")
     assert guarded_round({}) == (0, "no learning rounds")
-    assert guarded_round({0: True, 1: True, 2: True}, last=1)[0] == 1
-    assert guarded_round({0: True, 1: True, 3: True})[0] == 1  # a missing round ends the run there
+    assert guarded_round({0: True, 1: True, 2: False}, last=1) == (1, "round 1, the last considered; rounds 1-1 accepted")
+    assert guarded_round({0: True, 1: True, 3: True}) == (1, "round 2 missing: the last round before it")
+    # the shared reading of the summaries: only an explicit false is a rejection
+    flags = accepted_flags({"0": {}, "1": {"accepted": True}, "2": {"accepted": False}, "3": {"accepted": None}})
+    assert flags == {0: True, 1: True, 2: False, 3: True}
 
 
 def test_final_trajectory_is_the_last_accepted_round_not_the_sharpest_map(tmp_path):

@@ -9,8 +9,9 @@ Conventions (stated in every report):
   round 0; the table gives mean +- std of the per-seed reductions (not the reduction of means);
 * "2-step unguarded" is round 2 as computed (the cells run with ``training.stop_on_reject:
   false``); "2-step guarded" is the last round r <= 2 such that rounds 1..r were all accepted
-  (round 0 when round 1 was rejected): what a run that stops after a rejection ends with, and
-  the final trajectory ``gr_graph.slam`` writes (:func:`gr_graph.round_acceptance.guarded_round`). When
+  (round 0 when round 1 was rejected): what a run that stops after a rejection ends with, and,
+  for runs of at most 2 rounds, the final trajectory ``gr_graph.slam`` writes
+  (:func:`gr_graph.round_acceptance.guarded_round`). When
   ``metrics.json`` has no ``accepted`` key every round counts as accepted (reported);
 * a round that was not run because the run converged (``training.convergence_delta``) is
   replaced by the last round before it (noted).
@@ -24,7 +25,7 @@ from typing import Any
 
 from gr_graph.experiments.cells import PAPER_REDUCTIONS, PAPER_REGISTRATION
 from gr_graph.experiments.run_cell import METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS
-from gr_graph.round_acceptance import guarded_round
+from gr_graph.round_acceptance import accepted_flags, guarded_round
 
 __all__ = ["mean_std", "reduction_percent", "select_round", "table1_summary", "table2_summary",
            "ablation_summary", "fmt_ms", "round_diagnostics", "STEPS", "METRIC_LABELS", "NEES_LABELS", "NEES_IDEAL",
@@ -77,7 +78,7 @@ def select_round(rounds: dict[str, Any], step: str) -> tuple[int | None, str | N
     if not have:
         return None, "no round finished"
     if step == "2-step guarded":
-        r, _ = guarded_round({k: rounds[str(k)].get("accepted") is not False for k in have}, last=2)
+        r, _ = guarded_round(accepted_flags(rounds), last=2)
         return r, None if r == min(2, have[-1]) else f"round {r + 1} rejected"
     want = {"raw": 0, "1-step": 1, "2-step": 2}[step]
     if want in have:

@@ -16,8 +16,8 @@ correspondence NLL a Student t (``training.trainer.corr_likelihood: student_t``,
 ablation) for every cell; ``student-t-8ep`` the same with 8 training epochs a round instead of 3
 (the ``student-t-8ep`` ablation); ``student-t-8ep-adds`` that with densification that only adds
 (``training.keep_original`` and ``keep_dropped``: every point kept, the samples added);
-``student-t-adds`` the Student t with that densification at 3 epochs (the library's training defaults
-since 2026-12-05), with the 64-channel cell at all 3 seeds instead of 1; ``smoke`` keeps the structure with tiny sizes (a few dozen frames, 2 seeds, 1 epoch,
+``student-t-adds`` the Student t with that densification at 3 epochs (the library's training
+defaults since 2026-12-05), with the 64-channel cell at all 3 seeds instead of 1; ``smoke`` keeps the structure with tiny sizes (a few dozen frames, 2 seeds, 1 epoch,
 a tiny network) to test the machinery in minutes.
 """
 
@@ -130,6 +130,11 @@ class Budget:
     training: dict[str, Any] = field(default_factory=dict)
     #: how many of ``seeds`` (the first ones) run Table I's 64-channel cell (the protocol: 1)
     seeds_64ch: int = 1
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.seeds_64ch <= len(self.seeds):
+            raise ValueError(f"budget {self.name!r}: seeds_64ch must be between 1 and the {len(self.seeds)} seeds, "
+                             f"got {self.seeds_64ch}")
 
 
 BUDGETS: dict[str, Budget] = {
