@@ -229,7 +229,7 @@ def full_method_hint(argv: list[str]) -> str:
     import shlex
 
     extra = ["--rounds", "1"]
-    with_value = ("--rounds", "--weights")  # replaced by extra
+    with_value = ("--rounds", "--weights")  # dropped with their values: extra sets --rounds, no --weights
     drop = ("--viz", "--densify", "--no-resume", "--no-memory")  # the hint reuses round 0 and its memory
     keep: list[str] = []
     skip = False

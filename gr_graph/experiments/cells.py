@@ -17,8 +17,9 @@ ablation) for every cell; ``student-t-8ep`` the same with 8 training epochs a ro
 (the ``student-t-8ep`` ablation); ``student-t-8ep-adds`` that with densification that only adds
 (``training.keep_original`` and ``keep_dropped``: every point kept, the samples added);
 ``student-t-adds`` the Student t with that densification at 3 epochs (the library's training
-defaults since 2026-12-05), with the 64-channel cell at all 3 seeds instead of 1; ``smoke`` keeps the structure with tiny sizes (a few dozen frames, 2 seeds, 1 epoch,
-a tiny network) to test the machinery in minutes.
+defaults since 2026-12-05), with the 64-channel cell at all 3 seeds instead of 1; ``smoke`` keeps
+the structure with tiny sizes (a few dozen frames, 2 seeds, 1 epoch, a tiny network) to test the
+machinery in minutes.
 """
 
 from __future__ import annotations
