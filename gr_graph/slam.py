@@ -135,6 +135,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odometry map ('map' mode): a scan enters it only after moving M metres or turning DEG "
                         "degrees since the last one that entered, e.g. 0.1 1; 0 leaves that test out (default: "
                         f"{d.odometry.map_keyframe_translation} {d.odometry.map_keyframe_rotation_deg}: every scan)")
+    p.add_argument("--long-baseline-guard", type=float, nargs="?", const=0.05, default=None, metavar="FRACTION",
+                   help="learning rounds: also reject a round whose trajectory agrees worse with direct "
+                        "registrations of scans 25 m apart (median rotation discrepancy up by more than FRACTION; "
+                        "0.05 when given alone); for a well-calibrated sensor (with KITTI: together with "
+                        "--kitti-vertical-correction): see the README's 'Learning rounds that never make things worse' "
+                        "(default: off)")
     p.add_argument("--no-resume", action="store_true",
                    help="recompute rounds even if finished (also when the data changed since they were made)")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
@@ -201,6 +207,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["odometry"]["deskew"] = args.deskew
     if args.kitti_vertical_correction is not None:
         o["data"]["kitti_vertical_correction_deg"] = args.kitti_vertical_correction
+    if args.long_baseline_guard is not None:
+        o["training"]["acceptance"] = {"max_long_baseline_rotation_increase": args.long_baseline_guard}
     if args.loop_variance is not None:
         o["graph"]["loop_variance"] = args.loop_variance
     if args.registration_covariance is not None:

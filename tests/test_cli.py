@@ -158,6 +158,10 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert slam.overrides_from_args(slam.build_parser().parse_args([])) == {}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--deskew", "on", "--kitti-vertical-correction", "0.205"]))
     assert o == {"odometry": {"deskew": "on"}, "data": {"kitti_vertical_correction_deg": 0.205}}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--long-baseline-guard"]))
+    assert o == {"training": {"acceptance": {"max_long_baseline_rotation_increase": 0.05}}}
+    guard = slam.overrides_from_args(slam.build_parser().parse_args(["--long-baseline-guard", "0.1", "--rounds", "1"]))
+    assert guard == {"training": {"rounds": 1, "acceptance": {"max_long_baseline_rotation_increase": 0.1}}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--loop-variance", "estimated"]))
     assert o == {"graph": {"loop_variance": "estimated"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--registration-covariance", "cluster_robust"]))
@@ -170,6 +174,8 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
                               "trainer": {"corr_likelihood": "gaussian"}}}
     from gr_graph.config import load_config
 
+    assert load_config(None, guard).training.acceptance.max_long_baseline_rotation_increase == 0.1
+    assert load_config(None, {}).training.acceptance.max_long_baseline_rotation_increase is None
     paper, default = load_config(None, o).training, load_config(None, {"training": {"rounds": 2}}).training
     assert (paper.trainer.corr_likelihood, paper.keep_original, paper.keep_dropped) == ("gaussian", False, False)
     assert (default.trainer.corr_likelihood, default.keep_original, default.keep_dropped) == ("student_t", True, True)

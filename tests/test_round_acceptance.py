@@ -187,6 +187,79 @@ def test_relative_pose_agreement_closed_form():
     assert b["p95_translation_difference_m"] == 0.0 and "median_mahalanobis2" not in b
 
 
+def pitched(T: np.ndarray, pitch: float) -> np.ndarray:
+    """``T`` rotated by ``pitch`` [rad] about its own y axis."""
+    R = np.eye(4)
+    c, s = np.cos(pitch), np.sin(pitch)
+    R[[0, 0, 2, 2], [0, 2, 0, 2]] = [c, s, -s, c]
+    return T @ R
+
+
+def test_baseline_pairs_closed_form():
+    """1 m a frame, then a 300-frame stop, then 1 m a frame: pairs 25 m apart every 10 frames;
+    a pair across the stop (more than max_frames apart) is left out."""
+    from gr_graph.long_baseline import baseline_pairs
+
+    x = np.concatenate([np.arange(60.0), np.full(300, 60.0), 60.0 + np.arange(1, 61)])
+    pos = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    pairs = baseline_pairs(pos, 25.0, 10, 200)
+    assert [tuple(p) for p in pairs[:4]] == [(0, 25), (10, 35), (20, 45), (30, 55)]
+    assert np.all(np.abs(x[pairs[:, 1]] - x[pairs[:, 0]] - 25.0) < 1e-9)
+    assert np.all(pairs[:, 1] - pairs[:, 0] <= 200) and not np.any((pairs[:, 0] < 60) & (pairs[:, 1] > 359))
+    assert len(baseline_pairs(pos[:20], 25.0, 10, 200)) == 0  # a path shorter than the baseline
+    assert len(baseline_pairs(np.full((5, 3), np.nan), 25.0, 1, 200)) == 0
+
+
+def test_pair_discrepancy_closed_form():
+    """A trajectory whose pair's relative pose is the registration's turned by 0.01 rad and moved
+    by 3 cm: the discrepancy is exactly that."""
+    from gr_graph.long_baseline import pair_discrepancy, rms
+
+    reg = translation(25.0, yaw=0.1)
+    poses = np.stack([np.eye(4), reg @ translation(0.03) @ pitched(np.eye(4), 0.01)])
+    t, a = pair_discrepancy(poses, np.array([[0, 1]]), reg[None])
+    assert t[0] == pytest.approx(0.03) and a[0] == pytest.approx(0.01)
+    assert rms(np.array([3.0, 4.0, np.nan])) == pytest.approx(np.sqrt(12.5))
+
+
+def test_long_baseline_registration_recovers_the_truth_and_flags_a_pitch_drift():
+    """Scans of the street from a 1 m-a-frame drive: pairs 25 m apart registered raw scan to raw
+    scan recover the true relative pose (to 3 cm and 0.05 deg: the construction is the
+    reference) from an initial guess 20-40 cm and about a degree off. A trajectory that pitches 0.02 deg more every frame (0.5 deg over a pair, the kind
+    of slow drift an 11-frame map barely shows) has a far larger median rotation discrepancy with
+    those registrations than the truth: rejected with the threshold set, recorded without it."""
+    from gr_graph.long_baseline import baseline_pairs, pair_discrepancy, register_pairs
+
+    poses = np.stack([translation(float(k)) for k in range(60)])
+    scans = street_scans(poses, seed=5, n=4000)
+    pairs = baseline_pairs(poses[:, :3, 3], 25.0, 10, 200)
+    rng = np.random.default_rng(6)
+    guess = np.stack([T @ translation(*rng.uniform(-0.2, 0.2, 3), yaw=rng.normal(0, np.radians(0.7))) for T in poses])
+    init_error = np.linalg.norm((np.linalg.inv(guess[pairs[:, 0]]) @ guess[pairs[:, 1]])[:, :3, 3] - [25.0, 0, 0], axis=1)
+    assert np.all(init_error > 0.1)
+    T, ok = register_pairs(scans, guess, pairs, 0.25, 1.0, 0.3)
+    assert ok.all() and len(pairs) == 4
+    t, a = pair_discrepancy(poses, pairs, T)
+    assert np.all(t < 0.03) and np.all(np.degrees(a) < 0.05)
+
+    drift = np.stack([pitched(T, np.radians(0.02) * k) for k, T in enumerate(poses)])
+    cfg = AcceptanceConfig(long_baseline_min_pairs=3, max_long_baseline_rotation_increase=0.1)
+    from gr_graph.round_acceptance import long_baseline_comparison
+
+    lb = long_baseline_comparison(scans, drift, poses, cfg)
+    assert lb["n_registered"] == 4 and lb["rotation_increase"] > 5.0 and lb["fraction_rotation_worse"] == 1.0
+    assert long_baseline_comparison(scans, poses, poses, cfg)["rotation_increase"] == 0.0
+    ref = sharpness(scans, poses)
+    v = decide(ref, ref, cfg, long_baseline=lb)
+    assert not v["accepted"] and "median rotation discrepancy" in v["reasons"][0]
+    recorded = decide(ref, ref, cfg.model_copy(update={"max_long_baseline_rotation_increase": None}), long_baseline=lb)
+    assert recorded["accepted"] and recorded["long_baseline"]["rotation_increase"] == lb["rotation_increase"]
+    # too few registered pairs: measured, not decided on
+    few = long_baseline_comparison(scans, drift, poses, cfg.model_copy(update={"long_baseline_min_pairs": 5}))
+    assert few["n_registered"] == 4 and few["rotation_increase"] is None
+    assert decide(ref, ref, cfg, long_baseline=few)["accepted"]
+
+
 def test_guarded_round_is_the_last_of_the_unbroken_accepted_rounds():
     assert guarded_round({0: True, 1: True, 2: True}) == (2, "the last learning round; every learning round accepted")
     assert guarded_round({0: True, 1: True, 2: False}) == (1, "round 2 rejected: the last accepted round before it")
@@ -254,7 +327,10 @@ def test_untrained_round_is_rejected_and_round_0_is_the_final_trajectory(tmp_pat
     # a harmless round that is rightly accepted; so is the default densification's, which keeps every point
     # and adds the few samples: on this window the untrained round, ~4.5 % of the points kept, moves the
     # poses by at most 2 mm and is accepted)
-    cfg = {"training": {"epochs": 0, "keep_original": False, "keep_dropped": False}}
+    # the long-baseline figures recorded too (pairs 5 m apart: the window is about 30 m long)
+    cfg = {"training": {"epochs": 0, "keep_original": False, "keep_dropped": False,
+                        "acceptance": {"long_baseline": True, "long_baseline_distance": 5.0,
+                                       "long_baseline_min_pairs": 2}}}
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     out = tmp_path / "run"
     argv = ["--seq", "00", "--frames", LEARNING_RUN_FRAMES, "--channels", "16", "--rounds", "2",
@@ -273,6 +349,9 @@ def test_untrained_round_is_rejected_and_round_0_is_the_final_trajectory(tmp_pat
     a = r1["acceptance"]
     assert len(a["window_entropy"]) == len(a["reference_window_entropy"]) == a["n_windows"] > 0
     assert a["reference_round"] == 0 and "relative_pose_agreement" in a
+    lb = a["long_baseline"]
+    assert lb["n_registered"] >= 2 and np.isfinite(lb["rotation_increase"]), lb
+    assert not any("rotation discrepancy" in r for r in a["reasons"])  # recorded, not decided on
     # ground truth agrees: the rejected round is worse
     assert r1["slam"]["ate_rmse"] > m["rounds"]["0"]["slam"]["ate_rmse"]
     stamp = (out / "round_1" / "round.json").stat().st_mtime_ns
