@@ -12,7 +12,7 @@ Why it is not decided on by default (measured on the synthetic ``kitti`` world, 
 channels: README, "Learning rounds that never make things worse"; ``benchmarks/long_baseline_study.py``):
 the registrations are not accurate enough. Against the ground truth, the pairs' registrations
 are off in pitch by −0.06 to −0.12° on average with the vertical-angle correction and +0.12 to
-+0.19° without it, ±0.05-0.20° pair to pair: the size of the drift they should reveal (0.2° over
++0.19° without it, ±0.04-0.20° pair to pair: the size of the drift they should reveal (0.2° over
 25 m is 9 cm of height). Without the correction a round that undoes the sensor's bias reads as
 *less* consistent; with it the figure saw one large loss and missed others.
 
