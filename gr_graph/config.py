@@ -261,9 +261,10 @@ class AcceptanceConfig(_Section):
     long_baseline_max_correspondence: float = Field(1.0, gt=0.0, description="GICP correspondence distance [m]")
     long_baseline_min_inliers: float = Field(
         0.3, gt=0.0, le=1.0, description="a registration matching fewer of the source's points fails (left out)")
-    long_baseline_min_pairs: int = Field(20, ge=1, description="fewer registered pairs: the figure is not decided on")
+    long_baseline_min_pairs: int = Field(
+        20, ge=1, description="fewer registered pairs: only the pair counts are recorded, nothing decided on")
     max_long_baseline_rotation_increase: float | None = Field(
-        None, description="reject when the median rotation discrepancy with the pairs' registrations rose by more "
+        None, ge=0.0, description="reject when the median rotation discrepancy with the pairs' registrations rose by more "
         "than this fraction of the reference's (--long-baseline-guard: 0.05, tuned on seeds 3-5 of the vertical-"
         "corrected kitti world); None: not decided on (README: without the correction it rejected the best rounds)")
 

@@ -8,11 +8,11 @@ KITTI's speed) are registered directly, raw scan to raw scan (small_gicp GICP, o
 deterministic), and each trajectory's relative pose over the pair is compared with that
 registration. A trajectory that drifts more between the two frames disagrees more with it.
 
-Why it is not decided on by default (measured on the synthetic ``kitti`` world, 16 and 32
-channels: README, "Learning rounds that never make things worse"; ``benchmarks/long_baseline_study.py``):
+Why it is not decided on by default (measured on the synthetic ``kitti`` world, 16, 32 and
+64 channels: README, "Learning rounds that never make things worse"; ``benchmarks/long_baseline_study.py``):
 the registrations are not accurate enough. Against the ground truth, the pairs' registrations
-are off in pitch by −0.06 to −0.12° on average with the vertical-angle correction and +0.12 to
-+0.19° without it, ±0.04-0.20° pair to pair: the size of the drift they should reveal (0.2° over
+are off in pitch by −0.07 to −0.11° on average with the vertical-angle correction and +0.14 to
++0.20° without it, ±0.03-0.20° pair to pair: the size of the drift they should reveal (0.2° over
 25 m is 9 cm of height). Without the correction a round that undoes the sensor's bias reads as
 *less* consistent; with it the figure saw one large loss and missed others.
 
@@ -24,6 +24,8 @@ register_pairs
     GICP registration of each pair's raw scans, from an initial trajectory.
 pair_discrepancy
     Translation and rotation of ``T_reg⁻¹ · T_k⁻¹ T_l`` per pair, for a trajectory.
+rms
+    Root mean square of the finite values.
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ def baseline_pairs(positions: np.ndarray, min_distance: float, step: int, max_fr
     Returns
     -------
     (M, 2) int array
-        ``(k, l)`` with ``k < l``; empty when the path is shorter than ``min_distance``.
+        ``(k, l)`` with ``k < l``, no two pairs sharing ``l`` (the starts during a stop all reach the
+        same frame: only the first is kept); empty when the path is shorter than ``min_distance`` or
+        a position is not finite.
     """
     p = np.asarray(positions, np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -63,7 +67,9 @@ def baseline_pairs(positions: np.ndarray, min_distance: float, step: int, max_fr
     starts = np.arange(0, len(p), max(1, int(step)))
     ends = np.searchsorted(travelled, travelled[starts] + min_distance, side="left")
     keep = (ends < len(p)) & (ends - starts <= max_frames) & (ends > starts)
-    return np.stack([starts[keep], ends[keep]], axis=1).astype(np.int64)
+    starts, ends = starts[keep], ends[keep]
+    _, first = np.unique(ends, return_index=True)
+    return np.stack([starts[first], ends[first]], axis=1).astype(np.int64)
 
 
 def register_pairs(scans: Sequence[np.ndarray], poses: np.ndarray, pairs: np.ndarray, voxel_size: float,

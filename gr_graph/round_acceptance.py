@@ -22,7 +22,7 @@ on figures that need no ground truth:
   ``max_long_baseline_rotation_increase``): frame pairs 25 m apart registered raw scan to raw
   scan (:mod:`gr_graph.long_baseline`); the median rotation discrepancy of each trajectory with
   them. Meant for slow drift, which local maps do not show; not decided on by default, because on
-  the synthetic ``kitti`` world the registrations' own pitch bias over 25 m (0.06-0.19°) is as
+  the synthetic ``kitti`` world the registrations' own pitch bias over 25 m (0.07-0.20°) is as
   large as the drift they should reveal (README).
 * **Creep at a standstill** (:func:`standstill_creep`): the stretches of at least
   ``min_standstill_frames`` frames in which the reference moves less than ``standstill_step`` a
@@ -344,9 +344,11 @@ def long_baseline_comparison(scans: Sequence[np.ndarray], poses: np.ndarray, ref
     dict
         ``n_pairs``, ``n_registered``; the medians ``rotation_deg`` / ``reference_rotation_deg`` and
         ``translation_m`` / ``reference_translation_m``; ``rotation_increase`` and
-        ``translation_increase`` (round's median over the reference's, minus 1; None with fewer than
-        ``cfg.long_baseline_min_pairs`` registered pairs or non-finite poses); ``fraction_rotation_worse``
-        (pairs where the round's rotation discrepancy is larger).
+        ``translation_increase`` (round's median over the reference's, minus 1); ``fraction_rotation_worse``
+        (pairs where the round's rotation discrepancy is larger). Only the pair counts (0 when the
+        trajectories differ in length or hold non-finite poses) with fewer than
+        ``cfg.long_baseline_min_pairs`` registered pairs; an increase is None when the reference's
+        median is 0 (then nothing is decided on).
     """
     from gr_graph.long_baseline import baseline_pairs, pair_discrepancy, register_pairs
 
