@@ -29,7 +29,7 @@ from typing import Any
 from gr_graph.metrics import ate_by_axis
 from gr_graph.provenance import machine_line
 from gr_graph.trajectory import read_kitti_poses
-from results_io import print_and_write
+from results_io import last_change, print_and_write
 
 
 def run_rounds(run: Path) -> list[int]:
@@ -51,11 +51,6 @@ def study_run(run: Path) -> dict[str, dict[str, Any]]:
     summaries = json.loads((run / "metrics.json").read_text())["rounds"] if (run / "metrics.json").is_file() else {}
     return {str(r): {**ate_by_axis(read_kitti_poses(run / f"round_{r}" / "poses_kitti.txt"), gt),
                      "accepted": summaries.get(str(r), {}).get("accepted")} for r in run_rounds(run)}
-
-
-def change(values: list[float]) -> str:
-    """``+x %`` of the last value against the first (``n/a`` when the first is 0)."""
-    return f"{100.0 * (values[-1] / values[0] - 1.0):+.0f} %" if values[0] > 0 else "n/a"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -82,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         rounds = sorted(per_round, key=int)
         col = {k: [per_round[r][k] for r in rounds] for k in ("rmse", "vertical_rmse", "horizontal_rmse")}
         lines.append(f"| {label} | " + " | ".join(" → ".join(f"{v:.3f}" for v in col[k]) for k in col)
-                     + f" | {change(col['vertical_rmse'])} | {change(col['horizontal_rmse'])} | "
+                     + f" | {last_change(col['vertical_rmse'])} | {last_change(col['horizontal_rmse'])} | "
                      + (", ".join(f"{r} ✗" for r in rounds if per_round[r]["accepted"] is False) or "none") + " |")
     print_and_write(args.write or "ate_by_axis", "\n".join(lines),
                     {"command": ["python", "benchmarks/ate_by_axis.py", *(sys.argv[1:] if argv is None else argv)],

@@ -168,10 +168,9 @@ def creep(out: Path, step: float, r: int = 0, settings: list[str] | None = None)
     if not still.any():
         print(f"{out}: the ground truth never stands still", file=sys.stderr)
         return 1
-    from gr_graph.memory import load_memory
+    from gr_graph.round_acceptance import _raw_scans
 
-    mem = load_memory(out / "round_0" / "memory")
-    scans = [np.array(mem.scan(k), np.float64) for k in range(mem.n_scans)]
+    scans = _raw_scans(out)
     rd = round_dir(out, r)
     poses = read_round_poses(rd)
     summary = json.loads((rd / "round.json").read_text())

@@ -34,7 +34,7 @@ import numpy as np
 
 from bench_round_acceptance import acceptance_settings, worse
 from gr_graph.provenance import machine_line
-from results_io import print_and_write
+from results_io import last_change, print_and_write
 
 
 def run_and_scans(spec: str) -> tuple[Path, Path]:
@@ -119,10 +119,6 @@ def registration_truth(run: Path, scans: list[np.ndarray], cfg: Any) -> dict[str
             "height_mean_m": float(E[:, 2, 3].mean()), "height_std_m": float(E[:, 2, 3].std())}
 
 
-def pct(pair: list[float]) -> str:
-    return f"{100.0 * (pair[1] / pair[0] - 1.0):+.0f} %"
-
-
 def report(results: dict[str, dict[str, Any]], thresholds: list[float | None], command: str, cfg: Any) -> str:
     lines = ["# Long-baseline consistency as an acceptance rule, against ground truth", "",
              f"`{command}`; {machine_line()}. Pairs {cfg.long_baseline_distance:g} m apart along the reference's path, "
@@ -143,7 +139,7 @@ def report(results: dict[str, dict[str, Any]], thresholds: list[float | None], c
             fw = "-" if lb.get("fraction_rotation_worse") is None else f"{lb['fraction_rotation_worse']:.2f}"
             lines.append(f"| {label} | {v['round']} | {v['reference']} | {lb.get('n_registered', 0)}/{lb.get('n_pairs', 0)} "
                          f"| {med} | {rot} | {tr} | {fw} | {'accept' if v['other_rules_accept'] else 'reject'} | "
-                         f"{pct(v['rpe300'])} | {pct(v['ate'])} |")
+                         f"{last_change(v['rpe300'])} | {last_change(v['ate'])} |")
     lines += ["", "Rounds judged in order (stopping at the first rejection), per threshold on \"rot.\" (none: the "
               "other rules alone). Counts: accepted/rejected x worse (> 5 %) / not worse, by all-pairs RPE-300 and by "
               "ATE; final: the final round of each run.", "",

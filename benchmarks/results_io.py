@@ -23,6 +23,11 @@ def print_and_write(name: str, text: str, document: dict[str, Any], write: bool)
         atomic_write_json(RESULTS / f"{name}.json", document)
 
 
+def last_change(values: list[float] | tuple[float, ...]) -> str:
+    """``+x %``: the last of ``values`` against the first (``n/a`` when the first is 0)."""
+    return f"{100.0 * (values[-1] / values[0] - 1.0):+.0f} %" if values[0] > 0 else "n/a"
+
+
 def change_percent(values: list[float] | tuple[float, ...], reference: list[float] | tuple[float, ...]) -> str:
     """``+m ± s %``: the per-run change of ``values`` against ``reference`` in percent, mean ± sample
     std over the runs (one run: the change alone, no spread)."""

@@ -24,8 +24,6 @@ register_pairs
     GICP registration of each pair's raw scans, from an initial trajectory.
 pair_discrepancy
     Translation and rotation of ``T_reg⁻¹ · T_k⁻¹ T_l`` per pair, for a trajectory.
-rms
-    Root mean square of the finite values.
 """
 
 from __future__ import annotations
@@ -34,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["baseline_pairs", "register_pairs", "pair_discrepancy", "rms"]
+__all__ = ["baseline_pairs", "register_pairs", "pair_discrepancy"]
 
 
 def baseline_pairs(positions: np.ndarray, min_distance: float, step: int, max_frames: int) -> np.ndarray:
@@ -145,9 +143,3 @@ def pair_discrepancy(poses: np.ndarray, pairs: np.ndarray, T_pairs: np.ndarray) 
     cos = np.clip((np.trace(E[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     return np.linalg.norm(E[:, :3, 3], axis=1), np.arccos(cos)
 
-
-def rms(values: np.ndarray) -> float:
-    """Root mean square of the finite ``values`` (NaN when there are none)."""
-    v = np.asarray(values, np.float64)
-    v = v[np.isfinite(v)]
-    return float(np.sqrt(np.mean(v * v))) if len(v) else float("nan")
