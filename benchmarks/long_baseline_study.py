@@ -56,8 +56,10 @@ def load_scans(run: Path, scans_run: Path) -> list[np.ndarray]:
     return _raw_scans(scans_run)
 
 
-def study_run(run: Path, scans: list[np.ndarray], cfg: Any, thresholds: list[float | None]) -> dict[str, Any]:
-    """Verdicts of ``run``'s learning rounds under each threshold (module docstring)."""
+def study_run(run: Path, scans: list[np.ndarray], cfg: Any, thresholds: list[float | None],
+              gt: np.ndarray | None) -> dict[str, Any]:
+    """Verdicts of ``run``'s learning rounds under each threshold (module docstring); ``gt``:
+    :func:`lidar_truth`."""
     from gr_graph.round_acceptance import evaluate_round
 
     m = json.loads((run / "metrics.json").read_text())
@@ -73,7 +75,7 @@ def study_run(run: Path, scans: list[np.ndarray], cfg: Any, thresholds: list[flo
             cache[(r, ref)] = {
                 "round": r, "reference": ref, "other_rules_accept": v["accepted"], "reasons": v["reasons"],
                 "mean_entropy_increase": v["mean_entropy_increase"], "long_baseline": lb,
-                "rotation_increase_with_truth": truth_figure(run, r, ref, cfg),
+                "rotation_increase_with_truth": truth_figure(run, gt, r, ref, cfg),
                 "rpe300": [s0["rpe300_all_pairs_mean"], s["rpe300_all_pairs_mean"]],
                 "ate": [s0["ate_rmse"], s["ate_rmse"]]}
         return cache[(r, ref)]
@@ -106,17 +108,16 @@ def lidar_truth(run: Path) -> np.ndarray | None:
     return cam_to_velo_poses(read_kitti_poses(run / "gt_poses_kitti.txt"), T_cam_velo())
 
 
-def truth_figure(run: Path, r: int, ref: int, cfg: Any) -> float | None:
+def truth_figure(run: Path, gt: np.ndarray | None, r: int, ref: int, cfg: Any) -> float | None:
     """The rotation figure with perfect registrations: the check's pairs (from the reference round's
     path; all of them, where the check keeps the registered ones), the ground truth's relative poses
     in place of the registrations; the round's median
     rotation discrepancy over the reference's, minus 1. It tells a blind figure (this does not rise
-    either) from registrations that mislead it (this rises, the registered one does not). None
-    without a ground truth."""
+    either) from registrations that mislead it (this rises, the registered one does not). ``gt``:
+    :func:`lidar_truth` (None: no ground truth, and None is returned)."""
     from gr_graph.long_baseline import baseline_pairs, pair_discrepancy
     from gr_graph.round_output import read_round_poses, round_dir
 
-    gt = lidar_truth(run)
     if gt is None:
         return None
     poses, ref_poses = read_round_poses(round_dir(run, r)), read_round_poses(round_dir(run, ref))
@@ -129,16 +130,15 @@ def truth_figure(run: Path, r: int, ref: int, cfg: Any) -> float | None:
     return a / a_ref - 1.0 if a_ref > 0 else None
 
 
-def registration_truth(run: Path, scans: list[np.ndarray], cfg: Any) -> dict[str, Any] | None:
+def registration_truth(run: Path, scans: list[np.ndarray], cfg: Any, gt: np.ndarray | None) -> dict[str, Any] | None:
     """The pairs' registrations (from round 0's poses) against the ground truth: mean and standard
-    deviation of the pitch and height of ``T_gt⁻¹ T_reg`` over the pairs. Synthetic runs only
-    (:func:`lidar_truth`); None otherwise."""
+    deviation of the pitch and height of ``T_gt⁻¹ T_reg`` over the pairs. ``gt``: :func:`lidar_truth`
+    (synthetic runs only; None otherwise, and None is returned)."""
     from scipy.spatial.transform import Rotation
 
     from gr_graph.long_baseline import baseline_pairs, register_pairs
     from gr_graph.round_output import read_round_poses, round_dir
 
-    gt = lidar_truth(run)
     if gt is None:
         return None
     poses = read_round_poses(round_dir(run, 0))
@@ -225,7 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for label, (run, scans_run) in zip(labels, specs, strict=True):
         scans = load_scans(run, scans_run)
-        results[label] = {**study_run(run, scans, cfg, thresholds), "registration_truth": registration_truth(run, scans, cfg)}
+        gt = lidar_truth(run)
+        results[label] = {**study_run(run, scans, cfg, thresholds, gt),
+                          "registration_truth": registration_truth(run, scans, cfg, gt)}
         print(f"{label}: done", file=sys.stderr, flush=True)
     command = "python benchmarks/long_baseline_study.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     print_and_write(args.write or "long_baseline_study", report(results, thresholds, command, cfg),
