@@ -18,6 +18,7 @@ from gr_graph.experiments.cells import (
     ABLATION_WINDOW,
     ABLATIONS,
     BUDGETS,
+    REVISIT_WINDOW,
     TABLE1_WINDOW,
     TABLES,
     cells_for,
@@ -140,9 +141,11 @@ def test_revisit_window_helpers_against_brute_force():
     rng = np.random.default_rng(0)
     P = np.cumsum(rng.normal(0, 1, (400, 3)), axis=0)
     P[350] = P[20] + 1.0  # one revisit 330 frames later
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
     pairs = revisit_pairs(P, min_gap=100, radius=5.0)
     d = np.linalg.norm(P[:, None] - P[None], axis=2)
-    i, j = np.nonzero(np.triu(d <= 5.0) & (np.arange(400)[None] - np.arange(400)[:, None] >= 100))
+    path = travelled[None] - travelled[:, None]
+    i, j = np.nonzero(np.triu(d <= 5.0) & (np.arange(400)[None] - np.arange(400)[:, None] >= 100) & (path >= 50.0))
     np.testing.assert_array_equal(pairs, np.stack([i, j], axis=1))
     assert count_revisits(P, (0, 400)) == len(pairs) >= 1
     a, b = first_revisit_window(P, 340, step=10)
@@ -151,16 +154,38 @@ def test_revisit_window_helpers_against_brute_force():
         first_revisit_window(P, 50)
 
 
+def test_a_stop_is_not_a_revisit():
+    """Frames of a long stop are many frames apart and in one place, but no path lies between them."""
+    drive = np.stack([np.linspace(0.0, 200.0, 200), np.zeros(200), np.zeros(200)], axis=1)
+    stop = np.repeat(drive[-1:], 150, axis=0) + np.random.default_rng(1).normal(0.0, 0.01, (150, 3))
+    P = np.concatenate([drive, stop, drive[-1] + drive[:100]])  # then drives on, never back
+    assert len(revisit_pairs(P, min_gap=100, radius=5.0, min_path=0.0)) > 0  # the old rule: the stop counts
+    assert len(revisit_pairs(P, min_gap=100, radius=5.0)) == 0
+    with pytest.raises(ValueError, match="path between them"):
+        first_revisit_window(P, 400)
+    ret = np.stack([np.linspace(300.0, 0.0, 301), np.full(301, 3.0), np.zeros(301)], axis=1)
+    back = np.concatenate([P, ret])  # 3 m across, then back along the road: a revisit of every place
+    found = revisit_pairs(back, min_gap=100, radius=5.0)
+    assert len(found) > 0 and np.all(found[:, 1] >= len(P))  # only the return's frames close a revisit
+    assert np.any((found[:, 0] >= 200) & (found[:, 0] < 350))  # the stop's place too, when driven past again
+
+
 @pytest.mark.slow
 def test_chosen_windows_contain_a_revisit():
-    """The Table I and ablation windows hold frames >= 100 apart within 5 m (route ground truth)."""
+    """The published windows (0:1500, 0:600) hold only the stop at frame 346, no revisit; the revisit budget's
+    window is the first 1,500-frame window that holds one (route ground truth)."""
     from gr_graph.experiments.revisits import route_positions
 
     P = route_positions(0)
     assert len(P) == 4541
     for w in (TABLE1_WINDOW, ABLATION_WINDOW):
-        assert count_revisits(P, w, min_gap=100, radius=5.0) > 0
-        assert first_revisit_window(P, w[1] - w[0]) == w
+        assert count_revisits(P, w, min_gap=100, radius=5.0, min_path=0.0) > 0  # the rule they were chosen by
+        assert count_revisits(P, w) == 0
+    assert count_revisits(P, REVISIT_WINDOW) > 0
+    assert first_revisit_window(P, REVISIT_WINDOW[1] - REVISIT_WINDOW[0]) == REVISIT_WINDOW
+    assert BUDGETS["student-t-adds-revisit"].window == REVISIT_WINDOW
+    with pytest.raises(ValueError):
+        first_revisit_window(P, ABLATION_WINDOW[1] - ABLATION_WINDOW[0])
 
 
 def test_list_prints_index_key_estimate(capsys, tmp_path):
