@@ -83,7 +83,8 @@ def study_run(run: Path, args: argparse.Namespace) -> dict[str, Any]:
     from gr_graph.round_acceptance import _raw_scans
 
     metrics = json.loads((run / "metrics.json").read_text())["rounds"]
-    rounds = sorted(int(k) for k, s in metrics.items() if "slam" in s and (round_dir(run, int(k)) / "odometry_kitti.txt").is_file())
+    rounds = sorted(int(k) for k, s in metrics.items()
+                    if "slam" in s and (round_dir(run, int(k)) / "odometry_kitti.txt").is_file())
     gt = lidar_truth(run)
     if gt is None:
         raise SystemExit(f"{run}: no ground truth of the synthetic world (gt_poses_kitti.txt)")
@@ -110,7 +111,8 @@ def study_run(run: Path, args: argparse.Namespace) -> dict[str, Any]:
                "accepted": s.get("accepted")}
         out["rounds"][str(r)] = fig
         print(f"{run.name} round {r}: odometry drift at revisits (registered) {fig['odometry_reg'][0]:.3f} m "
-              f"{fig['odometry_reg'][1]:.3f} deg, (truth) {fig['odometry_gt'][0]:.3f} m {fig['odometry_gt'][1]:.3f} deg; "
+              f"{fig['odometry_reg'][1]:.3f} deg, (truth) {fig['odometry_gt'][0]:.3f} m "
+              f"{fig['odometry_gt'][1]:.3f} deg; "
               f"RPE-300 {fig['rpe300']:.3f} ATE {fig['ate']:.3f}", flush=True)
     return out
 
@@ -129,14 +131,16 @@ def table(results: list[tuple[str, dict[str, Any]]]) -> str:
         reg = res["registration_error_median"]
         for r, f in res["rounds"].items():
             if r == "0":
-                cells = [f"{res['n_registered']} ({res['frames_apart_median']:.0f}; {100 * reg[0]:.0f} cm, {reg[1]:.2f}°)",
+                cells = [f"{res['n_registered']} ({res['frames_apart_median']:.0f}; "
+                         f"{100 * reg[0]:.0f} cm, {reg[1]:.2f}°)",
                          f"{f['odometry_reg'][0]:.2f} m / {f['odometry_reg'][1]:.2f}°",
                          f"{f['odometry_gt'][0]:.2f} m / {f['odometry_gt'][1]:.2f}°",
                          "" if f["odometry_rpe300"] is None else f"{f['odometry_rpe300']:.3f} m",
                          f"{f['rpe300']:.3f} m", f"{f['ate']:.3f} m", ""]
             else:
-                cells = ["", f"{_pct(f['odometry_reg'][0], f0['odometry_reg'][0])} / {_pct(f['odometry_reg'][1], f0['odometry_reg'][1])}",
-                         f"{_pct(f['odometry_gt'][0], f0['odometry_gt'][0])} / {_pct(f['odometry_gt'][1], f0['odometry_gt'][1])}",
+                reg_change = [_pct(f["odometry_reg"][i], f0["odometry_reg"][i]) for i in (0, 1)]
+                gt_change = [_pct(f["odometry_gt"][i], f0["odometry_gt"][i]) for i in (0, 1)]
+                cells = ["", " / ".join(reg_change), " / ".join(gt_change),
                          _pct(f["odometry_rpe300"], f0["odometry_rpe300"]), _pct(f["rpe300"], f0["rpe300"]),
                          _pct(f["ate"], f0["ate"]), "" if f["accepted"] is None else ("yes" if f["accepted"] else "no")]
             rows.append(" | ".join([f"| {label}", r, *cells]) + " |")

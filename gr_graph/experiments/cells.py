@@ -9,9 +9,10 @@ recomputed from scratch (:mod:`gr_graph.experiments.run_cell`).
 Seeds are paired: seed ``i`` sets both the world (``SlamConfig.seed``: the synthetic town,
 sensor noise and calibration) and the training (``training.seed``).
 
-Budgets: ``paper`` is the issue's protocol (Table I: a 1,500-frame window, meant to hold a revisit
-but holding only a stop (``TABLE1_WINDOW``), at 16 and 32 channels, 3 seeds; 64 channels rounds 0-1, 1 seed; the full 4,541-frame 16-channel run;
-Table II: 100 pairs; ablations: 600 frames, 3 seeds); ``student-t`` is the same protocol with the
+Budgets: ``paper`` is the issue's protocol (Table I: a 1,500-frame window, meant to hold a
+revisit but holding only a stop (``TABLE1_WINDOW``), at 16 and 32 channels, 3 seeds; 64 channels
+rounds 0-1, 1 seed; the full 4,541-frame 16-channel run; Table II: 100 pairs; ablations: 600
+frames, 3 seeds); ``student-t`` is the same protocol with the
 correspondence NLL a Student t (``training.trainer.corr_likelihood: student_t``, the ``student-t``
 ablation) for every cell; ``student-t-8ep`` the same with 8 training epochs a round instead of 3
 (the ``student-t-8ep`` ablation); ``student-t-8ep-adds`` that with densification that only adds
@@ -157,8 +158,8 @@ BUDGETS: dict[str, Budget] = {
     "student-t-adds": Budget("student-t-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3,
                              n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
                                                     "keep_original": True, "keep_dropped": True}, seeds_64ch=3),
-    "student-t-adds-revisit": Budget("student-t-adds-revisit", REVISIT_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2),
-                                     epochs=3, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
+    "student-t-adds-revisit": Budget("student-t-adds-revisit", REVISIT_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE,
+                                     (0, 1, 2), epochs=3, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
                                                                       "keep_original": True, "keep_dropped": True},
                                      seeds_64ch=3),
     "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,

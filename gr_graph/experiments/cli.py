@@ -47,9 +47,10 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
                     help="results root; cells go to DIR/<table>/<key> (default: runs/experiments[-<budget>])")
     ap.add_argument("--budget", choices=tuple(BUDGETS), default="paper",
                     help="paper: the issue's protocol with the paper's method (Gaussian likelihood, the paper's "
-                         "densification); student-t-adds: the same protocol with the library's training defaults "
-                         "(since 2026-12-05) on frames 0:1500, which hold no revisit, only a stop; student-t-adds-revisit: "
-                         "the same on 400:1900, the first window with a revisit; smoke: tiny sizes to test the machinery")
+                         "densification); student-t-adds: the same protocol with the library's training "
+                         "defaults (since 2026-12-05) on frames 0:1500, which hold no revisit, only a stop; "
+                         "student-t-adds-revisit: the same on 400:1900, the first window with a revisit; smoke: tiny "
+                         "sizes to test the machinery")
     ap.add_argument("--list", action="store_true", help="print the cells (index, key, estimated wall minutes on 2 cores, what)")
     ap.add_argument("--cell", default=None, metavar="K", help="run only cell K (index or key)")
     ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")
