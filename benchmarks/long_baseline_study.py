@@ -95,17 +95,23 @@ def study_run(run: Path, scans: list[np.ndarray], cfg: Any, thresholds: list[flo
     return {"rounds": rounds, "by_threshold": by_threshold, "verdicts": list(cache.values())}
 
 
-def lidar_truth(run: Path) -> np.ndarray | None:
-    """The synthetic run's ground-truth poses in the LiDAR's frame (the truth file is in the camera
-    frame; the rig's ``T_cam_velo`` takes it there); None for other runs."""
+def synthetic_lidar_poses(path: Path) -> np.ndarray:
+    """A synthetic run's KITTI-form pose file (camera frame) in the LiDAR's frame (the rig's
+    ``T_cam_velo`` takes it there)."""
     from gr_graph.datasets.base import cam_to_velo_poses
     from gr_graph.datasets.synthetic.rig import T_cam_velo
     from gr_graph.trajectory import read_kitti_poses
 
+    return cam_to_velo_poses(read_kitti_poses(path), T_cam_velo())
+
+
+def lidar_truth(run: Path) -> np.ndarray | None:
+    """The synthetic run's ground-truth poses in the LiDAR's frame (:func:`synthetic_lidar_poses`);
+    None for other runs."""
     source = json.loads((run / "metrics.json").read_text()).get("source", "")
     if "synthetic world" not in source or not (run / "gt_poses_kitti.txt").is_file():
         return None
-    return cam_to_velo_poses(read_kitti_poses(run / "gt_poses_kitti.txt"), T_cam_velo())
+    return synthetic_lidar_poses(run / "gt_poses_kitti.txt")
 
 
 def truth_figure(run: Path, gt: np.ndarray | None, r: int, ref: int, cfg: Any) -> float | None:

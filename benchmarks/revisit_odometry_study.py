@@ -49,8 +49,8 @@ from gr_graph.experiments.revisits import revisit_pairs
 from gr_graph.long_baseline import pair_discrepancy, register_pairs
 from gr_graph.provenance import machine_line
 from gr_graph.round_output import read_round_poses, round_dir
-from long_baseline_study import lidar_truth
-from results_io import print_and_write
+from long_baseline_study import lidar_truth, synthetic_lidar_poses
+from results_io import last_change, print_and_write
 
 
 def cycle_pairs(positions: np.ndarray, min_gap: int, min_path: float, max_distance: float, n_pairs: int,
@@ -62,15 +62,6 @@ def cycle_pairs(positions: np.ndarray, min_gap: int, min_path: float, max_distan
     if len(pairs) > n_pairs:
         pairs = pairs[np.sort(np.random.default_rng(seed).choice(len(pairs), n_pairs, replace=False))]
     return pairs
-
-
-def odometry_poses(rd: Path) -> np.ndarray:
-    """A round's odometry-only poses in the LiDAR's frame (``odometry_kitti.txt`` is in the camera's)."""
-    from gr_graph.datasets.base import cam_to_velo_poses
-    from gr_graph.datasets.synthetic.rig import T_cam_velo
-    from gr_graph.trajectory import read_kitti_poses
-
-    return cam_to_velo_poses(read_kitti_poses(rd / "odometry_kitti.txt"), T_cam_velo())
 
 
 def _medians(poses: np.ndarray, pairs: np.ndarray, T: np.ndarray) -> tuple[float, float]:
@@ -103,7 +94,7 @@ def study_run(run: Path, args: argparse.Namespace) -> dict[str, Any]:
                            "registration_error_median": [float(np.median(reg_t)), float(np.degrees(np.median(reg_a)))],
                            "frames_apart_median": float(np.median(pairs[:, 1] - pairs[:, 0])), "rounds": {}}
     for r in rounds:
-        odo = odometry_poses(round_dir(run, r))
+        odo = synthetic_lidar_poses(round_dir(run, r) / "odometry_kitti.txt")  # the odometry-only poses
         s = metrics[str(r)]
         fig = {"odometry_reg": _medians(odo, pairs, T), "odometry_gt": _medians(odo, pairs, T_gt),
                "rpe300": s["slam"]["rpe300_all_pairs_mean"], "ate": s["slam"]["ate_rmse"],
@@ -118,7 +109,7 @@ def study_run(run: Path, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _pct(new: float | None, old: float | None) -> str:
-    return "" if new is None or old in (None, 0) else f"{100 * (new / old - 1):+.0f} %"
+    return "" if new is None or not old else last_change([old, new])
 
 
 def table(results: list[tuple[str, dict[str, Any]]]) -> str:

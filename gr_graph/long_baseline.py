@@ -60,12 +60,14 @@ def baseline_pairs(positions: np.ndarray, min_distance: float, step: int, max_fr
         same frame: only the first is kept); empty when the path is shorter than ``min_distance`` or
         a position is not finite.
     """
+    from gr_graph.metrics import path_distances
+
     p = np.asarray(positions, np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"baseline_pairs: positions must be (K, 3), got {p.shape}")
     if len(p) < 2 or not np.all(np.isfinite(p)):
         return np.zeros((0, 2), np.int64)
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    travelled = path_distances(p)
     starts = np.arange(0, len(p), max(1, int(step)))
     ends = np.searchsorted(travelled, travelled[starts] + min_distance, side="left")
     keep = (ends < len(p)) & (ends - starts <= max_frames) & (ends > starts)

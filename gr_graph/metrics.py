@@ -280,8 +280,11 @@ def ate_by_axis(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, vert
 
 
 def path_distances(poses: np.ndarray) -> np.ndarray:
-    """Cumulative path length ``(K,)`` along the translations of ``poses`` (0 at frame 0)."""
-    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    """Cumulative path length ``(K,)`` along ``poses`` (0 at frame 0): ``(K, 4, 4)`` poses (their
+    translations) or ``(K, 3)`` positions."""
+    poses = np.asarray(poses)
+    positions = poses[:, :3, 3] if poses.ndim == 3 else poses
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 

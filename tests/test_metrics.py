@@ -20,6 +20,7 @@ from gr_graph.metrics import (
     ate_by_axis,
     kitti_devkit_errors,
     kitti_devkit_segments,
+    path_distances,
     rpe_translation,
     trajectory_metrics,
 )
@@ -191,6 +192,13 @@ def straight_line(K: int, spacing: float = 1.0) -> np.ndarray:
     T = np.tile(np.eye(4), (K, 1, 1))
     T[:, 2, 3] = np.arange(K) * spacing
     return T
+
+
+def test_path_distances_of_poses_and_of_positions() -> None:
+    """The cumulative path of a straight line 0.5 m a frame, from poses and from their positions alike."""
+    T = straight_line(5, spacing=0.5)
+    np.testing.assert_allclose(path_distances(T), [0.0, 0.5, 1.0, 1.5, 2.0])
+    np.testing.assert_array_equal(path_distances(T[:, :3, 3]), path_distances(T))
 
 
 def devkit_segment_set(K: int, step: int = 10) -> list[tuple[int, float]]:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
 from gr_graph.config import merge_config
@@ -146,6 +146,10 @@ class Budget:
                              f"got {self.seeds_64ch}")
 
 
+_STUDENT_T_ADDS = Budget("student-t-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3,
+                         n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
+                                                "keep_original": True, "keep_dropped": True}, seeds_64ch=3)
+
 BUDGETS: dict[str, Budget] = {
     "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100),
     "student-t": Budget("student-t", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100,
@@ -155,13 +159,9 @@ BUDGETS: dict[str, Budget] = {
     "student-t-8ep-adds": Budget("student-t-8ep-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2),
                                  epochs=8, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
                                                                   "keep_original": True, "keep_dropped": True}),
-    "student-t-adds": Budget("student-t-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3,
-                             n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
-                                                    "keep_original": True, "keep_dropped": True}, seeds_64ch=3),
-    "student-t-adds-revisit": Budget("student-t-adds-revisit", REVISIT_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE,
-                                     (0, 1, 2), epochs=3, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
-                                                                      "keep_original": True, "keep_dropped": True},
-                                     seeds_64ch=3),
+    "student-t-adds": _STUDENT_T_ADDS,
+    # the same, Table I on a window with a revisit
+    "student-t-adds-revisit": replace(_STUDENT_T_ADDS, name="student-t-adds-revisit", window=REVISIT_WINDOW),
     "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,
                     training={"trainer": {"max_corr": 200, "num_threads": 1,
                                           "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16,

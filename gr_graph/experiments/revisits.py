@@ -27,8 +27,10 @@ def revisit_pairs(positions: np.ndarray, min_gap: int = 100, radius: float = 5.0
                   min_path: float = 50.0) -> np.ndarray:
     """``(M, 2)`` int64 rows ``(i, j)``, ``i < j``, ``j - i >= min_gap``, ``|p_i - p_j| <= radius``,
     and at least ``min_path`` metres of path between frames ``i`` and ``j`` (a stop is not a revisit)."""
+    from gr_graph.metrics import path_distances
+
     P = np.asarray(positions, np.float64).reshape(-1, 3)
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    travelled = path_distances(P)
     pairs = cKDTree(P).query_pairs(float(radius), output_type="ndarray").reshape(-1, 2)
     lo, hi = pairs.min(axis=1), pairs.max(axis=1)
     keep = ((hi - lo) >= min_gap) & (travelled[hi] - travelled[lo] >= min_path)
