@@ -97,6 +97,27 @@ def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, m
     assert f"unreadable records ignored: {c0.key}" in md
 
 
+def test_a_cell_shared_by_two_budgets_takes_the_other_budgets_record(tmp_path):
+    """The full-route cell is the same definition in student-t-adds and its revisit variant: one
+    record serves both, named as the other budget's; a different definition is not taken."""
+    full = next(c for c in cells_for("table1", "student-t-adds") if c.key == "full-16ch-s0")
+    twin = next(c for c in cells_for("table1", "student-t-adds-revisit") if c.key == "full-16ch-s0")
+    window = next(c for c in cells_for("table1", "student-t-adds-revisit") if c.key == "16ch-s0")
+    window_0_1500 = next(c for c in cells_for("table1", "student-t-adds") if c.key == "16ch-s0")
+    assert twin.fingerprint() == full.fingerprint() and window.fingerprint() != window_0_1500.fingerprint()
+    records = tmp_path / "records"
+    write_records(records, "student-t-adds", [full, window_0_1500],
+                  {c.key: _result(c, [3.0, 2.5], [True]) for c in (full, window_0_1500)})
+    got = read_records(records, "student-t-adds-revisit", [twin, window])
+    assert set(got.results) == {twin.key} and got.shared == {twin.key: "student-t-adds"}
+    assert "record of budget `student-t-adds`" in got.provenance_of(twin.key)
+    assert got.stale == [] and got.orphans == []
+    # the budget's own record wins
+    write_records(records, "student-t-adds-revisit", [twin], {twin.key: _result(twin, [3.0, 2.0], [True])})
+    own = read_records(records, "student-t-adds-revisit", [twin])
+    assert own.shared == {} and own.results[twin.key]["rounds"]["1"]["slam"]["rpe300_consecutive_mean"] == 2.0
+
+
 def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch, capsys):
     cells = cells_for("ablations", "smoke")
     records = tmp_path / "records"

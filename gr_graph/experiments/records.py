@@ -77,6 +77,11 @@ class RecordSet:
     (``stale``), unreadable (``unreadable``) and orphaned records (``orphans``: files of the table
     that name no current cell).
 
+    A cell without a record of its own budget takes another budget's record of the same table and
+    key when its fingerprint equals the cell's (budgets that share a cell's definition share its
+    result, e.g. a full-route cell of budgets that differ only in the 1,500-frame window);
+    ``shared`` maps such keys to the budget the record came from.
+
     Parameters
     ----------
     records_dir : path
@@ -91,6 +96,7 @@ class RecordSet:
         self.results: dict[str, dict[str, Any]] = {}
         self.stale: list[str] = []
         self.unreadable: list[str] = []
+        self.shared: dict[str, str] = {}
         keys = {c.key for c in cells}
         tables = {c.table for c in cells}
         self.orphans = sorted(f"{t}/{p.stem}" for t in tables
@@ -98,6 +104,7 @@ class RecordSet:
         for c in cells:
             p = record_path(records_dir, budget, c)
             if not p.exists():
+                self._share(records_dir, budget, c)
                 continue
             rec = read_json_or_none(p)
             if not isinstance(rec, dict):
@@ -109,11 +116,22 @@ class RecordSet:
             else:
                 self.results[c.key] = rec
 
+    def _share(self, records_dir: str | Path, budget: str, cell: Cell) -> None:
+        """Take another budget's record of ``cell`` whose fingerprint equals the cell's, if one exists."""
+        for other in sorted(Path(records_dir).glob(f"*/{cell.table}/{cell.key}.json")):
+            name = other.parent.parent.name
+            rec = read_json_or_none(other) if name != budget else None
+            if isinstance(rec, dict) and rec.get("fingerprint") == cell.fingerprint():
+                self.results[cell.key] = rec
+                self.shared[cell.key] = name
+                return
+
     def provenance_of(self, key: str) -> str:
-        """``commit <10 hex>[, uncommitted changes], <machine>`` of a recorded cell."""
+        """``commit <10 hex>[, uncommitted changes], <machine>[, record of budget <b>]`` of a recorded cell."""
         rec = self.results[key].get("record") or {}
         return (f"commit {(rec.get('commit') or 'unknown')[:10]}{', uncommitted changes' if rec.get('dirty') else ''}, "
-                f"{rec.get('machine') or 'machine not recorded'}")
+                f"{rec.get('machine') or 'machine not recorded'}"
+                + (f", record of budget `{self.shared[key]}` (same definition)" if key in self.shared else ""))
 
 
 def read_records(records_dir: str | Path, budget: str, cells: list[Cell]) -> RecordSet:
