@@ -95,7 +95,7 @@ class VarianceFactor:
     n_edges : dict
         Edges per kind (flagged ones left out).
     n_flagged : int
-        Flagged odometry edges left out (their information is not scaled).
+        Flagged odometry edges left out of the estimate (their information is scaled all the same).
     """
 
     sigma0_sq: float | None

@@ -117,7 +117,7 @@ def scaled_information(H: np.ndarray, error: float, num_inliers: int, scale: flo
     """Registration Hessian → pose information: ``scale · H / σ₀²``, σ₀² = 2·error/(3n − 6).
 
     small_gicp's cost is e = ½Σ dᵢᵀΩᵢdᵢ with unit-less Ωᵢ; if the real residual covariance
-    is σ₀²Ωᵢ⁻¹ then E[2e] ≈ 3n − 6 σ₀², so σ₀² is estimated from the final cost.
+    is σ₀²Ωᵢ⁻¹ then E[2e] ≈ (3n − 6)·σ₀², so σ₀² is estimated from the final cost.
     """
     dof = max(3 * int(num_inliers) - 6, 1)
     var = max(2.0 * float(error) / dof, 1e-12)

@@ -284,6 +284,7 @@ class SlamPipeline:
         if self.frame_cache is not None:
             self.sequence = self.frame_cache
         self.keep_frame_cache = False  # the harness reads the frames again after run() (KISS-ICP baseline)
+        self.resumed_rounds: list[int] = []  # rounds the last run() took from --out instead of computing them
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
         self._raw_scans: list[np.ndarray] | None = None  # round 0's scans, for the acceptance test
@@ -342,11 +343,14 @@ class SlamPipeline:
                                    "provenance": self.provenance(),
                                    "rounds": {}}
         previous_poses, recomputed, reference = None, False, 0
+        self.resumed_rounds = []
         for r in range(self.cfg.training.rounds + 1):
             summary = None if recomputed else self.finished_round(r)
             if summary is None:
                 summary = self.compute_round(r, resume_training=self.cfg.output.resume and not recomputed)
                 recomputed = True
+            else:
+                self.resumed_rounds.append(r)
             metrics["rounds"][str(r)] = summary
             accepted = self.judge(r, reference, metrics["rounds"])
             poses = read_round_poses(self.round_dir(r))

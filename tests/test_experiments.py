@@ -751,3 +751,29 @@ def test_smoke_cell_end_to_end_through_the_cli(tmp_path, capsys):
     rep = json.loads((root / "table1" / "report.json").read_text())
     assert rep["summary"]["16ch"]["seeds"] == [0]
     assert (root / "table1" / "figures" / "table1_smoke_trajectories_16ch-s0.png").is_file()
+
+
+def test_a_resumed_cell_counts_the_recorded_time_of_the_work_it_resumed(tmp_path):
+    """A cell interrupted after round 1 (its record and round 2's summary missing) and run again:
+    the second call resumes rounds 0 and 1 and the KISS-ICP baseline, and the cell's time adds
+    their recorded times to the call's own (before, the call's time alone: a few seconds)."""
+    cell = cells_for("table1", "smoke")[0]
+    first = rc.run_cell(tmp_path, cell)
+    assert first["resumed"] == {"rounds": [], "kiss_icp": False, "wall_s": 0.0}
+    assert rc.cell_wall_s(first) == first["wall_s"]
+    d = rc.cell_dir(tmp_path, cell)
+    (d / "cell.json").unlink()
+    (d / "slam" / "round_2" / "round.json").unlink()
+    second = rc.run_cell(tmp_path, cell)
+    rounds = first["rounds"]
+    done_before = (rounds["0"]["runtime_s"]["total"] + rounds["1"]["runtime_s"]["total"]
+                   + rounds["1"]["runtime_s"]["training"] + first["kiss_icp"]["wall_s"])
+    assert second["resumed"]["rounds"] == [0, 1] and second["resumed"]["kiss_icp"]
+    assert second["resumed"]["wall_s"] == pytest.approx(done_before, rel=1e-12)
+    assert rc.cell_wall_s(second) == pytest.approx(second["wall_s"] + done_before, rel=1e-12)
+    assert second["rounds"]["1"]["runtime_s"] == rounds["1"]["runtime_s"]  # resumed, not recomputed
+    assert second["rounds"]["2"]["runtime_s"] != rounds["2"]["runtime_s"]  # recomputed in the second call
+    assert second["rounds"]["2"]["slam"] == rounds["2"]["slam"]  # the same model (its training resumed), same poses
+    results = {cell.key: second}
+    row = [ln for ln in report._runtime_md([cell], results) if ln.startswith(f"| {cell.key} ")][0]
+    assert row.split(" | ")[2] == f"{rc.cell_wall_s(second) / 60:.1f}"

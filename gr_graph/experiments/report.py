@@ -19,8 +19,8 @@ from gr_graph.experiments import aggregate as agg
 from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
 from gr_graph.experiments.records import RecordSet, read_records, write_records
 from gr_graph.provenance import machine_line
-from gr_graph.experiments.run_cell import (METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS, cell_dir, read_cell_result,
-                                          with_noise_consistency, with_short_range_rpe)
+from gr_graph.experiments.run_cell import (METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS, cell_dir, cell_wall_s,
+                                          read_cell_result, with_noise_consistency, with_short_range_rpe)
 
 __all__ = ["write_report", "published_name", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
@@ -32,7 +32,7 @@ def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[st
     est = sum(c.est_minutes for c in cells)
     done = [results[c.key] for c in cells if c.key in results]
     cpu = sum(d.get("cpu_s", 0.0) for d in done) / 60.0
-    wall = sum(d.get("wall_s", 0.0) for d in done) / 60.0
+    wall = sum(cell_wall_s(d) for d in done) / 60.0
     frames = sorted({f"{c.frames[0]}:{c.frames[1]}" for c in cells})
     lines = [f"- budget `{budget.name}`: {len(cells)} cells ({len(done)} finished), frames {', '.join(frames)}, "
              f"seeds {', '.join(map(str, budget.seeds))} (world seed i paired with training seed i), "
@@ -123,14 +123,15 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
         reuse = c.params.get("reuse")  # ablations: work taken from the seed's default cell, timed there
         round0 = "reused" if reuse else minutes(0, "total")
         training = ["reused" if r == 1 and reuse == "round1_training" else minutes(r, "training") for r in learning]
-        rows.append(f"| {c.key} | {c.frames[1] - c.frames[0]} | {d.get('wall_s', float('nan')) / 60:.1f} | "
+        rows.append(f"| {c.key} | {c.frames[1] - c.frames[0]} | {cell_wall_s(d) / 60:.1f} | "
                     f"{round0} | {', '.join(training)} | "
                     f"{', '.join(minutes(r, 'total') for r in learning)} | {'' if kiss is None else f'{kiss / 60:.1f}'} | "
                     f"{'' if peak is None else f'{peak / 1024:.1f}'} |")
     if not rows:
         return []
     return ["## Time per stage", "",
-            "Wall minutes of each finished cell on its machine (records name it): round 0 (rendering, SLAM, "
+            "Wall minutes of each finished cell on its machine (records name it; for a cell resumed after an "
+            "interruption, with the recorded time of the rounds finished in earlier calls): round 0 (rendering, SLAM, "
             "memory), each learning round's training and its SLAM (rendering again, the network on every frame, "
             "densification, SLAM; \"reused\": taken from another cell and timed there), the KISS-ICP "
             "baseline (rendering again); the process's peak resident memory in GiB (recorded since 2026-12-03). "

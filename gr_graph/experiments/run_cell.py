@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir",
            "read_cell_result", "is_done", "run_cell", "prune_cell", "prune_finished", "round_figures",
-           "with_noise_consistency", "with_short_range_rpe"]
+           "with_noise_consistency", "with_short_range_rpe", "resumed_work", "cell_wall_s"]
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
                "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
@@ -238,8 +238,10 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
     metrics = pipeline.run()
     result: dict[str, Any] = {"rounds": round_figures(metrics), "source": metrics.get("source"),
                               "provenance": metrics.get("provenance"), "reuse": reuse}
+    resumed_kiss = None
     if cell.params.get("kiss_icp"):
         kiss = read_json_or_none(kp)
+        resumed_kiss = kiss
         if kiss is None:
             from gr_graph.experiments.kiss_baseline import kiss_icp_metrics
 
@@ -250,7 +252,31 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
             atomic_write_json(kp, kiss)
         result["kiss_icp"] = {"system": kiss["system"], **{k: kiss["metrics"].get(k) for k in METRIC_KEYS},
                               "wall_s": kiss["wall_s"], "cpu_s": kiss["cpu_s"]}
+    result["resumed"] = resumed_work(metrics, pipeline.resumed_rounds, resumed_kiss)
     return result
+
+
+def resumed_work(metrics: dict[str, Any], rounds: list[int], kiss: dict[str, Any] | None) -> dict[str, Any]:
+    """The work of a SLAM cell that this harness call took from an earlier one (an interrupted
+    call, or a run adopted into the root) instead of doing it: the rounds it resumed and the
+    KISS-ICP baseline it read back, with their recorded wall time (each round's SLAM ``total``
+    plus its ``training``; the baseline's ``wall_s``). Added to the call's own ``wall_s`` this is
+    the cell's time (:func:`cell_wall_s`); the time an interrupted call spent on work it did not
+    finish is not in it."""
+    wall = 0.0
+    for r in rounds:
+        runtime = metrics["rounds"][str(r)].get("runtime_s") or {}
+        wall += float(runtime.get("total") or 0.0) + float(runtime.get("training") or 0.0)
+    if kiss is not None:
+        wall += float(kiss.get("wall_s") or 0.0)
+    return {"rounds": list(rounds), "kiss_icp": kiss is not None, "wall_s": wall}
+
+
+def cell_wall_s(doc: dict[str, Any]) -> float:
+    """A finished cell's wall time [s]: its last harness call's ``wall_s`` plus the recorded time
+    of the work that call resumed (:func:`resumed_work`; records made before it was recorded hold
+    the call's time only, or, for an adopted run, the direct run's already added)."""
+    return float(doc.get("wall_s", float("nan"))) + float((doc.get("resumed") or {}).get("wall_s") or 0.0)
 
 
 def _source_round(src_slam: Path, r: int) -> tuple[int, str | None]:
