@@ -98,7 +98,8 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
         if suffix == ".bin":
             np.column_stack([xyz, np.zeros(len(xyz), np.float32) if inten is None else inten]).tofile(tmp)
         elif suffix == ".npy":
-            np.save(tmp, xyz if inten is None else np.column_stack([xyz, inten]))
+            with open(tmp, "wb") as fh:  # a handle: np.save would append ".npy" to a name ending in ".NPY"
+                np.save(fh, xyz if inten is None else np.column_stack([xyz, inten]))
         else:
             import open3d as o3d
 

@@ -259,11 +259,12 @@ def test_write_cloud_round_trips(tmp_path: Path) -> None:
     x, i = rng.normal(size=(300, 3)) * 10, rng.random(300).astype(np.float32)
     A = rng.normal(size=(300, 3, 3))
     C = A @ A.transpose(0, 2, 1)
-    for suffix in (".ply", ".pcd", ".bin", ".npy"):
+    for suffix in (".ply", ".pcd", ".bin", ".npy", ".NPY"):  # numpy would append .npy to a .NPY name
         p = write_cloud(tmp_path / f"c{suffix}", x, i, C if suffix == ".ply" else None)
         back, bi = read_cloud(p)
         np.testing.assert_array_equal(back, x.astype(np.float32))
         np.testing.assert_array_equal(bi, i)
+    assert not list(tmp_path.glob("*.NPY.npy")) and not list(tmp_path.glob(".*"))  # no stray file beside it
     np.testing.assert_array_equal(read_ply_covariances(tmp_path / "c.ply"), C)
     with pytest.raises(ValueError, match="only"):
         write_cloud(tmp_path / "c.pcd", x, covariances=C)

@@ -71,10 +71,46 @@ def test_open3d_files_round_trip(tmp_path: Path, frames: list, suffix: str, kwar
 
 
 def test_compressed_pcd_through_open3d(tmp_path: Path, frames: list) -> None:
-    folder = _write_o3d(tmp_path / "c", frames[:1], ".pcd", ["a"], compressed=True)
-    back = FolderSequence(folder)[0]
-    np.testing.assert_array_equal(back.points, float32_frame(frames[0]))
-    np.testing.assert_array_equal(back.intensity, frames[0].intensity)
+    """binary_compressed PCDs keep every field: the same frames as binary ones, per-point time and
+    ring included (before, only x, y, z and intensity: raw sweeps passed as motion-compensated)."""
+    folder = _write_o3d(tmp_path / "c", frames, ".pcd", ["a", "b", "c"], compressed=True)
+    plain = FolderSequence(_write_o3d(tmp_path / "b", frames, ".pcd", ["a", "b", "c"]))
+    seq = FolderSequence(folder)
+    assert b"binary_compressed" in (folder / "a.pcd").read_bytes()[:400]
+    assert seq.motion_compensated is False and seq.n_rings == plain.n_rings
+    for i in range(N_FRAMES):
+        back, ref = seq[i], plain[i]
+        np.testing.assert_array_equal(back.points, float32_frame(frames[i]))
+        np.testing.assert_array_equal(back.intensity, frames[i].intensity)
+        np.testing.assert_array_equal(back.ring, ref.ring)
+        np.testing.assert_array_equal(back.time, ref.time)
+    assert read_pcd(folder / "a.pcd").time_field == "t"
+
+
+def test_a_runs_own_poses_are_not_taken_for_ground_truth(tmp_path: Path, frames: list,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """``slam drive/scans --out drive``: the run writes poses_kitti.txt into drive/, and the next
+    run on drive/scans must not read that estimate as ground truth (a perfect ATE)."""
+    import logging
+
+    from gr_graph.trajectory import write_kitti_poses
+
+    drive_dir = tmp_path / "drive"
+    drive_dir.mkdir()
+    scans = _write_o3d(drive_dir / "scans", frames, ".pcd", ["0", "1", "2"])
+    estimate = np.tile(np.eye(4), (N_FRAMES, 1, 1))
+    estimate[:, 0, 3] = np.arange(N_FRAMES)
+    write_kitti_poses(drive_dir / "poses_kitti.txt", estimate)
+    assert FolderSequence(scans).gt_poses is not None  # a poses file beside the scans is found ...
+    (drive_dir / "round_0").mkdir()
+    (drive_dir / "metrics.json").write_text("{}")
+    with caplog.at_level(logging.WARNING):
+        assert FolderSequence(scans).gt_poses is None  # ... but not from a run's output
+    assert "holds a gr_graph run's output" in caplog.text and "--poses" in caplog.text
+    given = FolderSequence(scans, poses=drive_dir / "poses_kitti.txt")  # given: taken
+    np.testing.assert_allclose(given.gt_poses[:, 0, 3], np.arange(N_FRAMES))
+    write_kitti_poses(scans / "poses.txt", estimate)  # the ground truth in the scans folder is still found
+    assert FolderSequence(scans).gt_poses is not None
 
 
 def test_npy_bin_and_side_files(tmp_path: Path, frames: list) -> None:
@@ -200,3 +236,15 @@ def test_real_kitti_velodyne_folder_matches_the_odometry_loader(kitti_root: Path
     for i in (0, 5):
         np.testing.assert_array_equal(seq[i].points, kitti[i].points)
         np.testing.assert_array_equal(seq[i].intensity, kitti[i].intensity)
+
+
+def test_a_kitti_raw_data_folder_names_the_drive_folder(tmp_path: Path, frames: list) -> None:
+    """``velodyne_points/data`` opened as a folder finds ``velodyne_points/timestamps.txt`` (date-times):
+    the error says to open the drive folder instead of only that a row has two values."""
+    data = tmp_path / "2011_09_26_drive_0001_sync" / "velodyne_points" / "data"
+    data.mkdir(parents=True)
+    for k, f in enumerate(frames):
+        np.column_stack([f.points, f.intensity]).astype(np.float32).tofile(data / f"{k:010d}.bin")
+    (data.parent / "timestamps.txt").write_text("".join(f"2011-09-26 13:02:25.{k}64389445\n" for k in range(N_FRAMES)))
+    with pytest.raises(DatasetError, match=r"velodyne_points/timestamps.txt:1: .*date-time stamps.*drive folder"):
+        FolderSequence(data)

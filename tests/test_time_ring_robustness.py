@@ -12,7 +12,7 @@ import pytest
 from gr_graph.datasets.base import DatasetError
 from gr_graph.datasets.channels import subsample_channels
 from gr_graph.datasets.folder import FolderSequence
-from gr_graph.datasets.frame_fields import FieldConventions
+from gr_graph.datasets.frame_fields import FieldConventions, guess_time_unit
 from gr_graph.datasets.kitti import KittiSequence
 from gr_graph.datasets.pointcloud2 import DecodedCloud
 from gr_graph.datasets.rosbag import RosbagSequence
@@ -345,3 +345,90 @@ def test_a_128_ring_recording_opens_without_naming_the_sensor(tmp_path: Path) ->
     assert seq[2].n_rings == 128 and int(seq[2].ring.max()) == 127
     with pytest.raises(DatasetError, match="ring 127 >= 64 rings of the sensor"):  # a named 64-beam sensor
         open_sequence(path=folder, sensor="os1-64")
+
+
+# ---------------------------------------------------------------- 5. probe frames spread over the sequence
+def _timed_folder(folder: Path, n: int, spans_ns: dict[int, float], rings_of: dict[int, int] | None = None) -> Path:
+    """``n`` .npy sweeps (uint32 ns times ``t``, Velodyne ring numbering); frame k's times span
+    ``spans_ns.get(k, 0.1 s)`` (a 2 ms first message: its points cover 2 % of the azimuth), its rings
+    are those below ``rings_of.get(k, 16)``."""
+    folder.mkdir()
+    s = _sweep(n_rings=16, n_az=200, lowest_first=True)
+    for k in range(n):
+        span = spans_ns.get(k, 0.1e9)
+        keep = s["ring"] < (rings_of or {}).get(k, 16)
+        if span < 0.1e9:
+            keep &= s["frac"] <= span / 0.1e9
+        arr = np.zeros(int(keep.sum()), [("x", "f4"), ("y", "f4"), ("z", "f4"), ("ring", "u2"), ("t", "u4")])
+        for i, c in enumerate("xyz"):
+            arr[c] = s["points"][keep, i]
+        arr["ring"] = s["ring"][keep]
+        arr["t"] = np.round(s["frac"][keep] * span / max(float(s["frac"][keep].max()), 1e-9) if span > 0.1e9
+                            else s["frac"][keep] * 0.1e9)
+        np.save(folder / f"{k:06d}.npy", arr)
+    return folder
+
+
+def test_a_short_first_message_does_not_set_the_time_unit(tmp_path: Path) -> None:
+    """A first message of 2 ms (ns times): alone it reads as microseconds (before, every later full
+    sweep was then clipped to fraction 1 without a word); the probe frames spread over the folder set ns."""
+    from gr_graph.datasets.point_files import read_point_file
+
+    folder = _timed_folder(tmp_path / "f", 6, {0: 2e6})
+    first = folder / "000000.npy"
+    assert guess_time_unit(read_point_file(first).time, PERIOD) == 1e-6  # what the first frame alone says
+    with pytest.raises(DatasetError, match="000000.npy: .*guessed"):  # alone, the wrong guess is now refused
+        FieldConventions.probe(read_point_file(first), PERIOD, str(first))
+    seq = FolderSequence(folder)
+    assert seq.conventions.time_unit_s == 1e-9
+    full = seq[3].time
+    assert full.min() < 0.01 and full.max() > 0.99 and 0.4 < np.median(full) < 0.6  # a whole sweep, spread
+    assert seq[0].time.max() < 0.03  # the 2 ms message keeps its place at the sweep's start
+    assert seq.conventions.n_overlong_frames == 0
+
+
+def test_an_overlong_frame_is_clipped_and_counted_a_wrong_guess_refused(tmp_path: Path,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    # frame 5 of 10 (not a probe: 0, 2, 4, 7, 9) spans five sweeps: clipped, logged, counted
+    seq = FolderSequence(_timed_folder(tmp_path / "a", 10, {5: 0.5e9}))
+    assert seq.conventions.time_unit_s == 1e-9
+    with caplog.at_level(logging.WARNING):
+        long = seq[5].time
+    assert long.max() == 1.0 and np.mean(long == 1.0) > 0.7
+    assert seq.conventions.n_overlong_frames == 1 and "000005.npy" in caplog.text and "clipped" in caplog.text
+    # the same at a probe frame: refused when the folder is opened, naming the file and the fix
+    with pytest.raises(DatasetError, match=r"000004.npy: .*guessed.*sensor.time_unit"):
+        FolderSequence(_timed_folder(tmp_path / "b", 10, {4: 0.5e9}))
+    # with the unit given, an overlong frame is an error as before
+    given = FolderSequence(_timed_folder(tmp_path / "c", 10, {5: 0.5e9}), sensor=SensorConfig(time_unit="ns"))
+    with pytest.raises(DatasetError, match="000005.npy"):
+        given[5]
+
+
+def test_the_ring_count_comes_from_frames_spread_over_the_sequence(tmp_path: Path) -> None:
+    """Velodyne numbering (ring 0 lowest), the first frames see no sky returns on the top 5 beams:
+    11 rings alone (not rounded to 16), a crash at the first frame with a building; the probes find 16."""
+    rings_of = {k: 11 for k in range(4)}
+    seq = FolderSequence(_timed_folder(tmp_path / "f", 8, {}, rings_of))
+    assert seq.n_rings == 16 and seq.conventions.flip_rings
+    full = _sweep(n_rings=16, n_az=200, lowest_first=True)["ring"]
+    np.testing.assert_array_equal(np.unique(seq[0].ring), np.unique(15 - full[full < 11]))
+    np.testing.assert_array_equal(np.unique(seq[5].ring), np.arange(16))  # numbered as frame 0's
+    # a bag, the same: the probe messages are decoded while the bag is indexed
+    arrs = [np.load(p) for p in sorted((tmp_path / "f").glob("*.npy"))]
+    bag = RosbagSequence(write_bag(tmp_path / "b", {"/points": arrs}))
+    assert bag.n_rings == 16 and bag.conventions.time_unit_s == 1e-9
+    np.testing.assert_array_equal(bag[6].ring, seq[6].ring)
+
+
+def test_an_empty_message_without_fields_is_an_empty_frame() -> None:
+    """A warm-up message of a bag with per-point times and rings that declares no fields."""
+    from gr_graph.datasets.pointcloud2 import empty_cloud
+
+    s = _sweep()
+    conv = FieldConventions.probe(_cloud(s, times=s["frac"] * PERIOD), PERIOD, "m0")
+    assert conv.has_time and conv.has_ring
+    frame = conv.frame(empty_cloud(), 3, 0.3, "m3")
+    assert len(frame.points) == 0 and frame.time.shape == (0,) and frame.ring.shape == (0,)
+    with pytest.raises(DatasetError, match="m4: no per-point time field"):  # points without the field: an error
+        conv.frame(_cloud(s), 4, 0.4, "m4")

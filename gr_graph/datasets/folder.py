@@ -30,7 +30,10 @@ Optional side files, given explicitly or found next to the scans (in the folder,
   row-major 3x4) or TUM (``t x y z qx qy qz qw``), told apart by the column count, one pose a
   frame, of the LiDAR in a world frame; they are re-expressed relative to the first (the world
   is the LiDAR frame of scan 0, :mod:`gr_graph.datasets.base`). A TUM file's times serve as
-  frame timestamps when there is no timestamps file.
+  frame timestamps when there is no timestamps file. A pose file found beside the scans (not
+  given) is not taken from a folder that holds a gr_graph run's output (:func:`is_run_output`:
+  ``metrics.json`` or ``config.yaml`` with ``round_0/``), where ``poses_kitti.txt`` is the run's
+  own estimate, not ground truth (logged); the file taken is logged.
 
 Files with a per-point time field (PCD/PLY/npy ``t``/``time``/``timestamp``) make the sequence
 ``motion_compensated = False``, so the odometry's ``deskew: auto`` deskews them.
@@ -46,7 +49,13 @@ from pathlib import Path
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
-from gr_graph.datasets.frame_fields import DEFAULT_FRAME_PERIOD_S, PLAUSIBLE_SWEEP_S, FieldConventions, frame_period
+from gr_graph.datasets.frame_fields import (
+    DEFAULT_FRAME_PERIOD_S,
+    PLAUSIBLE_SWEEP_S,
+    FieldConventions,
+    frame_period,
+    probe_indices,
+)
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
 from gr_graph.datasets.pointcloud2 import DecodedCloud
 from gr_graph.sensors import TIME_UNITS, SensorConfig
@@ -66,6 +75,7 @@ is an absolute stamp in that unit (epoch seconds, milliseconds, microseconds or 
 MAX_ABSOLUTE_TIME_S = 1e10
 """Times above this many seconds (year 2286 as a Unix time) are not plausible in any unit."""
 _DECIMAL_NAME = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)")
+_DATE_TIME = re.compile(r"\d{4}-\d{2}-\d{2}[ T]\d{2}:\d{2}")
 
 
 def natural_key(name: str) -> list:
@@ -140,13 +150,23 @@ def point_files(folder: Path) -> list[Path]:
     return sort_point_files(files)
 
 
-def find_side_file(folder: Path, names: tuple[str, ...]) -> Path | None:
-    """The first of ``names`` in ``folder`` or its parent."""
+def find_side_file(folder: Path, names: tuple[str, ...], skip_run_outputs: bool = False) -> Path | None:
+    """The first of ``names`` in ``folder`` or its parent (with ``skip_run_outputs``, not in a
+    folder that holds a gr_graph run's output, :func:`is_run_output`; logged)."""
     for where in (folder, folder.parent):
         for name in names:
             if (where / name).is_file():
+                if skip_run_outputs and is_run_output(where):
+                    log.warning("%s: not taken as ground truth: %s holds a gr_graph run's output (its poses are "
+                                "that run's estimate); pass the ground truth's file with --poses", where / name, where)
+                    continue
                 return where / name
     return None
+
+
+def is_run_output(folder: Path) -> bool:
+    """``folder`` holds a gr_graph run's output (``round_0/`` beside ``metrics.json`` or ``config.yaml``)."""
+    return (folder / "round_0").is_dir() and ((folder / "metrics.json").is_file() or (folder / "config.yaml").is_file())
 
 
 def timestamp_unit(ts: np.ndarray, source: str) -> tuple[str, float]:
@@ -187,7 +207,12 @@ def read_timestamps_file(path: Path, n_frames: int) -> np.ndarray:
     try:
         ts = read_kitti_times(path)
     except (TrajectoryFormatError, ValueError) as exc:
-        raise DatasetError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from exc
+        message = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+        if _DATE_TIME.match(path.read_text(errors="replace").lstrip()):
+            message += (" (date-time stamps, as in a KITTI raw drive's velodyne_points/timestamps.txt: open the "
+                        "drive folder, the one holding velodyne_points/, which the kitti_raw loader reads, or give "
+                        "--timestamps with one number a frame)")
+        raise DatasetError(message) from exc
     if len(ts) != n_frames:
         raise DatasetError(f"{path}: {len(ts)} timestamps for {n_frames} frames")
     name, unit = timestamp_unit(ts, str(path))
@@ -261,7 +286,7 @@ class FolderSequence:
         self.name = f"folder-{self.folder.name}"
         self.T_cam_velo = np.eye(4)
         n = len(self.files)
-        pose_path = Path(poses) if poses is not None else find_side_file(self.folder, POSE_FILES)
+        pose_path = Path(poses) if poses is not None else find_side_file(self.folder, POSE_FILES, skip_run_outputs=True)
         times_path = Path(timestamps) if timestamps is not None else find_side_file(self.folder, TIMESTAMP_FILES)
         for given, what in ((poses, "poses"), (timestamps, "timestamps")):
             if given is not None and not Path(given).is_file():
@@ -270,6 +295,7 @@ class FolderSequence:
         pose_times = None
         if pose_path is not None:
             self.gt_poses, pose_times = read_pose_file(pose_path, n)
+            log.info("%s: ground-truth poses from %s%s", self.folder, pose_path, "" if poses is not None else " (found)")
         stamps = read_timestamps_file(times_path, n) if times_path is not None else pose_times
         at_10hz = np.arange(n) * DEFAULT_FRAME_PERIOD_S  # the frames' times when neither they nor the sweep are known
         self.empty_frames: set[int] = set()
@@ -280,8 +306,10 @@ class FolderSequence:
             self._read_ahead = {probe_index: first}
             if len(first.points):
                 break
+        more = [(read_point_file(self.files[k], point_format), str(self.files[k]))
+                for k in probe_indices(n, probe_index)[1:]]  # spread over the folder (not kept: read again)
         self.conventions = FieldConventions.probe(first, frame_period(at_10hz if stamps is None else stamps),
-                                                  str(self.files[probe_index]), sensor)
+                                                  str(self.files[probe_index]), sensor, more)
         self.scan_period = self.conventions.scan_period
         if stamps is None:
             # frames one sweep apart when sensor.scan_period or a full revolution's times say how long one

@@ -3,21 +3,28 @@ a sequence fixes once, from its first frame and the ``sensor`` section (:class:`
 
 - **Per-point time**: drivers store it in seconds (Velodyne ``time``, Hesai ``timestamp``),
   nanoseconds (Ouster ``t``, Livox) or microseconds, relative to the sweep or absolute. The
-  unit is ``sensor.time_unit`` when given, else the power of 1000 that makes the first frame's
-  time span closest to the frame spacing (a sweep lasts about one frame period). Times become
+  unit is ``sensor.time_unit`` when given, else the power of 1000 that makes the time span
+  closest to the frame spacing (a sweep lasts about one frame period), taken on the probe frame
+  (below) of the median time span (a short first message, the tail of a sweep, does not set it,
+  nor does one overlong frame).
+  Times become
   sweep fractions with :func:`gr_graph.deskew.normalise_times` over ``sensor.scan_period``
   (else the frame spacing), counted from ``sensor.time_reference`` when given, else from what
   the values say: times within one sweep of 0 count from the sweep's start (or back from its
   end), so a partial sweep keeps its place in the sweep; absolute stamps count from the
   frame's earliest point. With ``time_unit`` or ``time_reference`` given, times that do not
-  fit one sweep are an error naming the file. ``sensor.has_time: false`` drops the time field
+  fit one sweep are an error naming the file. With the unit guessed, a probe frame whose times
+  span more than :data:`GUESSED_UNIT_SLACK` sweeps past one is an error when the sequence is
+  opened (the guess is wrong; name the unit); a later frame's are clipped, logged and counted
+  (:attr:`FieldConventions.n_overlong_frames`). ``sensor.has_time: false`` drops the time field
   (logged; the sequence still counts as not motion-compensated, so deskewing takes the times
   from the azimuth).
 - **Sweep duration** (``scan_period``, what maps times to fractions and the odometry's motion to
   one sweep): ``sensor.scan_period`` when given; else the frame spacing, unless the first frame is
   a full revolution (points in at least :data:`FULL_REVOLUTION_COVERAGE` of the azimuth sectors)
   whose per-point times span more than :data:`SWEEP_SPACING_MISMATCH` away from it and a
-  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). That is a 20 Hz
+  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). The frame judged is
+  the probe frame of the median time span. That is a 20 Hz
   sensor without a timestamps file (spacing assumed 0.1 s, sweeps of 0.05 s: the folder then
   takes its frames 0.05 s apart; before, they were deskewed with half the motion) or a folder
   that keeps every other frame (spacing 0.2 s, sweeps of 0.1 s: deskewed to the sweep's middle
@@ -26,16 +33,23 @@ a sequence fixes once, from its first frame and the ``sensor`` section (:class:`
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first frame's rings rises with the ring number, rings are flipped
   (``n_rings - 1 - ring``). ``n_rings`` is the named sensor's beam count (``--sensor``,
-  ``sensor.model`` / ``n_beams``; a larger ring index is an error), else the first frame's
-  highest ring + 1 rounded up to 16, 32, 64 or 128 when one of those is at most 25 % above,
+  ``sensor.model`` / ``n_beams``; a larger ring index is an error), else the highest ring of the
+  probe frames + 1 rounded up to 16, 32, 64 or 128 when one of those is at most 25 % above;
   a later frame with a higher ring is an error that says to name the sensor (renumbering on the
   fly would change the ``--channels`` stride and flipped rings between frames). ``sensor.has_ring: false`` drops
   the ring field (logged).
+- **Probe frames**: the first frame with points and up to :data:`PROBE_FRAMES` - 1 more spread
+  evenly over the sequence (:func:`probe_indices`), read by the loader when it opens the
+  sequence: a first frame that misses the top beams (open sky) or holds a few milliseconds of
+  a sweep does not fix the conventions alone.
+- **Frames without points** (a warm-up message, a dropped sweep) become empty frames with the
+  sequence's fields, whatever fields their file or message declares.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,6 +76,20 @@ have): a span outside, e.g. nanoseconds declared as seconds, is not a sweep dura
 SWEEP_SPACING_MISMATCH = 0.1
 """A full revolution's time span more than this (relative) away from the frame spacing is its
 sweep duration; closer, the spacing stays (unchanged results for data that agree)."""
+PROBE_FRAMES = 5
+"""Frames that fix a sequence's conventions: its first frame with points and up to this many
+minus one more spread over the sequence (:func:`probe_indices`)."""
+GUESSED_UNIT_SLACK = 1.0
+"""With a guessed time unit, sweep fractions further than this outside ``[0, 1]`` (times spanning
+more than two sweeps) mean a wrong guess at a probe frame (an error) and an overlong frame later
+(clipped, logged, counted)."""
+
+
+def probe_indices(n_frames: int, first: int, count: int = PROBE_FRAMES) -> list[int]:
+    """``first`` and up to ``count - 1`` more frame indices spread evenly from it to the last frame."""
+    if n_frames <= first:
+        return [first]
+    return sorted({int(round(x)) for x in np.linspace(first, n_frames - 1, count)})
 
 
 def guess_time_unit(times: np.ndarray, frame_period: float) -> float:
@@ -71,6 +99,14 @@ def guess_time_unit(times: np.ndarray, frame_period: float) -> float:
         return 1.0
     errors = [abs(np.log(span * u / frame_period)) for u in TIME_UNITS_S]
     return TIME_UNITS_S[int(np.argmin(errors))]
+
+
+def median_span(clouds: list[tuple[DecodedCloud, str]]) -> tuple[DecodedCloud, str]:
+    """The cloud (and source) whose per-point time span is the median of ``clouds``' (the lower
+    one of an even count; the earliest of equal spans)."""
+    spans = [float(np.ptp(c.time)) for c, _ in clouds]
+    order = sorted(range(len(spans)), key=lambda k: (spans[k], k))
+    return clouds[order[(len(order) - 1) // 2]]
 
 
 def azimuth_coverage(points: np.ndarray, sectors: int = AZIMUTH_SECTORS) -> float:
@@ -136,6 +172,9 @@ class FieldConventions:
         false): frames get no times / rings.
     fixed_rings : bool
         ``n_rings`` is the named sensor's beam count.
+    n_overlong_frames : int
+        Frames read so far whose times spanned more than :data:`GUESSED_UNIT_SLACK` sweeps past
+        one under a guessed unit (clipped to the sweep; each logged).
     """
 
     has_time: bool = False
@@ -150,6 +189,7 @@ class FieldConventions:
     use_time: bool = True
     use_ring: bool = True
     fixed_rings: bool = False
+    n_overlong_frames: int = 0
 
     @property
     def motion_compensated(self) -> bool:
@@ -158,7 +198,8 @@ class FieldConventions:
 
     @classmethod
     def probe(cls, cloud: DecodedCloud, frame_period: float, source: str,
-              sensor: SensorConfig | None = None) -> FieldConventions:
+              sensor: SensorConfig | None = None,
+              more: Sequence[tuple[DecodedCloud, str]] = ()) -> FieldConventions:
         """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart.
 
         Parameters
@@ -175,24 +216,31 @@ class FieldConventions:
             the frame spacing, ``model`` / ``n_beams`` given (:attr:`SensorConfig.named_beams`)
             fix ``n_rings``; ``has_time`` /
             ``has_ring`` false drop the field, true require it.
+        more : sequence of (DecodedCloud, str)
+            Further probe frames (:func:`probe_indices`) and their sources: the time unit and
+            sweep duration come from the frame of the median time span, the ring count is their
+            highest ring.
 
         Raises
         ------
         DatasetError
-            A field the sensor section requires is missing, the first frame's times do not
-            fit one sweep in the given unit, or its rings exceed the named sensor's beams.
+            A field the sensor section requires is missing, a probe frame's times do not fit one
+            sweep in the given unit (or span more than two under the guessed one), or its rings
+            exceed the named sensor's beams.
         """
         period, period_source = float(frame_period), "frame spacing"
         if sensor is not None and sensor.scan_period is not None:
             period, period_source = float(sensor.scan_period), "sensor.scan_period"
         conv = cls(scan_period=period, scan_period_source=period_source)
-        conv._probe_time(cloud, frame_period, source, sensor)
-        conv._probe_ring(cloud, source, sensor)
+        probes = [(cloud, source), *[(c, src) for c, src in more if len(c.points)]]
+        conv._probe_time(probes, frame_period, sensor)
+        conv._probe_ring(probes, sensor)
         return conv
 
-    def _probe_time(self, cloud: DecodedCloud, frame_period: float, source: str,
+    def _probe_time(self, probes: list[tuple[DecodedCloud, str]], frame_period: float,
                     sensor: SensorConfig | None) -> None:
         want = None if sensor is None else sensor.has_time
+        cloud, source = probes[0]
         if cloud.time is not None and len(cloud.time) and np.ptp(cloud.time) > 0:
             self.has_time = True
             if want is False:
@@ -202,6 +250,10 @@ class FieldConventions:
                 return
             unit_given = sensor is not None and sensor.time_unit is not None
             reference_given = sensor is not None and sensor.time_reference is not None
+            timed = [(c, src) for c, src in probes if c.time is not None and len(c.time)]
+            # the probe of the median time span (neither a short first message nor an overlong frame) sets
+            # the guessed unit and, a full revolution, the sweep duration
+            cloud, source = median_span(timed)
             if unit_given:
                 self.time_unit_s = TIME_UNITS[sensor.time_unit]  # type: ignore[union-attr]
             else:
@@ -217,7 +269,8 @@ class FieldConventions:
                      "sensor.time_unit" if unit_given else "guessed", np.ptp(cloud.time) * self.time_unit_s,
                      self.scan_period, frame_period,
                      self.time_reference if reference_given else "the reference the values show")
-            self.fractions(cloud.time, source)  # the first frame must fit one sweep
+            for c, src in timed:  # every probe frame must fit one sweep (two under a guessed unit)
+                self._check_fit(c.time, src)
         elif cloud.time is not None:
             log.warning("%s: per-point time field %r is constant: ignored", source, cloud.time_field)
         if want and not self.has_time:
@@ -240,11 +293,12 @@ class FieldConventions:
                     source, span, self.scan_period, span)
         self.scan_period, self.scan_period_source = span, "per-point times"
 
-    def _probe_ring(self, cloud: DecodedCloud, source: str, sensor: SensorConfig | None) -> None:
+    def _probe_ring(self, probes: list[tuple[DecodedCloud, str]], sensor: SensorConfig | None) -> None:
         want = None if sensor is None else sensor.has_ring
         named = None if sensor is None else sensor.named_beams
         if named is not None:
             self.n_rings, self.fixed_rings = int(named), True
+        cloud, source = probes[0]
         if cloud.ring is None or not len(cloud.ring):
             if want:
                 raise DatasetError(f"{source}: no ring field (sensor.has_ring is true)")
@@ -254,9 +308,10 @@ class FieldConventions:
             self.use_ring = False
             log.warning("%s: ring field ignored (sensor.has_ring: false)", source)
             return
-        highest = int(cloud.ring.max())
+        ringed = [(c, src) for c, src in probes if c.ring is not None and len(c.ring)]
+        highest, source_highest = max((int(c.ring.max()), src) for c, src in ringed)
         if self.fixed_rings:
-            self._check_named_rings(highest, source)
+            self._check_named_rings(highest, source_highest)
         else:
             self.n_rings = ring_count(highest)
         self.flip_rings = rings_rise_with_elevation(cloud.points, cloud.ring)
@@ -268,15 +323,38 @@ class FieldConventions:
             raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings of the sensor (sensor.model / "
                                "sensor.n_beams, --sensor): name the sensor that took the scans")
 
-    def fractions(self, times: np.ndarray, source: str, sweep_start: float | None = None) -> np.ndarray:
-        """Sweep fractions of one frame's stored times (:func:`gr_graph.deskew.normalise_times`)."""
+    def _check_fit(self, times: np.ndarray, source: str) -> None:
+        """A probe frame's times fit one sweep (within the given units' slack, or
+        :data:`GUESSED_UNIT_SLACK` under a guessed unit): else a :class:`DatasetError` naming the fix."""
+        given = self.time_tolerance is not None
         try:
-            return normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
-                                   self.time_reference, sweep_start, self.time_tolerance)
+            normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
+                            self.time_reference, None, self.time_tolerance if given else GUESSED_UNIT_SLACK)
         except ValueError as exc:
-            hint = ("; check sensor.time_unit, sensor.time_reference and sensor.scan_period"
-                    if self.time_tolerance is not None else "")
-            raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s){hint}") from None
+            hint = ("check sensor.time_unit, sensor.time_reference and sensor.scan_period" if given else
+                    "the unit was guessed from the span of the probe frames' times: give sensor.time_unit "
+                    "(and sensor.scan_period when a frame holds more than one sweep)")
+            raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s); {hint}") from None
+
+    def fractions(self, times: np.ndarray, source: str, sweep_start: float | None = None) -> np.ndarray:
+        """Sweep fractions of one frame's stored times (:func:`gr_graph.deskew.normalise_times`).
+
+        Under a guessed unit, a frame whose times span more than :data:`GUESSED_UNIT_SLACK` sweeps
+        past one is clipped to the sweep, logged and counted (:attr:`n_overlong_frames`)."""
+        t = np.asarray(times, np.float64) * self.time_unit_s
+        given = self.time_tolerance is not None
+        try:
+            return normalise_times(t, self.scan_period, self.time_reference, sweep_start,
+                                   self.time_tolerance if given else GUESSED_UNIT_SLACK)
+        except ValueError as exc:
+            if given:
+                raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s); check "
+                                   "sensor.time_unit, sensor.time_reference and sensor.scan_period") from None
+            self.n_overlong_frames += 1
+            log.warning("%s: %s (read in units of %g s, guessed): clipped to one sweep (%d such frame%s so far; "
+                        "give sensor.time_unit and sensor.scan_period if the data hold longer frames)", source, exc,
+                        self.time_unit_s, self.n_overlong_frames, "s" if self.n_overlong_frames > 1 else "")
+            return normalise_times(t, self.scan_period, self.time_reference, sweep_start, None)
 
     def _rings(self, cloud: DecodedCloud, source: str) -> np.ndarray:
         highest = int(cloud.ring.max()) if len(cloud.ring) else -1  # type: ignore[union-attr]
@@ -301,14 +379,20 @@ class FieldConventions:
         n = len(cloud.points)
         time = None
         if self.has_time and self.use_time:
-            if cloud.time is None:
+            if cloud.time is not None:
+                time = self.fractions(cloud.time, source, sweep_start)
+            elif n == 0:  # an empty message declaring no fields: an empty frame like the others
+                time = np.zeros(0)
+            else:
                 raise DatasetError(f"{source}: no per-point time field, but the sequence's first frame has one")
-            time = self.fractions(cloud.time, source, sweep_start)
         ring = None
         if self.has_ring and self.use_ring:
-            if cloud.ring is None:
+            if cloud.ring is not None:
+                ring = self._rings(cloud, source)
+            elif n == 0:
+                ring = np.zeros(0, np.int16)
+            else:
                 raise DatasetError(f"{source}: no ring field, but the sequence's first frame has one")
-            ring = self._rings(cloud, source)
         intensity = cloud.intensity if cloud.intensity is not None else np.zeros(n, np.float32)
         return LidarFrame(index=index, timestamp=float(timestamp), points=cloud.points,
                           intensity=intensity.astype(np.float32, copy=False), ring=ring,

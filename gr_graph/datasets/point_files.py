@@ -194,17 +194,24 @@ def read_pcd(path: str | Path) -> DecodedCloud:
 
 
 def _read_with_open3d(path: Path) -> DecodedCloud:
-    """x, y, z and intensity of a file through open3d's tensor reader."""
+    """x, y, z and every other one-value-a-point attribute (intensity, time, ring, ...) with its
+    type, through open3d's tensor reader (a binary_compressed PCD)."""
     import open3d as o3d
 
     pcd = o3d.t.io.read_point_cloud(str(path))
     if "positions" not in pcd.point or len(pcd.point.positions) == 0:
         raise DatasetError(f"{path}: open3d read no points")
     xyz = pcd.point.positions.numpy().astype(np.float64)
-    cols = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
-    if "intensity" in pcd.point:
-        cols["intensity"] = pcd.point.intensity.numpy().reshape(-1).astype(np.float64)
-    return decode_structured(_columns(np.stack(list(cols.values()), axis=1), list(cols)), str(path))
+    cols: dict[str, np.ndarray] = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    for name in pcd.point:
+        values = pcd.point[name].numpy()
+        if name == "positions" or values.ndim != 2 or values.shape[1] != 1 or name in cols:
+            continue
+        cols[name] = values[:, 0]
+    out = np.zeros(len(xyz), dtype=[(n, v.dtype) for n, v in cols.items()])
+    for n, v in cols.items():
+        out[n] = v
+    return decode_structured(out, str(path))
 
 
 def read_ply(path: str | Path) -> DecodedCloud:

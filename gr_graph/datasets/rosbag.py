@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
-from gr_graph.datasets.frame_fields import FieldConventions, frame_period
-from gr_graph.datasets.pointcloud2 import decode_pointcloud2
+from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
+from gr_graph.datasets.pointcloud2 import DecodedCloud, decode_pointcloud2
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -130,6 +130,9 @@ class RosbagSequence:
         self.T_cam_velo = np.eye(4)
         log_times, stamps = [], []
         first_cloud, probe_index = None, 0
+        n_indexed = sum(int(getattr(c, "msgcount", 0) or 0) for c in self._connections)
+        more: list[tuple[DecodedCloud, str]] = []  # probe messages spread over the bag (FieldConventions.probe)
+        spread: set[int] = set()
         for k, (conn, log_time, raw) in enumerate(self._reader.messages(connections=self._connections)):
             msg = self._deserialize(conn, raw, k)
             log_times.append(int(log_time))
@@ -137,6 +140,9 @@ class RosbagSequence:
             if first_cloud is None or not len(first_cloud.points):
                 # the first message with points fixes the conventions (a warm-up message may be empty)
                 first_cloud, probe_index = decode_pointcloud2(msg, self._source(k)), k
+                spread = set(probe_indices(n_indexed, k)[1:]) if len(first_cloud.points) else set()
+            elif k in spread:
+                more.append((decode_pointcloud2(msg, self._source(k)), self._source(k)))
         if not log_times:
             raise DatasetError(f"{self.path}: topic {self.topic!r} has no messages")
         self.log_times = np.asarray(log_times, np.int64)
@@ -148,7 +154,7 @@ class RosbagSequence:
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
         self.conventions = FieldConventions.probe(first_cloud, frame_period(self.timestamps), self._source(probe_index),
-                                                  sensor)
+                                                  sensor, more)
         self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
         self.motion_compensated = self.conventions.motion_compensated
         self.gt_poses: np.ndarray | None = None
