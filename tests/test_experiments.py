@@ -759,7 +759,7 @@ def test_a_resumed_cell_counts_the_recorded_time_of_the_work_it_resumed(tmp_path
     their recorded times to the call's own (before, the call's time alone: a few seconds)."""
     cell = cells_for("table1", "smoke")[0]
     first = rc.run_cell(tmp_path, cell)
-    assert first["resumed"] == {"rounds": [], "kiss_icp": False, "wall_s": 0.0}
+    assert first["resumed"] == {"rounds": [], "kiss_icp": False, "wall_s": 0.0, "not_counted": []}
     assert rc.cell_wall_s(first) == first["wall_s"]
     d = rc.cell_dir(tmp_path, cell)
     (d / "cell.json").unlink()
@@ -777,3 +777,19 @@ def test_a_resumed_cell_counts_the_recorded_time_of_the_work_it_resumed(tmp_path
     results = {cell.key: second}
     row = [ln for ln in report._runtime_md([cell], results) if ln.startswith(f"| {cell.key} ")][0]
     assert row.split(" | ")[2] == f"{rc.cell_wall_s(second) / 60:.1f}"
+
+
+def test_work_copied_from_a_source_cell_is_not_counted_again():
+    """An ablation cell resumes the round 0 (and round-1 training) it copied from its seed's default
+    cell: timed there, not added to the ablation cell's time."""
+    metrics = {"rounds": {"0": {"runtime_s": {"total": 100.0}},
+                          "1": {"runtime_s": {"total": 30.0, "training": 400.0}},
+                          "2": {"runtime_s": {"total": 20.0, "training": 300.0}}}}
+    assert rc.reused_from_source(None) == set() and rc.reused_from_source({"what": None}) == set()
+    assert rc.reused_from_source({"what": "round0"}) == {"round_0"}
+    both = rc.reused_from_source({"what": "round1_training", "note": "already in place"})
+    assert both == {"round_0", "round_1/training"}
+    assert rc.resumed_work(metrics, [0, 1, 2], None)["wall_s"] == 850.0
+    assert rc.resumed_work(metrics, [0, 1], None, {"round_0"})["wall_s"] == 430.0
+    done = rc.resumed_work(metrics, [0, 1, 2], {"wall_s": 5.0}, both)
+    assert done["wall_s"] == 30.0 + 20.0 + 300.0 + 5.0 and done["not_counted"] == ["round_0", "round_1/training"]

@@ -43,7 +43,7 @@ def test_ring_order_and_frames() -> None:
     down = _cloud(16, lowest_first=False)
     assert not FieldConventions.probe(down, 0.1, "src").flip_rings
     too_many = _cloud(20, lowest_first=False)
-    with pytest.raises(DatasetError, match="later.bag: ring 19 >= 16 rings counted in the first frame"):
+    with pytest.raises(DatasetError, match="later.bag: ring 19 >= 16 rings counted in the probe frames"):
         conv.frame(too_many, 4, 0.4, "later.bag")
 
 

@@ -109,7 +109,7 @@ def test_a_runs_own_poses_are_not_taken_for_ground_truth(tmp_path: Path, frames:
     assert "holds a gr_graph run's output" in caplog.text and "--poses" in caplog.text
     given = FolderSequence(scans, poses=drive_dir / "poses_kitti.txt")  # given: taken
     np.testing.assert_allclose(given.gt_poses[:, 0, 3], np.arange(N_FRAMES))
-    write_kitti_poses(scans / "poses.txt", estimate)  # the ground truth in the scans folder is still found
+    write_kitti_poses(drive_dir / "poses.txt", estimate)  # a name a run never writes: still ground truth there
     assert FolderSequence(scans).gt_poses is not None
 
 

@@ -278,7 +278,7 @@ def test_more_rings_than_the_first_frame_is_an_error_naming_the_fix() -> None:
     sky = s["ring"] < 48  # the first frame has no returns on its top 16 beams
     conv = FieldConventions.probe(_cloud(s, sky), PERIOD, "000000.pcd")
     assert conv.n_rings == 48 and conv.flip_rings
-    with pytest.raises(DatasetError, match=r"000001.pcd: ring 63 >= 48 rings counted in the first frame.*--sensor"):
+    with pytest.raises(DatasetError, match=r"000001.pcd: ring 63 >= 48 rings counted in the probe frames.*--sensor"):
         conv.frame(_cloud(s), 1, 0.1, "000001.pcd")  # not renumbered on the fly (stride, flips, threads)
 
 
@@ -385,6 +385,12 @@ def test_a_short_first_message_does_not_set_the_time_unit(tmp_path: Path) -> Non
     assert full.min() < 0.01 and full.max() > 0.99 and 0.4 < np.median(full) < 0.6  # a whole sweep, spread
     assert seq[0].time.max() < 0.03  # the 2 ms message keeps its place at the sweep's start
     assert seq.conventions.n_overlong_frames == 0
+    # two frames, the short one first: the full sweep sets the unit (the upper median)
+    two = tmp_path / "two"
+    two.mkdir()
+    for name in ("000000.npy", "000001.npy"):
+        (two / name).write_bytes((folder / name).read_bytes())
+    assert FolderSequence(two).conventions.time_unit_s == 1e-9
 
 
 def test_an_overlong_frame_is_clipped_and_counted_a_wrong_guess_refused(tmp_path: Path,
@@ -396,6 +402,10 @@ def test_an_overlong_frame_is_clipped_and_counted_a_wrong_guess_refused(tmp_path
         long = seq[5].time
     assert long.max() == 1.0 and np.mean(long == 1.0) > 0.7
     assert seq.conventions.n_overlong_frames == 1 and "000005.npy" in caplog.text and "clipped" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        np.testing.assert_array_equal(seq[5].time, long)  # read again (a later round): counted and logged once
+    assert seq.conventions.n_overlong_frames == 1 and "clipped" not in caplog.text
     # the same at a probe frame: refused when the folder is opened, naming the file and the fix
     with pytest.raises(DatasetError, match=r"000004.npy: .*guessed.*sensor.time_unit"):
         FolderSequence(_timed_folder(tmp_path / "b", 10, {4: 0.5e9}))

@@ -13,7 +13,8 @@ Which files are scans, and their order (:func:`point_files`):
 A scan without points (an empty ``.bin``, ``POINTS 0`` PCD, 0-byte file, ...; see
 :mod:`gr_graph.datasets.point_files`) becomes an empty frame, logged and counted in
 :attr:`FolderSequence.empty_frames`; the pipeline marks it unusable. The field conventions
-(per-point time, rings) are probed on the first scan that has points.
+(per-point time, rings) are probed on the first scan that has points and four more spread over the
+folder (:func:`gr_graph.datasets.frame_fields.probe_indices`).
 
 Optional side files, given explicitly or found next to the scans (in the folder, then its parent):
 
@@ -64,6 +65,8 @@ log = logging.getLogger(__name__)
 
 TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
+RUN_POSE_FILES = ("poses_kitti.txt", "poses_tum.txt")
+"""The pose files a gr_graph run writes at the top of ``--out`` (its estimate, not ground truth)."""
 PLAUSIBLE_FRAME_SPACING_S = PLAUSIBLE_SWEEP_S
 """Median frame spacing (s) a LiDAR sequence can have (200 Hz down to one frame in 10 s, e.g.
 subsampled recordings). Its ratio (2000) exceeds the 1000 between units, so up to two units fit a
@@ -151,12 +154,13 @@ def point_files(folder: Path) -> list[Path]:
 
 
 def find_side_file(folder: Path, names: tuple[str, ...], skip_run_outputs: bool = False) -> Path | None:
-    """The first of ``names`` in ``folder`` or its parent (with ``skip_run_outputs``, not in a
-    folder that holds a gr_graph run's output, :func:`is_run_output`; logged)."""
+    """The first of ``names`` in ``folder`` or its parent (with ``skip_run_outputs``, not a file a
+    run writes, :data:`RUN_POSE_FILES`, in a folder that holds a gr_graph run's output,
+    :func:`is_run_output`; logged)."""
     for where in (folder, folder.parent):
         for name in names:
             if (where / name).is_file():
-                if skip_run_outputs and is_run_output(where):
+                if skip_run_outputs and name in RUN_POSE_FILES and is_run_output(where):
                     log.warning("%s: not taken as ground truth: %s holds a gr_graph run's output (its poses are "
                                 "that run's estimate); pass the ground truth's file with --poses", where / name, where)
                     continue

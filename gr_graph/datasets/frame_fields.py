@@ -1,12 +1,12 @@
 """From decoded point fields to a :class:`~gr_graph.datasets.base.LidarFrame`: the conventions
-a sequence fixes once, from its first frame and the ``sensor`` section (:class:`FieldConventions`).
+a sequence fixes once, from its probe frames and the ``sensor`` section (:class:`FieldConventions`).
 
 - **Per-point time**: drivers store it in seconds (Velodyne ``time``, Hesai ``timestamp``),
   nanoseconds (Ouster ``t``, Livox) or microseconds, relative to the sweep or absolute. The
   unit is ``sensor.time_unit`` when given, else the power of 1000 that makes the time span
   closest to the frame spacing (a sweep lasts about one frame period), taken on the probe frame
-  (below) of the median time span (a short first message, the tail of a sweep, does not set it,
-  nor does one overlong frame).
+  (below) of the median time span (the upper one of an even count: a short first message, the
+  tail of a sweep, does not set it, nor does one overlong frame among five).
   Times become
   sweep fractions with :func:`gr_graph.deskew.normalise_times` over ``sensor.scan_period``
   (else the frame spacing), counted from ``sensor.time_reference`` when given, else from what
@@ -15,23 +15,24 @@ a sequence fixes once, from its first frame and the ``sensor`` section (:class:`
   frame's earliest point. With ``time_unit`` or ``time_reference`` given, times that do not
   fit one sweep are an error naming the file. With the unit guessed, a probe frame whose times
   span more than :data:`GUESSED_UNIT_SLACK` sweeps past one is an error when the sequence is
-  opened (the guess is wrong; name the unit); a later frame's are clipped, logged and counted
-  (:attr:`FieldConventions.n_overlong_frames`). ``sensor.has_time: false`` drops the time field
+  opened (the guess is wrong; name the unit); a later frame's are clipped, logged once a frame
+  and counted (:attr:`FieldConventions.n_overlong_frames`). ``sensor.has_time: false`` drops the time field
   (logged; the sequence still counts as not motion-compensated, so deskewing takes the times
   from the azimuth).
 - **Sweep duration** (``scan_period``, what maps times to fractions and the odometry's motion to
   one sweep): ``sensor.scan_period`` when given; else the frame spacing, unless the first frame is
   a full revolution (points in at least :data:`FULL_REVOLUTION_COVERAGE` of the azimuth sectors)
   whose per-point times span more than :data:`SWEEP_SPACING_MISMATCH` away from it and a
-  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). The frame judged is
-  the probe frame of the median time span. That is a 20 Hz
+  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). The frame judged
+  is the first with points, as before the probe frames (the same frame times, so a resume of an
+  earlier run's output sees the same data). That is a 20 Hz
   sensor without a timestamps file (spacing assumed 0.1 s, sweeps of 0.05 s: the folder then
   takes its frames 0.05 s apart; before, they were deskewed with half the motion) or a folder
   that keeps every other frame (spacing 0.2 s, sweeps of 0.1 s: deskewed to the sweep's middle
   instead of its end; the relative poses were right before too).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
-  elevation of the first frame's rings rises with the ring number, rings are flipped
+  elevation of the first probe frame's rings rises with the ring number, rings are flipped
   (``n_rings - 1 - ring``). ``n_rings`` is the named sensor's beam count (``--sensor``,
   ``sensor.model`` / ``n_beams``; a larger ring index is an error), else the highest ring of the
   probe frames + 1 rounded up to 16, 32, 64 or 128 when one of those is at most 25 % above;
@@ -50,7 +51,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -102,11 +103,12 @@ def guess_time_unit(times: np.ndarray, frame_period: float) -> float:
 
 
 def median_span(clouds: list[tuple[DecodedCloud, str]]) -> tuple[DecodedCloud, str]:
-    """The cloud (and source) whose per-point time span is the median of ``clouds``' (the lower
-    one of an even count; the earliest of equal spans)."""
+    """The cloud (and source) whose per-point time span is the median of ``clouds``': the upper one
+    of an even count (of a short first message and a full sweep, the sweep); equal spans in their
+    order in ``clouds``."""
     spans = [float(np.ptp(c.time)) for c, _ in clouds]
     order = sorted(range(len(spans)), key=lambda k: (spans[k], k))
-    return clouds[order[(len(order) - 1) // 2]]
+    return clouds[order[len(order) // 2]]
 
 
 def azimuth_coverage(points: np.ndarray, sectors: int = AZIMUTH_SECTORS) -> float:
@@ -140,12 +142,12 @@ def rings_rise_with_elevation(points: np.ndarray, ring: np.ndarray) -> bool:
 
 @dataclass
 class FieldConventions:
-    """How a sequence turns decoded fields into frames (fixed by :meth:`probe` on the first frame).
+    """How a sequence turns decoded fields into frames (fixed by :meth:`probe` on the probe frames).
 
     Attributes
     ----------
     has_time : bool
-        The first frame has a per-point time field (and it spans more than 0): the scans are
+        The first probe frame has a per-point time field (and it spans more than 0): the scans are
         raw sweeps, not motion-compensated (also when ``use_time`` is False).
     time_unit_s : float
         Seconds per unit of the time field.
@@ -155,9 +157,9 @@ class FieldConventions:
         Where ``scan_period`` comes from: ``"sensor.scan_period"``, ``"frame spacing"`` or
         ``"per-point times"`` (the span of a full revolution's times; see the module docstring).
     has_ring : bool
-        The first frame has a ring field.
+        The first probe frame has a ring field.
     n_rings : int
-        Rings of the sensor: the named sensor's (``fixed_rings``), else the first frame's; a
+        Rings of the sensor: the named sensor's (``fixed_rings``), else the probe frames'; a
         later frame with a higher ring is an error naming the fix (name the sensor).
     flip_rings : bool
         Rings are numbered from the lowest beam and get flipped.
@@ -172,9 +174,10 @@ class FieldConventions:
         false): frames get no times / rings.
     fixed_rings : bool
         ``n_rings`` is the named sensor's beam count.
-    n_overlong_frames : int
-        Frames read so far whose times spanned more than :data:`GUESSED_UNIT_SLACK` sweeps past
-        one under a guessed unit (clipped to the sweep; each logged).
+    overlong_frames : set of str
+        Sources of the frames read so far whose times spanned more than :data:`GUESSED_UNIT_SLACK`
+        sweeps past one under a guessed unit (clipped to the sweep; each logged once);
+        :attr:`n_overlong_frames` counts them.
     """
 
     has_time: bool = False
@@ -189,7 +192,12 @@ class FieldConventions:
     use_time: bool = True
     use_ring: bool = True
     fixed_rings: bool = False
-    n_overlong_frames: int = 0
+    overlong_frames: set[str] = field(default_factory=set)
+
+    @property
+    def n_overlong_frames(self) -> int:
+        """Frames clipped to one sweep so far (:attr:`overlong_frames`)."""
+        return len(self.overlong_frames)
 
     @property
     def motion_compensated(self) -> bool:
@@ -252,12 +260,12 @@ class FieldConventions:
             reference_given = sensor is not None and sensor.time_reference is not None
             timed = [(c, src) for c, src in probes if c.time is not None and len(c.time)]
             # the probe of the median time span (neither a short first message nor an overlong frame) sets
-            # the guessed unit and, a full revolution, the sweep duration
-            cloud, source = median_span(timed)
+            # the guessed unit; the sweep duration is judged on the first frame, as before the probes
+            median, median_source = median_span(timed)
             if unit_given:
                 self.time_unit_s = TIME_UNITS[sensor.time_unit]  # type: ignore[union-attr]
             else:
-                self.time_unit_s = guess_time_unit(cloud.time, self.scan_period)
+                self.time_unit_s = guess_time_unit(median.time, self.scan_period)
             if reference_given:
                 self.time_reference = sensor.time_reference  # type: ignore[union-attr]
             if unit_given or reference_given:
@@ -265,8 +273,8 @@ class FieldConventions:
             if self.scan_period_source == "frame spacing":
                 self._sweep_duration_from_times(cloud, source)
             log.info("%s: per-point time field %r read in units of %g s (%s; span %.4g s, scan period %.4g s, "
-                     "frame period %.4g s), counted from %s", source, cloud.time_field, self.time_unit_s,
-                     "sensor.time_unit" if unit_given else "guessed", np.ptp(cloud.time) * self.time_unit_s,
+                     "frame period %.4g s), counted from %s", median_source, median.time_field, self.time_unit_s,
+                     "sensor.time_unit" if unit_given else "guessed", np.ptp(median.time) * self.time_unit_s,
                      self.scan_period, frame_period,
                      self.time_reference if reference_given else "the reference the values show")
             for c, src in timed:  # every probe frame must fit one sweep (two under a guessed unit)
@@ -350,10 +358,11 @@ class FieldConventions:
             if given:
                 raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s); check "
                                    "sensor.time_unit, sensor.time_reference and sensor.scan_period") from None
-            self.n_overlong_frames += 1
-            log.warning("%s: %s (read in units of %g s, guessed): clipped to one sweep (%d such frame%s so far; "
-                        "give sensor.time_unit and sensor.scan_period if the data hold longer frames)", source, exc,
-                        self.time_unit_s, self.n_overlong_frames, "s" if self.n_overlong_frames > 1 else "")
+            if source not in self.overlong_frames:  # frames are read again in later rounds: logged once
+                self.overlong_frames.add(source)
+                log.warning("%s: %s (read in units of %g s, guessed): clipped to one sweep (%d such frame%s so far; "
+                            "give sensor.time_unit and sensor.scan_period if the data hold longer frames)", source,
+                            exc, self.time_unit_s, self.n_overlong_frames, "s" if self.n_overlong_frames > 1 else "")
             return normalise_times(t, self.scan_period, self.time_reference, sweep_start, None)
 
     def _rings(self, cloud: DecodedCloud, source: str) -> np.ndarray:
@@ -363,7 +372,7 @@ class FieldConventions:
                 self._check_named_rings(highest, source)
             # not grown on the fly: the ring count sets the stride of --channels and the numbering of
             # flipped rings, and frames read earlier (other threads, the frame cache) would disagree
-            raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings counted in the first frame (which "
+            raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings counted in the probe frames (which "
                                "misses some beams, e.g. the sky): name the sensor so the count does not come from "
                                "the data (--sensor NAME, or sensor: {model: custom, n_beams: N, ...})")
         r = (self.n_rings - 1 - cloud.ring) if self.flip_rings else cloud.ring

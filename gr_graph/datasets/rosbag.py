@@ -31,7 +31,7 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
 from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
-from gr_graph.datasets.pointcloud2 import DecodedCloud, decode_pointcloud2
+from gr_graph.datasets.pointcloud2 import decode_pointcloud2
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -130,9 +130,6 @@ class RosbagSequence:
         self.T_cam_velo = np.eye(4)
         log_times, stamps = [], []
         first_cloud, probe_index = None, 0
-        n_indexed = sum(int(getattr(c, "msgcount", 0) or 0) for c in self._connections)
-        more: list[tuple[DecodedCloud, str]] = []  # probe messages spread over the bag (FieldConventions.probe)
-        spread: set[int] = set()
         for k, (conn, log_time, raw) in enumerate(self._reader.messages(connections=self._connections)):
             msg = self._deserialize(conn, raw, k)
             log_times.append(int(log_time))
@@ -140,9 +137,6 @@ class RosbagSequence:
             if first_cloud is None or not len(first_cloud.points):
                 # the first message with points fixes the conventions (a warm-up message may be empty)
                 first_cloud, probe_index = decode_pointcloud2(msg, self._source(k)), k
-                spread = set(probe_indices(n_indexed, k)[1:]) if len(first_cloud.points) else set()
-            elif k in spread:
-                more.append((decode_pointcloud2(msg, self._source(k)), self._source(k)))
         if not log_times:
             raise DatasetError(f"{self.path}: topic {self.topic!r} has no messages")
         self.log_times = np.asarray(log_times, np.int64)
@@ -153,6 +147,10 @@ class RosbagSequence:
         self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
+        self._cursor: tuple[int, Iterator] | None = None
+        more = [(decode_pointcloud2(self._message(k), self._source(k)), self._source(k))
+                for k in probe_indices(len(self), probe_index)[1:]]  # spread over the bag (FieldConventions.probe)
+        self._cursor = None
         self.conventions = FieldConventions.probe(first_cloud, frame_period(self.timestamps), self._source(probe_index),
                                                   sensor, more)
         self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
@@ -162,7 +160,6 @@ class RosbagSequence:
             from gr_graph.datasets.folder import read_pose_file
 
             self.gt_poses, _ = read_pose_file(Path(poses), len(self))
-        self._cursor: tuple[int, Iterator] | None = None
 
     def _source(self, k: int) -> str:
         return f"{self.path}: topic {self.topic} message {k}"

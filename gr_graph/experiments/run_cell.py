@@ -31,6 +31,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from collections.abc import Collection
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir",
            "read_cell_result", "is_done", "run_cell", "prune_cell", "prune_finished", "round_figures",
-           "with_noise_consistency", "with_short_range_rpe", "resumed_work", "cell_wall_s"]
+           "with_noise_consistency", "with_short_range_rpe", "resumed_work", "reused_from_source", "cell_wall_s"]
 
 METRIC_KEYS = ("rpe300_consecutive_mean", "rpe300_consecutive_rmse", "rpe300_all_pairs_mean",
                "rpe300_all_pairs_rmse", "ate_rmse", "kitti_t_err_percent")
@@ -252,24 +253,37 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
             atomic_write_json(kp, kiss)
         result["kiss_icp"] = {"system": kiss["system"], **{k: kiss["metrics"].get(k) for k in METRIC_KEYS},
                               "wall_s": kiss["wall_s"], "cpu_s": kiss["cpu_s"]}
-    result["resumed"] = resumed_work(metrics, pipeline.resumed_rounds, resumed_kiss)
+    result["resumed"] = resumed_work(metrics, pipeline.resumed_rounds, resumed_kiss, reused_from_source(reuse))
     return result
 
 
-def resumed_work(metrics: dict[str, Any], rounds: list[int], kiss: dict[str, Any] | None) -> dict[str, Any]:
+def reused_from_source(reuse: dict[str, Any] | None) -> set[str]:
+    """What a cell takes from its source cell (:func:`_reuse`) and the source's time holds:
+    ``"round_0"``, ``"round_1/training"``; empty when it computed them itself."""
+    what = (reuse or {}).get("what")
+    return set() if what is None else {"round_0"} | ({"round_1/training"} if what == "round1_training" else set())
+
+
+def resumed_work(metrics: dict[str, Any], rounds: list[int], kiss: dict[str, Any] | None,
+                 reused: Collection[str] = ()) -> dict[str, Any]:
     """The work of a SLAM cell that this harness call took from an earlier one (an interrupted
     call, or a run adopted into the root) instead of doing it: the rounds it resumed and the
     KISS-ICP baseline it read back, with their recorded wall time (each round's SLAM ``total``
-    plus its ``training``; the baseline's ``wall_s``). Added to the call's own ``wall_s`` this is
-    the cell's time (:func:`cell_wall_s`); the time an interrupted call spent on work it did not
-    finish is not in it."""
+    plus its ``training``; the baseline's ``wall_s``). Work copied from a source cell
+    (``reused``, :func:`reused_from_source`) is timed there and not counted. Added to the call's
+    own ``wall_s`` this is the cell's time (:func:`cell_wall_s`); the time an interrupted call
+    spent on work it did not finish is not in it."""
     wall = 0.0
     for r in rounds:
         runtime = metrics["rounds"][str(r)].get("runtime_s") or {}
-        wall += float(runtime.get("total") or 0.0) + float(runtime.get("training") or 0.0)
+        if f"round_{r}" not in reused:
+            wall += float(runtime.get("total") or 0.0)
+        if f"round_{r}/training" not in reused:
+            wall += float(runtime.get("training") or 0.0)
     if kiss is not None:
         wall += float(kiss.get("wall_s") or 0.0)
-    return {"rounds": list(rounds), "kiss_icp": kiss is not None, "wall_s": wall}
+    return {"rounds": list(rounds), "kiss_icp": kiss is not None, "wall_s": wall,
+            "not_counted": sorted(reused)}
 
 
 def cell_wall_s(doc: dict[str, Any]) -> float:
