@@ -171,3 +171,20 @@ def test_registry_frames_and_poses(tmp_path: Path, frames: list) -> None:
     seq, source = open_sequence(path=bag, frames="1:3", poses=tmp_path / "gt.txt")
     assert "ground truth" in source and len(seq) == 2 and seq[0].index == 1
     np.testing.assert_allclose(seq.gt_poses[:, 0, 3], [1.0, 2.0])  # relative to the first scan
+
+
+def test_a_bag_without_per_point_times_says_what_it_assumes(tmp_path: Path, frames: list,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    """XYZIR clouds (older Velodyne drivers) look like compensated scans: the assumption is logged with
+    the option that deskews raw sweeps; a bag with times logs nothing of the kind."""
+    import logging
+
+    plain = write_bag(tmp_path / "plain", {"/points": [cloud_array(f, CloudLayout(with_time=False)) for f in frames]})
+    timed = write_bag(tmp_path / "timed", {"/points": [cloud_array(f, CloudLayout(with_time=True)) for f in frames]})
+    with caplog.at_level(logging.WARNING):
+        assert RosbagSequence(plain).motion_compensated is True
+    assert "no per-point time field" in caplog.text and "odometry.deskew: on" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert RosbagSequence(timed).motion_compensated is False
+    assert "no per-point time field" not in caplog.text

@@ -155,6 +155,10 @@ class RosbagSequence:
                                                   sensor, more)
         self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
         self.motion_compensated = self.conventions.motion_compensated
+        if self.motion_compensated:  # a driver's raw sweeps without times look the same: say what is assumed
+            log.warning("%s: topic %s has no per-point time field: its scans are taken as motion-compensated "
+                        "(odometry.deskew: auto leaves them as they are); for raw sweeps set odometry.deskew: on "
+                        "(times from the azimuth)", self.path, self.topic)
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
             from gr_graph.datasets.folder import read_pose_file
