@@ -224,6 +224,12 @@ class OutputConfig(_Section):
     resume: bool = Field(True, description="skip rounds whose round.json exists and whose config matches")
     progress: bool = True
 
+    @field_validator("out_dir")
+    @classmethod
+    def _expand_home(cls, v: str) -> str:
+        """``~/runs/x`` means the home folder's, not a folder named ``~`` (as the data paths)."""
+        return os.path.expanduser(v)
+
 
 class AcceptanceConfig(_Section):
     """GT-free acceptance test of learning rounds (:mod:`gr_graph.round_acceptance`)."""
@@ -448,7 +454,10 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config file not found: {p}")
-        loaded = yaml.safe_load(p.read_text()) or {}
+        try:
+            loaded = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as exc:  # e.g. a tab in the indentation
+            raise ValueError(f"{p}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
             raise ValueError(f"{p}: a config file must hold a mapping of sections")
         data = loaded

@@ -45,7 +45,7 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
-from gr_graph.sensors import check_sequence_sensor
+from gr_graph.sensors import SensorConfig, check_sequence_sensor
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
@@ -169,6 +169,27 @@ def prefetch_frames(sequence: LidarSequence, ahead: int = 4, threads: int = 1) -
                 queue.append(pool.submit(sequence.__getitem__, nxt))
                 nxt += 1
             yield fut.result()
+
+
+def unnamed_sensor_note(sequence: Any, sensor: SensorConfig, max_rmse: float) -> str | None:
+    """A warning when the data count another number of rings than the configured sensor's beams
+    and no sensor was named: the loop threshold (and the catalogue's other figures) are then the
+    default sensor's. Only for loaders that count rings from the data (folders, bags); None
+    otherwise."""
+    seen: set[int] = set()
+    while sequence is not None and id(sequence) not in seen:
+        seen.add(id(sequence))
+        conv = getattr(sequence, "conventions", None)
+        if conv is not None and hasattr(conv, "fixed_rings"):
+            break
+        sequence = getattr(sequence, "parent", None)
+    else:
+        return None
+    if sensor.named_beams is not None or not conv.has_ring or conv.fixed_rings or conv.n_rings == sensor.beams:
+        return None
+    return (f"the data hold {conv.n_rings} rings but no sensor is named: the loop-verification RMSE threshold is "
+            f"the {sensor.model}'s ({max_rmse:.3f} m for {sensor.beams} beams); name the sensor (--sensor MODEL, "
+            "or sensor: {model: custom, n_beams: N, vertical_fov_deg: [...]}) for thresholds of its ring spacing")
 
 
 def deskew_enabled(mode: str, sequence: LidarSequence) -> tuple[bool, str]:
@@ -317,6 +338,9 @@ class _FrameLoop:
         # thresholds that depend on how sparse the rings are follow the sensor (gr_graph.sensors)
         self.loop_cfg = cfg.loops.model_copy(update={"max_rmse": loop_max_rmse(cfg.loops, cfg.sensor,
                                                                                cfg.data.channels)})
+        note = unnamed_sensor_note(sequence, cfg.sensor, self.loop_cfg.max_rmse)
+        if note:
+            log.warning(note)
         self.edge_noise = edge_noise
         self.timer = StageTimer()
         self.odometry = VgicpOdometry(cfg.odometry, cfg.graph)

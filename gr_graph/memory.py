@@ -252,8 +252,8 @@ def _atomic_directory(directory: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
         yield tmp
         old = None
-        if target.exists():
-            old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        if target.exists():  # a unique name: a folder left by a killed process may hold this pid's
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
             os.replace(target, old)
         os.replace(tmp, target)
         if old is not None:
@@ -275,12 +275,15 @@ def _write_concatenated(path: Path, parts: Sequence[np.ndarray], dtype: Any, wid
     without concatenating them in RAM; return the offsets ``(len(parts) + 1,)`` int64."""
     sizes = [len(p) for p in parts]
     offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
-    out = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=(int(offsets[-1]), width))
-    for i, p in enumerate(parts):
-        if sizes[i]:
-            out[offsets[i]:offsets[i + 1]] = np.asarray(p).reshape(-1, width)
-    out.flush()
-    del out
+    dt = np.dtype(dtype)
+    header = {"descr": np.lib.format.dtype_to_descr(dt), "fortran_order": False, "shape": (int(offsets[-1]), width)}
+    # written, not memory-mapped: a full disk is then an OSError (the memory's temporary folder is
+    # removed), not a SIGBUS that kills the process
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, header)
+        for p in parts:
+            if len(p):
+                fh.write(np.ascontiguousarray(np.asarray(p).reshape(-1, width), dtype=dt).tobytes())
     return offsets
 
 

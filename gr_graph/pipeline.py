@@ -448,11 +448,32 @@ class SlamPipeline:
             log.info("round %d: existing results were made with another configuration; recomputing", r)
             return None
         self.check_round_data(r, summary)
+        if self.memory_needed(r) and not (self.round_dir(r) / "memory" / "meta.json").is_file():
+            log.warning("round %d: finished in %s but without its memory (a run with --no-memory, or pruned), which "
+                        "the learning rounds need: recomputing", r, self.round_dir(r))
+            return None
         log.info("round %d: already finished in %s; skipped (resume)", r, self.round_dir(r))
         return summary
 
+    def memory_needed(self, r: int) -> bool:
+        """Whether this run reads round ``r``'s memory: round r + 1 trains on it unless it is
+        finished with this configuration, and the acceptance test reads round 0's scans."""
+        rounds = self.cfg.training.rounds
+        if r >= rounds:
+            return False
+        if r == 0 and self.cfg.training.acceptance.enabled:
+            return True
+        later = read_round_summary(self.round_dir(r + 1))
+        return later is None or later.get("config_fingerprint") != round_fingerprint(self.cfg, r + 1)
+
     def compute_round(self, r: int, resume_training: bool) -> dict[str, Any]:
-        """Round 0: SLAM on the raw scans; round r ≥ 1: train, densify, SLAM on the densified scans."""
+        """Round 0: SLAM on the raw scans; round r ≥ 1: train, densify, SLAM on the densified scans.
+        Every later round's ``round.json`` is removed first: made from another round ``r``, it must
+        not be resumed after an interruption (kept were a later run's rounds spliced onto this one)."""
+        for later in sorted(self.out.glob("round_*/round.json")):
+            k = later.parent.name.removeprefix("round_")
+            if k.isdigit() and int(k) > r:
+                later.unlink()
         if r == 0:
             return self.slam_round(0)
         t0 = time.perf_counter()

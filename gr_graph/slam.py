@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -253,6 +254,20 @@ def full_method_hint(argv: list[str]) -> str:
                                                           *extra]))
 
 
+def out_dir_problem(out: Path) -> str | None:
+    """Why results cannot be written to ``out`` (a file, or a folder that cannot be written or
+    created: the first existing one of it and its parents must be a writable folder), or None.
+    Nothing is created."""
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"--out {out}: {existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"--out {out}: {existing} is not writable"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)
@@ -274,12 +289,19 @@ def main(argv: list[str] | None = None) -> int:
     from gr_graph.datasets.base import DatasetError
     from gr_graph.pipeline import ResumeDataError, SlamPipeline
 
+    problem = out_dir_problem(Path(cfg.output.out_dir))
+    if problem:  # before the data are opened (a bag is read through once when opened)
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     try:
         pipe = SlamPipeline(cfg)
         metrics = pipe.run()
     except (DatasetError, ResumeDataError) as exc:  # DatasetError: also too few usable scans
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk, a folder that became unwritable: the message names the path
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     final_round = metrics["final_round"]
     final = metrics["rounds"][str(final_round)]
     brief = {"out": cfg.output.out_dir, "final_round": final_round,

@@ -128,3 +128,29 @@ def test_kitti_raw_sweep_duration(tmp_path: Path) -> None:
     assert said.scan_period == 0.1
     seq, _ = open_sequence(path=drive, sensor=SensorConfig(scan_period=0.09))
     assert seq.scan_period == 0.09
+
+
+def test_repeated_and_backward_raw_timestamps_are_repaired_not_fatal(tmp_path: Path, caplog) -> None:
+    """A repeated or backward line of velodyne_points/timestamps.txt: the trajectory files need
+    increasing times, and the run failed over it after SLAM; now repaired when opened, logged."""
+    import logging
+
+    from gr_graph.datasets.base import increasing_stamps
+
+    drive, _, _, seconds = _fake_drive(tmp_path, 12, with_oxts=False)
+    times = drive / "velodyne_points" / "timestamps.txt"
+    lines = times.read_text().splitlines()
+    lines[2] = lines[1]  # repeated
+    lines[7] = lines[0]  # backward
+    times.write_text("\n".join(lines) + "\n")
+    with caplog.at_level(logging.WARNING):
+        seq = KittiRawSequence(drive, recover_ring_index=False)
+    assert np.all(np.diff(seq.timestamps) > 0)
+    assert "2 timestamps not after the one before (lines 3, 8)" in caplog.text
+    step = float(np.diff(seconds)[0])  # the drive's (constant) spacing, the median of the forward steps
+    kept = [0, 1, 3, 4, 5, 6, 8, 9, 10, 11]
+    np.testing.assert_allclose(seq.timestamps[kept], seconds[kept] - seconds[0], atol=1e-6)
+    np.testing.assert_allclose(seq.timestamps[2], seq.timestamps[1] + step, atol=1e-6)  # the previous + the spacing
+    np.testing.assert_allclose(seq.timestamps[7], seq.timestamps[6] + step, atol=1e-6)
+    ok = np.array([0, 5, 9], np.int64)
+    assert increasing_stamps(ok, "x") is not ok and np.array_equal(increasing_stamps(ok, "x"), ok)  # unchanged

@@ -147,3 +147,31 @@ def test_failed_streaming_write_keeps_previous(tmp_path: Path) -> None:
         save_memory_from_scans(tmp_path / "m", **bad)
     assert load_memory(tmp_path / "m").n_scans == 3
     assert [p.name for p in tmp_path.iterdir()] == ["m"]
+
+
+def test_streaming_write_maps_no_file_and_survives_a_stale_old_folder(tmp_path: Path, monkeypatch) -> None:
+    """Written, not memory-mapped (a full disk is an OSError, not a SIGBUS killing the process);
+    a ``.m.old-<pid>`` folder left by a killed process with this pid does not make the save fail."""
+    import os
+
+    rng = np.random.default_rng(9)
+    save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 3))
+    stale = tmp_path / f".m.old-{os.getpid()}"
+    stale.mkdir()
+    (stale / "points.npy").write_bytes(b"left by a killed process")
+
+    mapping = np.lib.format.open_memmap
+
+    def no_mapping(*args, **kwargs):  # reading the saved memory back maps it ("r"): that is fine
+        if kwargs.get("mode", args[1] if len(args) > 1 else "r+") != "r":
+            raise AssertionError("the memory files are written through a memory map")
+        return mapping(*args, **kwargs)
+
+    monkeypatch.setattr(np.lib.format, "open_memmap", no_mapping)
+    parts = _memory_parts(rng, 4)
+    save_memory_from_scans(tmp_path / "m", **parts)
+    monkeypatch.undo()
+    back = load_memory(tmp_path / "m")
+    assert back.n_scans == 4
+    np.testing.assert_array_equal(back.scan(2), parts["scans"][2])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m", stale.name])  # the stale one is not ours

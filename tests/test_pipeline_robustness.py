@@ -326,3 +326,63 @@ def test_data_fingerprint_of_files_and_of_the_synthetic_world(tmp_path):
     # the synthetic world has no files: its identity is its configuration (in the round fingerprint)
     syn = SyntheticSequence(seed=0, preset="clean")
     assert data_fingerprint(syn) == {"n_frames": len(syn), "files": None, "digest": None}
+
+
+def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tmp_path, caplog):
+    """``--no-memory`` (round 0 only), then the printed ``--rounds 1`` command in the same --out:
+    round 0 was resumed without the memory the training reads (a MemoryFormatError traceback, and
+    the same at every rerun); now it is recomputed, logged."""
+    from gr_graph.pipeline import SlamPipeline
+
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0 and not (out / "round_0" / "memory").exists()
+    again = load_config(out / "config.yaml", {"output": {"write_memory": True}})
+    assert SlamPipeline(again).finished_round(0) is not None  # round 0 alone: its memory is not read
+    learning = load_config(out / "config.yaml", {"output": {"write_memory": True}, "training": {"rounds": 1}})
+    pipe = SlamPipeline(learning)
+    with caplog.at_level(logging.WARNING):
+        assert pipe.finished_round(0) is None
+    assert "without its memory" in caplog.text
+    (out / "round_0" / "memory").mkdir()
+    (out / "round_0" / "memory" / "meta.json").write_text("{}")
+    assert pipe.finished_round(0) is not None
+
+
+def test_recomputing_a_round_drops_the_later_rounds_summaries(tmp_path):
+    """A ``--no-resume`` rerun killed after round 0: the earlier run's round 1 (made from another
+    round 0) must not be resumed by the next run."""
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0
+    for r in (1, 2, 12):
+        (out / f"round_{r}").mkdir()
+        (out / f"round_{r}" / "round.json").write_text("{}")
+    (out / "round_x").mkdir()
+    (out / "round_x" / "round.json").write_text("{}")  # not a round: left alone
+    assert run_cli(folder, out, "--no-resume") == 0
+    assert (out / "round_0" / "round.json").is_file() and (out / "round_x" / "round.json").is_file()
+    assert not [r for r in (1, 2, 12) if (out / f"round_{r}" / "round.json").exists()]
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_the_data_are_read(tmp_path, capsys):
+    scans, _, _ = drive(list(range(2)))
+    folder = write_folder(tmp_path / "scans", scans)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    assert run_cli(folder, blocker) == 2
+    assert "a_file is a file, not a folder" in capsys.readouterr().err
+    assert run_cli(folder, blocker / "sub" / "out") == 2  # a file on the way
+    assert "a_file is a file, not a folder" in capsys.readouterr().err
+
+
+def test_a_config_file_that_is_not_yaml_is_an_error_naming_it(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("data:\n\tchannels: 16\n")  # a tab in the indentation
+    with pytest.raises(ValueError, match="bad.yaml: not valid YAML"):
+        load_config(bad)
+    assert main(["--config", str(bad), "--dump-config"]) == 2
+    assert "bad.yaml: not valid YAML" in capsys.readouterr().err
+    assert load_config(None, {"output": {"out_dir": "~/runs/x"}}).output.out_dir == os.path.expanduser("~/runs/x")

@@ -442,3 +442,18 @@ def test_an_empty_message_without_fields_is_an_empty_frame() -> None:
     assert len(frame.points) == 0 and frame.time.shape == (0,) and frame.ring.shape == (0,)
     with pytest.raises(DatasetError, match="m4: no per-point time field"):  # points without the field: an error
         conv.frame(_cloud(s), 4, 0.4, "m4")
+
+
+def test_data_with_other_rings_than_the_unnamed_default_sensor_are_warned_about(tmp_path: Path) -> None:
+    """A 16-ring folder without --sensor: the loop threshold stays the HDL-64E's, which is said."""
+    from gr_graph.config import LoopConfig, loop_max_rmse
+    from gr_graph.frame_loop import unnamed_sensor_note
+
+    seq = FolderSequence(_timed_folder(tmp_path / "f", 3, {}))
+    default = SensorConfig()
+    threshold = loop_max_rmse(LoopConfig(), default, None)
+    note = unnamed_sensor_note(seq, default, threshold)
+    assert note is not None and "16 rings" in note and f"{threshold:.3f} m" in note and "--sensor" in note
+    named = SensorConfig(model="vlp16")
+    assert unnamed_sensor_note(FolderSequence(tmp_path / "f", sensor=named), named, 0.5) is None
+    assert unnamed_sensor_note(object(), default, threshold) is None  # KITTI, synthetic: rings not from the data

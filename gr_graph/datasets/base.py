@@ -37,11 +37,14 @@ Pose conventions
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 class DatasetError(ValueError):
@@ -161,6 +164,29 @@ def release_render_cache(sequence: Any) -> bool:
     anything was freed."""
     owner = find_in_chain(sequence, "release_cache")
     return False if owner is None else bool(owner.release_cache())
+
+
+def increasing_stamps(stamps_ns: np.ndarray, source: str) -> np.ndarray:
+    """``stamps_ns`` (int64 ns) with every stamp not after its predecessor moved to the
+    predecessor plus the median forward spacing (a repeated or backward line of a driver's
+    timestamps file): the trajectory files need increasing times, and a run must not fail over
+    them after SLAM. Logged with the count and the first lines (1-based); unchanged when they
+    increase."""
+    t = np.asarray(stamps_ns, np.int64).copy()
+    step = np.diff(t)
+    if len(t) < 2 or np.all(step > 0):
+        return t
+    forward = step[step > 0]
+    spacing = int(np.median(forward)) if len(forward) else 100_000_000  # 0.1 s when no two increase
+    fixed = []
+    for k in range(1, len(t)):
+        if t[k] <= t[k - 1]:
+            t[k] = t[k - 1] + spacing
+            fixed.append(k)
+    log.warning("%s: %d timestamp%s not after the one before (line%s %s): set to the previous one + %.4g s",
+                source, len(fixed), "s" if len(fixed) > 1 else "", "s" if len(fixed) > 1 else "",
+                ", ".join(str(k + 1) for k in fixed[:5]) + (", ..." if len(fixed) > 5 else ""), spacing * 1e-9)
+    return t
 
 
 def check_index(index: int, length: int, name: str) -> int:

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
+from gr_graph.datasets.base import DatasetError, LidarFrame, check_index, increasing_stamps
 from gr_graph.datasets.channels import RingIndexer
 from gr_graph.datasets.folder import natural_key
 from gr_graph.datasets.frame_fields import frame_period
@@ -186,6 +186,7 @@ class KittiRawSequence:
         absolute = read_raw_timestamps(times_path)
         if len(absolute) != n:
             raise DatasetError(f"{times_path}: {len(absolute)} timestamps for {n} scans")
+        absolute = increasing_stamps(absolute, str(times_path))
         self.timestamps = (absolute - absolute[0]).astype(np.float64) * 1e-9
         self.scan_period = frame_period(self.timestamps)
         start_path, end_path = velo / "timestamps_start.txt", velo / "timestamps_end.txt"

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.datasets.base import DatasetError, LidarFrame, check_index
+from gr_graph.datasets.base import DatasetError, LidarFrame, check_index, increasing_stamps
 from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
 from gr_graph.datasets.pointcloud2 import decode_pointcloud2
 from gr_graph.sensors import SensorConfig
@@ -143,7 +143,7 @@ class RosbagSequence:
         stamp_ns = np.asarray(stamps, np.int64)
         if len(stamp_ns) > 1 and not np.all(np.diff(stamp_ns) > 0):
             log.warning("%s: header stamps of %s do not increase: using the bag's log times", self.path, self.topic)
-            stamp_ns = self.log_times
+            stamp_ns = increasing_stamps(self.log_times, f"{self.path}: topic {self.topic} log times")
         self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
