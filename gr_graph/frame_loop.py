@@ -49,7 +49,7 @@ from gr_graph.sensors import SensorConfig, check_sequence_sensor
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, is_motion_compensated
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
-from gr_graph.loop_closure import LoopClosureSchedule, ScanContextDatabase, loop_candidates, verify_loop
+from gr_graph.loop_closure import LoopClosureSchedule, RowBuffer, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
 from gr_graph.noise_calibration import (
     LoopAxisVarianceFactors,
@@ -304,17 +304,20 @@ class LoopCorrectedEstimate:
     the odometry poses moved by the correction at the end of that prefix."""
 
     def __init__(self, odometry_poses: list[np.ndarray]) -> None:
-        self.odometry_poses = odometry_poses  # grows with the run (VgicpOdometry.poses)
+        self.odometry_poses = odometry_poses  # grows with the run (VgicpOdometry.poses), append only
         self.optimised = np.zeros((0, 4, 4))
+        self._odometry = RowBuffer((4, 4))  # the list's poses as an array, extended as it grows
 
     def poses(self, upto: int) -> np.ndarray:
-        """Estimate of poses ``0..upto-1``."""
-        odom = np.asarray(self.odometry_poses[:upto])
+        """Estimate of poses ``0..upto-1`` (a new array)."""
+        if upto > self._odometry.n:
+            self._odometry.extend(self.odometry_poses[self._odometry.n:upto])
+        odom = self._odometry.rows(upto).copy()
         n = len(self.optimised)
         if n == 0:
             return odom
         if n >= upto:
-            return self.optimised[:upto]
+            return self.optimised[:upto].copy()
         corr = self.optimised[n - 1] @ np.linalg.inv(odom[n - 1])
         return np.concatenate([self.optimised, corr[None] @ odom[n:]])
 

@@ -105,13 +105,41 @@ class LoopCandidate:
     score: float  # distance [m] or descriptor distance
 
 
+class RowBuffer:
+    """Rows appended one at a time to an array that doubles its capacity: :meth:`rows` gives
+    the first rows without converting a Python list of all of them (a cost that grew with the run
+    at every loop check)."""
+
+    def __init__(self, row_shape: tuple[int, ...], dtype: type = np.float64) -> None:
+        self._data = np.zeros((16, *row_shape), dtype)
+        self.n = 0
+
+    def append(self, row: np.ndarray) -> None:
+        if self.n == len(self._data):
+            grown = np.zeros((2 * len(self._data), *self._data.shape[1:]), self._data.dtype)
+            grown[: self.n] = self._data
+            self._data = grown
+        self._data[self.n] = row
+        self.n += 1
+
+    def extend(self, rows: list[np.ndarray]) -> None:
+        for row in rows:
+            self.append(row)
+
+    def rows(self, upto: int | None = None) -> np.ndarray:
+        """A read-only view of the first ``upto`` rows (all by default)."""
+        view = self._data[: self.n if upto is None else min(int(upto), self.n)]
+        view.flags.writeable = False
+        return view
+
+
 class ScanContextDatabase:
     """Descriptors and ring keys of the scans seen so far."""
 
     def __init__(self, cfg: LoopConfig) -> None:
         self.cfg = cfg
         self.descs: list[np.ndarray] = []
-        self.keys: list[np.ndarray] = []
+        self.keys = RowBuffer((cfg.sc_rings,))
 
     def add(self, points: np.ndarray) -> None:
         d = scan_context(points, self.cfg.sc_rings, self.cfg.sc_sectors, self.cfg.sc_max_radius)
@@ -123,8 +151,8 @@ class ScanContextDatabase:
         last = i - self.cfg.min_frame_gap
         if last < 0:
             return None
-        keys = np.asarray(self.keys[: last + 1])
-        dk = np.linalg.norm(keys - self.keys[i][None, :], axis=1)
+        keys = self.keys.rows(last + 1)
+        dk = np.linalg.norm(keys - self.keys.rows()[i][None, :], axis=1)
         order = np.argsort(dk)[: self.cfg.sc_num_candidates]
         best: tuple[float, int, int] | None = None
         for j in order:

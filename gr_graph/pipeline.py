@@ -469,11 +469,15 @@ class SlamPipeline:
     def compute_round(self, r: int, resume_training: bool) -> dict[str, Any]:
         """Round 0: SLAM on the raw scans; round r ≥ 1: train, densify, SLAM on the densified scans.
         Every later round's ``round.json`` is removed first: made from another round ``r``, it must
-        not be resumed after an interruption (kept were a later run's rounds spliced onto this one)."""
+        not be resumed after an interruption (kept were a later run's rounds spliced onto this one);
+        so is the final trajectory at the top of ``--out`` (written again at the end of the run, it
+        must not stay beside a new ``config.yaml`` when this run fails)."""
         for later in sorted(self.out.glob("round_*/round.json")):
             k = later.parent.name.removeprefix("round_")
             if k.isdigit() and int(k) > r:
                 later.unlink()
+        for name in ("poses_kitti.txt", "poses_tum.txt"):
+            (self.out / name).unlink(missing_ok=True)
         if r == 0:
             return self.slam_round(0)
         t0 = time.perf_counter()

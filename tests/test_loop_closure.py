@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import small_gicp
+from scipy.spatial.transform import Rotation
 
 from gr_graph.config import GraphConfig, LoopConfig, PreprocessConfig
 from gr_graph.loop_closure import (
@@ -157,3 +158,39 @@ def test_schedule_checks_every_nth_usable_frame_with_cooldown_and_reoptimises():
     assert not sch.should_reoptimize(45)
     sch.loop_accepted()
     assert not sch.should_reoptimize(65) and sch.should_reoptimize(70)  # 30 frames after the last
+
+
+def test_row_buffer_and_the_estimate_equal_the_list_conversion_they_replace():
+    """The loop check's ring keys and trajectory estimate come from arrays that grow with the run:
+    the same values as converting the lists at each check, past several capacity doublings, and
+    the estimate is a new array each time (a caller changing it changes nothing kept)."""
+    from gr_graph.frame_loop import LoopCorrectedEstimate
+    from gr_graph.loop_closure import RowBuffer
+
+    rng = np.random.default_rng(0)
+    rows = [rng.random(20) for _ in range(100)]
+    buf = RowBuffer((20,))
+    for k, r in enumerate(rows):
+        buf.append(r)
+        if k in (0, 15, 16, 63, 99):
+            np.testing.assert_array_equal(buf.rows(), np.asarray(rows[: k + 1]))
+    np.testing.assert_array_equal(buf.rows(40), np.asarray(rows[:40]))
+    assert not buf.rows().flags.writeable
+    poses = [np.eye(4) for _ in range(70)]
+    for k, T in enumerate(poses):
+        T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.01 * k]).as_matrix()
+        T[:3, 3] = [0.8 * k, 0.1 * k, 0.0]
+    est = LoopCorrectedEstimate(poses[:30])
+    np.testing.assert_array_equal(est.poses(30), np.asarray(poses[:30]))
+    est.odometry_poses.extend(poses[30:])  # the odometry's list grows in place
+    est.optimised = np.asarray(poses[:50]) + 1e-3  # an optimisation moved the first 50
+    odom = np.asarray(poses)
+    corr = est.optimised[49] @ np.linalg.inv(odom[49])
+    np.testing.assert_array_equal(est.poses(70), np.concatenate([est.optimised, corr[None] @ odom[50:]]))
+    first = est.poses(20)
+    first[:] = 0.0
+    np.testing.assert_array_equal(est.poses(20), np.asarray(poses[:20]) + 1e-3)
+    est.optimised = np.zeros((0, 4, 4))
+    mine = est.poses(70)
+    mine[:] = 0.0
+    np.testing.assert_array_equal(est.poses(70), odom)

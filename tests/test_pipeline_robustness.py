@@ -386,3 +386,21 @@ def test_a_config_file_that_is_not_yaml_is_an_error_naming_it(tmp_path, capsys):
     assert main(["--config", str(bad), "--dump-config"]) == 2
     assert "bad.yaml: not valid YAML" in capsys.readouterr().err
     assert load_config(None, {"output": {"out_dir": "~/runs/x"}}).output.out_dir == os.path.expanduser("~/runs/x")
+
+
+def test_a_failed_rerun_leaves_no_final_trajectory_of_the_run_before(tmp_path, monkeypatch):
+    from gr_graph.pipeline import SlamPipeline
+
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0 and (out / "poses_kitti.txt").is_file()
+    pipe = SlamPipeline(load_config(out / "config.yaml", {"output": {"resume": False}}))
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("the rerun fails")
+
+    monkeypatch.setattr(pipe, "slam_round", fails)
+    with pytest.raises(RuntimeError, match="the rerun fails"):
+        pipe.run()
+    assert not (out / "poses_kitti.txt").exists() and not (out / "poses_tum.txt").exists()
