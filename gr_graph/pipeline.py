@@ -456,15 +456,23 @@ class SlamPipeline:
         return summary
 
     def memory_needed(self, r: int) -> bool:
-        """Whether this run reads round ``r``'s memory: round r + 1 trains on it unless it is
-        finished with this configuration, and the acceptance test reads round 0's scans."""
+        """Whether this run reads round ``r``'s memory: round r + 1 trains on it (:meth:`trains`)
+        unless it is finished with this configuration, and the acceptance test reads round 0's scans."""
         rounds = self.cfg.training.rounds
         if r >= rounds:
             return False
         if r == 0 and self.cfg.training.acceptance.enabled:
             return True
+        if not self.trains(r + 1):
+            return False
         later = read_round_summary(self.round_dir(r + 1))
         return later is None or later.get("config_fingerprint") != round_fingerprint(self.cfg, r + 1)
+
+    def trains(self, r: int) -> bool:
+        """Whether learning round ``r`` trains a network (on round r − 1's memory): not with PCA
+        covariances, nor in round 1 with given weights used as they are (:meth:`densified_scans`)."""
+        tc = self.cfg.training
+        return tc.covariances != "pca" and not (r == 1 and tc.weights is not None and not tc.fine_tune)
 
     def compute_round(self, r: int, resume_training: bool) -> dict[str, Any]:
         """Round 0: SLAM on the raw scans; round r ≥ 1: train, densify, SLAM on the densified scans.

@@ -348,6 +348,10 @@ def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tm
     (out / "round_0" / "memory").mkdir()
     (out / "round_0" / "memory" / "meta.json").write_text("{}")
     assert pipe.finished_round(0) is not None
+    (out / "round_0" / "memory" / "meta.json").unlink()
+    pca = load_config(out / "config.yaml", {"output": {"write_memory": True}, "training": {
+        "rounds": 1, "covariances": "pca", "acceptance": {"enabled": False}}})
+    assert SlamPipeline(pca).finished_round(0) is not None  # no training and no test: the memory is not read
 
 
 def test_recomputing_a_round_drops_the_later_rounds_summaries(tmp_path):
