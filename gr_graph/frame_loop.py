@@ -46,7 +46,8 @@ from tqdm import tqdm
 
 from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
 from gr_graph.sensors import SensorConfig, check_sequence_sensor
-from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, is_motion_compensated
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, find_in_chain, is_motion_compensated
+from gr_graph.datasets.frame_fields import FieldConventions
 from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, RowBuffer, ScanContextDatabase, loop_candidates, verify_loop
@@ -176,15 +177,10 @@ def unnamed_sensor_note(sequence: Any, sensor: SensorConfig, max_rmse: float) ->
     and no sensor was named: the loop threshold (and the catalogue's other figures) are then the
     default sensor's. Only for loaders that count rings from the data (folders, bags); None
     otherwise."""
-    seen: set[int] = set()
-    while sequence is not None and id(sequence) not in seen:
-        seen.add(id(sequence))
-        conv = getattr(sequence, "conventions", None)
-        if conv is not None and hasattr(conv, "fixed_rings"):
-            break
-        sequence = getattr(sequence, "parent", None)
-    else:
+    owner = find_in_chain(sequence, "conventions", accept=lambda c: isinstance(c, FieldConventions))
+    if owner is None:
         return None
+    conv = owner.conventions
     if sensor.named_beams is not None or not conv.has_ring or conv.fixed_rings or conv.n_rings == sensor.beams:
         return None
     return (f"the data hold {conv.n_rings} rings but no sensor is named: the loop-verification RMSE threshold is "

@@ -38,7 +38,7 @@ Pose conventions
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Protocol, runtime_checkable
 
@@ -145,13 +145,13 @@ def inherit_sweep_attributes(view: Any, parent: Any) -> None:
         view.sensor = parent.sensor
 
 
-def find_in_chain(sequence: Any, attribute: str) -> Any:
-    """The first of ``sequence``, its ``parent``, the parent's parent, ... that has a callable
-    ``attribute``, or None."""
+def find_in_chain(sequence: Any, attribute: str, accept: Callable[[Any], bool] = callable) -> Any:
+    """The first of ``sequence``, its ``parent``, the parent's parent, ... whose ``attribute``
+    passes ``accept`` (default: is callable), or None."""
     seen: set[int] = set()
     while sequence is not None and id(sequence) not in seen:
         seen.add(id(sequence))
-        if callable(getattr(sequence, attribute, None)):
+        if accept(getattr(sequence, attribute, None)):
             return sequence
         sequence = getattr(sequence, "parent", None)
     return None

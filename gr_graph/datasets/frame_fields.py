@@ -225,9 +225,9 @@ class FieldConventions:
             fix ``n_rings``; ``has_time`` /
             ``has_ring`` false drop the field, true require it.
         more : sequence of (DecodedCloud, str)
-            Further probe frames (:func:`probe_indices`) and their sources: the time unit and
-            sweep duration come from the frame of the median time span, the ring count is their
-            highest ring.
+            Further probe frames (:func:`probe_indices`) and their sources: the time unit is guessed
+            on the frame of the median time span (the sweep duration is judged on ``cloud``), the
+            ring count is their highest ring.
 
         Raises
         ------
@@ -278,7 +278,7 @@ class FieldConventions:
                      self.scan_period, frame_period,
                      self.time_reference if reference_given else "the reference the values show")
             for c, src in timed:  # every probe frame must fit one sweep (two under a guessed unit)
-                self._check_fit(c.time, src)
+                self._fit(c.time, src)
         elif cloud.time is not None:
             log.warning("%s: per-point time field %r is constant: ignored", source, cloud.time_field)
         if want and not self.has_time:
@@ -331,13 +331,14 @@ class FieldConventions:
             raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings of the sensor (sensor.model / "
                                "sensor.n_beams, --sensor): name the sensor that took the scans")
 
-    def _check_fit(self, times: np.ndarray, source: str) -> None:
-        """A probe frame's times fit one sweep (within the given units' slack, or
-        :data:`GUESSED_UNIT_SLACK` under a guessed unit): else a :class:`DatasetError` naming the fix."""
+    def _fit(self, times: np.ndarray, source: str, sweep_start: float | None = None) -> np.ndarray:
+        """Sweep fractions of times that fit one sweep (within the given units' slack, or
+        :data:`GUESSED_UNIT_SLACK` under a guessed unit); else a :class:`DatasetError` naming the fix."""
         given = self.time_tolerance is not None
         try:
-            normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
-                            self.time_reference, None, self.time_tolerance if given else GUESSED_UNIT_SLACK)
+            return normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
+                                   self.time_reference, sweep_start,
+                                   self.time_tolerance if given else GUESSED_UNIT_SLACK)
         except ValueError as exc:
             hint = ("check sensor.time_unit, sensor.time_reference and sensor.scan_period" if given else
                     "the unit was guessed from the span of the probe frames' times: give sensor.time_unit "
@@ -349,21 +350,17 @@ class FieldConventions:
 
         Under a guessed unit, a frame whose times span more than :data:`GUESSED_UNIT_SLACK` sweeps
         past one is clipped to the sweep, logged and counted (:attr:`n_overlong_frames`)."""
-        t = np.asarray(times, np.float64) * self.time_unit_s
-        given = self.time_tolerance is not None
         try:
-            return normalise_times(t, self.scan_period, self.time_reference, sweep_start,
-                                   self.time_tolerance if given else GUESSED_UNIT_SLACK)
-        except ValueError as exc:
-            if given:
-                raise DatasetError(f"{source}: {exc} (read in units of {self.time_unit_s:g} s); check "
-                                   "sensor.time_unit, sensor.time_reference and sensor.scan_period") from None
+            return self._fit(times, source, sweep_start)
+        except DatasetError as exc:
+            if self.time_tolerance is not None:
+                raise
             if source not in self.overlong_frames:  # frames are read again in later rounds: logged once
                 self.overlong_frames.add(source)
-                log.warning("%s: %s (read in units of %g s, guessed): clipped to one sweep (%d such frame%s so far; "
-                            "give sensor.time_unit and sensor.scan_period if the data hold longer frames)", source,
-                            exc, self.time_unit_s, self.n_overlong_frames, "s" if self.n_overlong_frames > 1 else "")
-            return normalise_times(t, self.scan_period, self.time_reference, sweep_start, None)
+                log.warning("%s: clipped to one sweep (%d such frame%s so far)", exc, self.n_overlong_frames,
+                            "s" if self.n_overlong_frames > 1 else "")
+            return normalise_times(np.asarray(times, np.float64) * self.time_unit_s, self.scan_period,
+                                   self.time_reference, sweep_start, None)
 
     def _rings(self, cloud: DecodedCloud, source: str) -> np.ndarray:
         highest = int(cloud.ring.max()) if len(cloud.ring) else -1  # type: ignore[union-attr]
