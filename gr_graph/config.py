@@ -151,12 +151,19 @@ class LoopConfig(_Section):
     enabled: bool = True
     check_every: int = Field(5, ge=1, description="look for a loop at every n-th frame")
     min_frame_gap: int = Field(100, ge=1, description="candidates are at least this many frames older")
+    min_path_length: float = Field(
+        0.0, ge=0.0, description="candidates also lie at least this much path back along the estimate [m]; 0: off. "
+        "A vehicle stopped for longer than min_frame_gap frames otherwise closes loops with itself (gr_graph."
+        "loop_closure.newest_candidate)")
     radius: float = Field(10.0, gt=0.0, description="proximity candidates within this distance on the estimate [m]")
     use_proximity: bool = True
     use_scan_context: bool = True
     sc_rings: int = Field(20, ge=2)
     sc_sectors: int = Field(60, ge=4)
     sc_max_radius: float = Field(80.0, gt=0.0)
+    sc_height_offset: float = Field(
+        2.0, description="Scan Context bins hold the highest z + this [m], heights below 0 count as 0: about the "
+        "sensor's height above the ground, z pointing up (a sensor mounted higher: raise it)")
     sc_num_candidates: int = Field(10, ge=1, description="ring-key nearest neighbours rescored by the full descriptor")
     sc_threshold: float = Field(0.2, gt=0.0, description="Scan Context distance below which a candidate is kept")
     coarse_correspondence_distance: float = Field(5.0, gt=0.0, description="verification, first stage [m]")

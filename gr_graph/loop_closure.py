@@ -1,6 +1,7 @@
 """Loop closures: candidates (proximity on the estimate, Scan Context), geometric verification.
 
-Candidates for the query scan i are older scans j (i − j ≥ ``min_frame_gap``):
+Candidates for the query scan i are older scans j (i − j ≥ ``min_frame_gap`` and, when
+``min_path_length`` is set, that much path back along the estimate: :func:`newest_candidate`):
 
 - *proximity*: the nearest scan within ``radius`` on the current (loop-corrected) estimate,
   with the estimate's relative pose as initial guess;
@@ -142,13 +143,15 @@ class ScanContextDatabase:
         self.keys = RowBuffer((cfg.sc_rings,))
 
     def add(self, points: np.ndarray) -> None:
-        d = scan_context(points, self.cfg.sc_rings, self.cfg.sc_sectors, self.cfg.sc_max_radius)
+        d = scan_context(points, self.cfg.sc_rings, self.cfg.sc_sectors, self.cfg.sc_max_radius,
+                         self.cfg.sc_height_offset)
         self.descs.append(d)
         self.keys.append(ring_key(d))
 
-    def query(self, i: int) -> LoopCandidate | None:
-        """Best Scan Context candidate for scan ``i`` among scans ≤ i − min_frame_gap."""
-        last = i - self.cfg.min_frame_gap
+    def query(self, i: int, last: int | None = None) -> LoopCandidate | None:
+        """Best Scan Context candidate for scan ``i`` among scans ≤ ``last`` (default i − min_frame_gap)."""
+        if last is None:
+            last = i - self.cfg.min_frame_gap
         if last < 0:
             return None
         keys = self.keys.rows(last + 1)
@@ -166,9 +169,30 @@ class ScanContextDatabase:
         return LoopCandidate(i, j, yaw_matrix(yaw), "scan_context", d)
 
 
-def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig) -> LoopCandidate | None:
-    """Nearest older scan within ``radius`` of scan ``i`` on the estimate ``poses`` (K, 4, 4)."""
+def newest_candidate(estimate: np.ndarray, i: int, cfg: LoopConfig) -> int:
+    """The newest scan that may be a loop candidate for scan ``i`` (-1: none).
+
+    It is ``min_frame_gap`` frames back and, with ``min_path_length`` > 0, also that much path back
+    along ``estimate`` (poses 0..i, (K, 4, 4)): summed distances between consecutive positions.
+    A vehicle stopped for longer than ``min_frame_gap`` frames otherwise finds "loops" with itself at
+    the stop, which tell the graph nothing about drift but count as loops.
+    """
     last = i - cfg.min_frame_gap
+    if last < 0:
+        return -1
+    if cfg.min_path_length <= 0.0:
+        return last
+    steps = np.linalg.norm(np.diff(estimate[: i + 1, :3, 3], axis=0), axis=1)  # steps[k]: scan k to k + 1
+    path_back = np.cumsum(steps[::-1])  # path_back[m]: from scan i − 1 − m to scan i
+    m = int(np.searchsorted(path_back, cfg.min_path_length))
+    return -1 if m == len(path_back) else min(last, i - 1 - m)
+
+
+def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig, last: int | None = None) -> LoopCandidate | None:
+    """Nearest scan ≤ ``last`` (default i − min_frame_gap) within ``radius`` of scan ``i`` on the
+    estimate ``poses`` (K, 4, 4)."""
+    if last is None:
+        last = i - cfg.min_frame_gap
     if last < 0:
         return None
     d = np.linalg.norm(poses[: last + 1, :3, 3] - poses[i, :3, 3][None, :], axis=1)
@@ -181,15 +205,18 @@ def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig) -> LoopCandi
 
 def loop_candidates(estimate: np.ndarray, i: int, scan_context_db: ScanContextDatabase | None,
                     cfg: LoopConfig) -> list[LoopCandidate]:
-    """Candidates for query scan ``i``: proximity on ``estimate`` (poses 0..i) first, then Scan
-    Context (``scan_context_db``, None when disabled) unless it names a scan within 5 frames
-    of the proximity match."""
+    """Candidates for query scan ``i`` among the scans up to :func:`newest_candidate`: proximity on
+    ``estimate`` (poses 0..i) first, then Scan Context (``scan_context_db``, None when disabled)
+    unless it names a scan within 5 frames of the proximity match."""
     cands: list[LoopCandidate] = []
-    c = proximity_candidate(estimate, i, cfg) if cfg.use_proximity else None
+    last = newest_candidate(estimate, i, cfg)
+    if last < 0:
+        return cands
+    c = proximity_candidate(estimate, i, cfg, last) if cfg.use_proximity else None
     if c is not None:
         cands.append(c)
     if scan_context_db is not None:
-        c = scan_context_db.query(i)
+        c = scan_context_db.query(i, last)
         if c is not None and not any(abs(c.match - o.match) < 5 for o in cands):
             cands.append(c)
     return cands

@@ -16,14 +16,20 @@ from factors.se3 import rotation_angle
 __all__ = ["true_revisits", "loop_error", "loop_precision_recall"]
 
 
-def true_revisits(gt_poses: np.ndarray, min_frame_gap: int, radius: float) -> np.ndarray:
-    """Boolean (K,): scan i has an older scan (gap ≥ ``min_frame_gap``) within ``radius`` in GT."""
+def true_revisits(gt_poses: np.ndarray, min_frame_gap: int, radius: float, min_path_length: float = 0.0) -> np.ndarray:
+    """Boolean (K,): scan i has an older scan (gap ≥ ``min_frame_gap`` and at least ``min_path_length``
+    of ground-truth path back: the loop candidates' limits) within ``radius`` in GT."""
     pos = np.asarray(gt_poses)[:, :3, 3]
     K = len(pos)
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     out = np.zeros(K, dtype=bool)
     for i in range(min_frame_gap, K):
-        d = np.linalg.norm(pos[: i - min_frame_gap + 1] - pos[i], axis=1)
-        out[i] = bool(d.min() <= radius)
+        last = i - min_frame_gap
+        if min_path_length > 0.0:
+            last = min(last, int(np.searchsorted(path, path[i] - min_path_length, side="right")) - 1)
+        if last >= 0:
+            d = np.linalg.norm(pos[: last + 1] - pos[i], axis=1)
+            out[i] = bool(d.min() <= radius)
     return out
 
 
@@ -42,6 +48,7 @@ def loop_precision_recall(
     revisit_radius: float = 5.0,
     max_t_err: float = 2.0,
     max_r_err_deg: float = 10.0,
+    min_path_length: float = 0.0,
 ) -> dict:
     """Precision and recall of accepted loops against ground truth.
 
@@ -55,6 +62,8 @@ def loop_precision_recall(
         Which scans were queried for loops (recall is over those).
     revisit_radius : float
         A checked scan is a true revisit when GT has an older scan within this radius.
+    min_path_length : float
+        ... and that scan lies this much ground-truth path back (``loops.min_path_length``).
 
     Returns
     -------
@@ -67,7 +76,7 @@ def loop_precision_recall(
     for i, j, T in loops:
         et, er = loop_error(T, gt_poses, i, j)
         correct.append(et <= max_t_err and er <= max_r_err_deg)
-    revisit = true_revisits(gt_poses, min_frame_gap, revisit_radius)
+    revisit = true_revisits(gt_poses, min_frame_gap, revisit_radius, min_path_length)
     q = revisit & np.asarray(checked, bool)
     found = np.zeros_like(q)
     for (i, _j, _T), ok in zip(loops, correct):

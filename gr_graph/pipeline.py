@@ -100,6 +100,7 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                                  for k in ("cluster_size", "min_clusters")},
                                               ("odometry", "map_keyframe_translation"): 0.0,
                                               ("odometry", "map_keyframe_rotation_deg"): 0.0,
+                                              ("loops", "min_path_length"): 0.0, ("loops", "sc_height_offset"): 2.0,
                                               **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
 
 # sensor options whose default became None (guessed from the data) after runs were published: None
@@ -115,7 +116,7 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
-    options, ``odometry.map_keyframe_*``; the trainer's
+    options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as their former
@@ -661,7 +662,7 @@ class SlamPipeline:
             log.info("round %d: %d odometry edges with learned information H(C) (%d floored), %d fallbacks %s",
                      r, en["n_learned"], en["n_floored"], en["n_fallback"], en["fallbacks"])
         if self.gt is not None:
-            summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap))
+            summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap, cfg.loops.min_path_length))
             if res.covariances is not None:  # NEES of edges and marginals against ground truth
                 try:
                     summary["noise_consistency"] = round_noise_consistency(rd)

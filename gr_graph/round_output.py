@@ -162,7 +162,7 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
 
 
 def trajectory_summary(res: SlamResult, gt: np.ndarray, T_cam_velo: np.ndarray,
-                       min_frame_gap: int) -> dict[str, Any]:
+                       min_frame_gap: int, min_path_length: float = 0.0) -> dict[str, Any]:
     """``slam``, ``odometry`` (trajectory metrics in the camera frame) and ``loop_closure``
     (precision/recall) of a round against the re-anchored ground truth ``gt``."""
     from gr_graph.loop_evaluation import loop_precision_recall
@@ -174,7 +174,8 @@ def trajectory_summary(res: SlamResult, gt: np.ndarray, T_cam_velo: np.ndarray,
         out["slam"] = trajectory_metrics(velo_to_cam_poses(res.poses, T_cam_velo), gt_cam, delta=300)
         out["odometry"] = trajectory_metrics(velo_to_cam_poses(res.odometry_poses, T_cam_velo), gt_cam, delta=300)
     loops = [(e.source, e.target, e.T) for e in res.loops]
-    out["loop_closure"] = loop_precision_recall(loops, gt, res.checked, min_frame_gap)
+    out["loop_closure"] = loop_precision_recall(loops, gt, res.checked, min_frame_gap,
+                                                min_path_length=min_path_length)
     return out
 
 

@@ -118,6 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
                 f"(default: {d.seed})", default=None)
     add_device(p, f"device of the learning rounds (default: {d.device})", default=None)
     p.add_argument("--no-loops", action="store_true", help="odometry only (no loop closures)")
+    p.add_argument("--loop-min-path", type=float, default=None, metavar="M",
+                   help="loop candidates lie at least M metres of path back along the estimate, not only "
+                        "loops.min_frame_gap frames: a vehicle stopped longer than that closes no loops with itself; "
+                        f"0: off (default: {d.loops.min_path_length})")
     p.add_argument("--deskew", choices=("auto", "on", "off"), default=None,
                    help="constant-velocity motion compensation of each scan to mid-sweep; auto: on for sequences "
                         f"that are not motion-compensated, off for KITTI odometry folders (default: {d.odometry.deskew})")
@@ -204,6 +208,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["training"]["seed"] = args.seed
     if args.no_loops:
         o["loops"]["enabled"] = False
+    if args.loop_min_path is not None:
+        o["loops"]["min_path_length"] = args.loop_min_path
     if args.deskew is not None:
         o["odometry"]["deskew"] = args.deskew
     if args.kitti_vertical_correction is not None:

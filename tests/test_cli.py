@@ -166,6 +166,8 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"graph": {"loop_variance": "estimated"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--registration-covariance", "cluster_robust"]))
     assert o == {"graph": {"registration_covariance": "cluster_robust"}}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--loop-min-path", "25"]))
+    assert o == {"loops": {"min_path_length": 25.0}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--map-keyframe", "0.1", "1"]))
     assert o == {"odometry": {"map_keyframe_translation": 0.1, "map_keyframe_rotation_deg": 1.0}}
     # --paper-method: the paper's Gaussian NLL and densification instead of the defaults, merged with the rest

@@ -675,11 +675,12 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     import hashlib
 
     keyframes = {"map_keyframe_translation", "map_keyframe_rotation_deg"}
+    loop_options = {"min_path_length", "sc_height_offset"}
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                     "render_process"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
                                                                       "cluster_size", "min_clusters"},
-                                           "odometry": keyframes})
+                                           "odometry": keyframes, "loops": loop_options})
     # sensor.time_unit / time_reference became None (guessed): hashed as their former defaults
     d["sensor"].update(time_unit="s", time_reference="sweep_start")
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
@@ -693,13 +694,17 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     m = load_config(None, {"training": {"rounds": 2}, "odometry": {"map_keyframe_translation": 0.1,
                                                                    "map_keyframe_rotation_deg": 1.0}})
     assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
+    # loops.min_path_length and sc_height_offset likewise
+    for loops in ({"min_path_length": 20.0}, {"sc_height_offset": 3.0}):
+        lp = load_config(None, {"training": {"rounds": 2}, "loops": loops})
+        assert all(round_fingerprint(lp, r) != round_fingerprint(a, r) for r in (0, 1)), loops
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, **legacy, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
     d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                      "render_process"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
-                                                      "min_clusters"}, "odometry": keyframes,
+                                                      "min_clusters"}, "odometry": keyframes, "loops": loop_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")

@@ -12,6 +12,8 @@ from gr_graph.loop_closure import (
     LoopCandidate,
     LoopClosureSchedule,
     ScanContextDatabase,
+    loop_candidates,
+    newest_candidate,
     proximity_candidate,
     scan_context,
     scan_context_distance,
@@ -79,6 +81,64 @@ def test_proximity_candidate():
     assert proximity_candidate(poses, 6, LoopConfig(min_frame_gap=4, radius=0.1)) is None
 
 
+def stop_and_go_poses(n: int = 300) -> np.ndarray:
+    """1 m a frame along x for frames 0-50, stopped at x = 50 for frames 50-249, then on at 1 m a frame."""
+    x = np.concatenate([np.arange(51.0), np.full(199, 50.0), 50.0 + np.arange(1.0, n - 249)])
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 0, 3] = x
+    return poses
+
+
+def test_min_path_length_keeps_a_stopped_vehicle_from_closing_loops_with_itself():
+    poses = stop_and_go_poses()
+    i = 249  # 199 frames stopped: frames 50-149 are old enough by frame count, and at the same place
+    gap_only = LoopConfig(min_frame_gap=100, radius=10.0, use_scan_context=False)
+    assert newest_candidate(poses, i, gap_only) == 149
+    c = loop_candidates(poses, i, None, gap_only)
+    assert len(c) == 1 and 50 <= c[0].match <= 149 and c[0].score == 0.0  # the car with itself
+    # 20 m of path back: the newest candidate is frame 30 (50 − 30 = 20 m), 20 m away: beyond the radius
+    by_path = gap_only.model_copy(update={"min_path_length": 20.0})
+    assert newest_candidate(poses, i, by_path) == 30
+    assert loop_candidates(poses, i, None, by_path) == []
+    assert newest_candidate(poses, i, by_path.model_copy(update={"min_path_length": 20.5})) == 29
+    # with a radius wide enough, the candidate is frame 30 itself, 20 m back
+    c = loop_candidates(poses, i, None, by_path.model_copy(update={"radius": 25.0}))
+    assert [x.match for x in c] == [30] and c[0].score == pytest.approx(20.0)
+    # not that much path yet: no candidate at all; once moving, the frame gap decides again
+    assert newest_candidate(poses, 120, by_path.model_copy(update={"min_path_length": 60.0})) == -1
+    assert newest_candidate(poses, 299, by_path) == 199  # 100 frames back is 49 m of path back
+    assert newest_candidate(poses[:40], 39, by_path) == -1  # fewer frames than the gap
+
+
+def test_scan_context_query_respects_the_newest_candidate(kitti0):
+    cfg = LoopConfig(min_frame_gap=1, sc_threshold=0.2)
+    db = ScanContextDatabase(cfg)
+    rng = np.random.default_rng(2)
+    db.add(kitti0)  # 0
+    db.add(rng.uniform(-40, 40, size=(20000, 3)) * np.array([1, 1, 0.05]))  # 1
+    db.add(kitti0 @ yaw_matrix(0.4)[:3, :3])  # 2: the place of scan 0 again
+    db.add(kitti0 @ yaw_matrix(-0.2)[:3, :3])  # 3: and again
+    assert db.query(3).match in (0, 2)
+    assert db.query(3, last=1).match == 0  # scan 2 is excluded
+    assert db.query(3, last=-1) is None
+
+
+def test_scan_context_height_offset_follows_the_sensor_height():
+    """Points of a flat ground 3 m under the sensor: the default offset (2 m) leaves every bin empty,
+    an offset of the sensor's height fills the bins the ground reaches."""
+    rng = np.random.default_rng(3)
+    ground = np.column_stack([rng.uniform(-30, 30, (5000, 2)), np.full(5000, -3.0) + rng.normal(0, 0.02, 5000)])
+    wall = np.column_stack([np.full(500, 10.0), rng.uniform(-5, 5, 500), rng.uniform(-3, 1, 500)])
+    pts = np.vstack([ground, wall])
+    low, high = LoopConfig(), LoopConfig(sc_height_offset=3.5)
+    dbs = [ScanContextDatabase(cfg) for cfg in (low, high)]
+    for db in dbs:
+        db.add(pts)
+    occupied = [float((db.descs[0] > 0).mean()) for db in dbs]
+    assert occupied[0] < 0.05 < 0.3 < occupied[1]  # the ground reaches 8-10 of the 20 rings (80 m)
+    np.testing.assert_allclose(dbs[1].descs[0], scan_context(pts, z_offset=3.5))
+
+
 def test_verify_accepts_real_overlapping_pair(gicp_pair):
     """small_gicp's real pair: accepted; transform matches its reference (≤ 5 cm, 0.5°; the
     reference comes from 0.1 m GICP, small_gicp itself differs by ~0.3° at 0.25-0.5 m)."""
@@ -134,6 +194,23 @@ def test_precision_recall_bookkeeping():
     assert m["n_loops"] == 2 and m["n_correct"] == 1 and m["precision"] == 0.5
     assert m["n_revisit_queries"] == 4 and m["n_revisit_found"] == 1 and m["recall"] == 0.25
     assert m["n_revisit_segments"] == 1 and m["segment_recall"] == 1.0
+
+
+def test_true_revisits_at_a_stop_need_the_path_too():
+    """Frames 150-249 of the stop are "revisits" by frame gap alone (frames 50-149, same place);
+    with 20 m of path asked for there are none, and a real return still counts."""
+    gt = stop_and_go_poses()
+    by_gap = true_revisits(gt, min_frame_gap=100, radius=5.0)
+    assert np.flatnonzero(by_gap).tolist() == list(range(145, 255))  # the stop (45-49 within 5 m), 5 m on
+    assert not true_revisits(gt, min_frame_gap=100, radius=5.0, min_path_length=20.0).any()
+    back = np.concatenate([gt, gt[::-1][:60]])  # then driven back to x = 50 (frames 300-359)
+    rv = true_revisits(back, min_frame_gap=100, radius=5.0, min_path_length=20.0)
+    path = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(back[:, 0, 3])))])
+    expected = [i for i in range(100, len(back))
+                if any(abs(back[j, 0, 3] - back[i, 0, 3]) <= 5.0 for j in range(i - 99) if path[i] - path[j] >= 20.0)]
+    assert np.flatnonzero(rv).tolist() == expected and expected[0] > 300
+    m = loop_precision_recall([], back, np.ones(len(back), bool), 100, revisit_radius=5.0, min_path_length=20.0)
+    assert m["n_revisit_queries"] == len(expected)
 
 
 def test_loop_rmse_threshold_scales_with_sparsity():
