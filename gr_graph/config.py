@@ -318,7 +318,7 @@ class TrainingConfig(_Section):
     slam_voxel_size: float | None = Field(
         None, gt=0.0, description="voxel size of SLAM preprocessing on densified scans [m]; None: preprocess.voxel_size"
     )
-    seed: int = Field(0, description="seeds training (weights, sampling) and densification (per frame: (seed, index))")
+    seed: int = Field(0, ge=0, description="seeds training (weights, sampling) and densification (per frame: (seed, index))")
     epochs: int = Field(3, ge=0, description="training epochs per round (the paper's I)")
     warm_start: bool = Field(True, description="rounds >= 2 start from the previous round's model.pt")
     weights: str | None = Field(
@@ -407,7 +407,7 @@ class SlamConfig(_Section):
     output: OutputConfig = OutputConfig()
     training: TrainingConfig = TrainingConfig()
     device: Literal["cpu", "cuda"] = "cpu"
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="seeds the synthetic world (its actors and sensor effects; the route has data.route_seed)")
 
     @model_validator(mode="after")
     def _channels_fit_sensor(self) -> "SlamConfig":

@@ -579,9 +579,10 @@ class SlamPipeline:
         starts from ``training.weights`` when given (with ``training.fine_tune`` false it uses
         them without training), rounds r ≥ 2 from round r−1's ``model.pt`` (``training.warm_start``). An existing
         checkpoint is resumed only if ``resume_training`` (round r−1 was not recomputed in
-        this run); a checkpoint of another configuration restarts training.
+        this run); a checkpoint it cannot continue (:class:`training.trainer.CheckpointMismatch`) restarts training.
         """
         from training.train import train_from_memory  # imports torch: only when a learning round runs
+        from training.trainer import CheckpointMismatch
 
         tc = self.cfg.training
         if tc.covariances == "pca":  # ablation: no network, no training
@@ -608,9 +609,7 @@ class SlamPipeline:
         memory, train_dir = self.round_dir(r - 1) / "memory", self.round_dir(r) / "training"
         try:
             ckpt = train_from_memory(memory, train_dir, train_cfg, resume=resume_training)
-        except RuntimeError as exc:  # training.trainer.TrainingError: a checkpoint of another configuration
-            if not (resume_training and "different configuration" in str(exc)):
-                raise
+        except CheckpointMismatch as exc:  # another configuration or data, more epochs, an unreadable file
             log.warning("round %d: %s; training restarts from scratch", r, exc)
             ckpt = train_from_memory(memory, train_dir, train_cfg, resume=False)
         # predictions are kept longer than the reader runs ahead, for the learned edge noise

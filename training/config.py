@@ -120,7 +120,7 @@ class TrainConfig(TrainOptions):
     """:class:`TrainOptions` plus the settings of one training run (see the module docstring)."""
 
     epochs: int = Field(1, ge=0, description="passes over all edges (the paper's I)")
-    seed: int = Field(0, description="seeds the initial weights and all sampling")
+    seed: int = Field(0, ge=0, description="seeds the initial weights and all sampling")
     device: str = Field("cpu", description="'cpu', 'cuda' or 'cuda:N'")
     progress: bool = Field(True, description="tqdm bar with running losses")
     init_checkpoint: str | None = Field(None, description="start from the weights of this model.pt / checkpoint.pt")

@@ -24,6 +24,8 @@ LiDAR scan, as the sensor may face anywhere; gravity / the z axis is kept).
 
 from __future__ import annotations
 
+import hashlib
+
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -140,9 +142,16 @@ class PairDataset:
         )
 
     def describe(self) -> dict[str, Any]:
-        """Counts for logs."""
-        kinds = np.asarray(self.memory.edge_kind)
-        return {"n_edges": len(self), "n_odometry": int((kinds == 0).sum()), "n_loop": int((kinds == 1).sum())}
+        """Counts for logs, and ``edges_sha256``: a hash of the memory's edges (pairs, kinds, T̂_kl,
+        correspondence offsets), so that a checkpoint of other data with the same counts is not
+        resumed."""
+        m = self.memory
+        kinds = np.asarray(m.edge_kind)
+        h = hashlib.sha256()
+        for part in (m.edges, kinds, m.edge_T, m.corr_offsets):
+            h.update(np.ascontiguousarray(part).tobytes())
+        return {"n_edges": len(self), "n_odometry": int((kinds == 0).sum()), "n_loop": int((kinds == 1).sum()),
+                "edges_sha256": h.hexdigest()[:16]}
 
 
 class ConcatPairDataset:
@@ -197,5 +206,5 @@ class ConcatPairDataset:
     def describe(self) -> dict[str, Any]:
         """Summed counts, and each memory's."""
         parts = [d.describe() for d in self.datasets]
-        total = {k: sum(p[k] for p in parts) for k in parts[0]}
+        total = {k: sum(p[k] for p in parts) for k in parts[0] if k != "edges_sha256"}
         return {**total, "n_memories": len(parts), "memories": parts}

@@ -37,7 +37,7 @@ from gr_graph.cli_common import (
 )
 from gr_graph.memory import load_memory
 from training.config import TrainConfig, load_train_config
-from training.trainer import Trainer
+from training.trainer import Trainer, TrainingError
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +85,8 @@ def train_from_memory(
     for d in dirs:
         memory = load_memory(d)
         log.info("training on %s: %d scans, %d edges", d, memory.n_scans, memory.n_edges)
+        if memory.n_edges == 0:
+            raise TrainingError(f"{d}: the memory has no edges to train on (fewer than two usable scans?)")
         memories.append(memory)
     return Trainer(memories if len(memories) > 1 else memories[0], out_dir, cfg).fit(resume=resume)
 

@@ -58,7 +58,7 @@ from training.pose_layer import PoseLayerError, solve_pose
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrainConfig", "TrainOptions", "TrainConfigError", "TrainingError", "Trainer", "save_atomic", "load_model",
+__all__ = ["TrainConfig", "TrainOptions", "TrainConfigError", "TrainingError", "CheckpointMismatch", "Trainer", "save_atomic", "load_model",
            "CHECKPOINT_FORMAT",
            "deterministic_algorithms"]
 
@@ -76,6 +76,12 @@ class TrainingError(RuntimeError):
 
     An invalid configuration raises :class:`training.config.TrainConfigError` (a ValueError).
     """
+
+
+class CheckpointMismatch(TrainingError):
+    """``checkpoint.pt`` cannot be resumed by this run: another configuration, other training data,
+    more epochs than asked for, or an unreadable file. Training from scratch (``resume=False``)
+    replaces it; :mod:`gr_graph.pipeline` does so, logged."""
 
 
 def save_atomic(obj: Any, path: Path) -> None:
@@ -132,7 +138,7 @@ def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str =
     if not path.is_file():
         raise FileNotFoundError(f"no model checkpoint at {path}")
     try:
-        state = torch.load(path, map_location=device, weights_only=False)
+        state = torch.load(path, map_location=device, weights_only=True)  # tensors and plain data, no code
     except Exception as exc:  # torch raises pickle, zip and runtime errors for foreign files
         raise TrainingError(f"{path}: not a torch checkpoint ({type(exc).__name__}: {exc})") from None
     if not isinstance(state, dict) or "model_state" not in state or "net_config" not in state:
@@ -212,6 +218,7 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.skip_counts: Counter[str] = Counter()
+        self.epoch_skipped = 0  # pairs of the current epoch skipped so far (checked against max_skip_fraction)
         self.step_seconds: list[float] = []  # wall time of each step run by this process
         self._dummy: tuple[torch.Tensor, dict[str, torch.Tensor]] | None = None
 
@@ -279,6 +286,7 @@ class Trainer:
             "step": self.step,
             "world_size": self.world_size,
             "skip_counts": dict(self.skip_counts),
+            "epoch_skipped": self.epoch_skipped,
             "torch_rng": torch.get_rng_state(),
         }
 
@@ -290,25 +298,39 @@ class Trainer:
         return path
 
     def try_resume(self) -> bool:
-        """Load ``checkpoint.pt`` if present; True if resumed. Incompatible ones raise."""
+        """Load ``checkpoint.pt`` if present; True if resumed.
+
+        Raises :class:`CheckpointMismatch` for a checkpoint this run cannot continue: unreadable,
+        of another configuration, world size or training data, or past the epochs asked for (a
+        3-epoch checkpoint is not a 1-epoch model).
+        """
         path = self.out_dir / CHECKPOINT_NAME
         if not path.is_file():
             return False
-        st = torch.load(path, map_location=self.device, weights_only=False)
+        hint = "use another --out directory or delete the checkpoint"
+        try:  # tensors onto the CPU first: torch.set_rng_state takes a CPU tensor only
+            st = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # truncated or foreign file: pickle, zip and runtime errors
+            raise CheckpointMismatch(f"{path}: unreadable checkpoint ({type(exc).__name__}: {exc}); {hint}") from None
+        needed = ("model_state", "optimizer_state", "epoch", "step", "skip_counts", "torch_rng")
+        if not isinstance(st, dict) or any(k not in st for k in needed):
+            raise CheckpointMismatch(f"{path}: not a training checkpoint (needs {', '.join(needed)}); {hint}")
         if st.get("dataset", self.dataset.describe()) != self.dataset.describe():
-            raise TrainingError(f"{path}: checkpoint was written with a different configuration (other training "
-                                f"data: {st['dataset']}, now "
-                                f"{self.dataset.describe()}); use another --out directory or delete the checkpoint")
+            raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration (other "
+                                     f"training data: {st['dataset']}, now {self.dataset.describe()}); {hint}")
         if st.get("resume_key") != self.config.resume_key() or st.get("world_size") != self.world_size:
-            raise TrainingError(
-                f"{path}: checkpoint was written with a different configuration or world size; "
-                "use another --out directory or delete the checkpoint"
-            )
+            raise CheckpointMismatch(
+                f"{path}: checkpoint was written with a different configuration or world size; {hint}")
+        if int(st["epoch"]) > self.config.epochs:
+            raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration ({st['epoch']} "
+                                     f"epochs trained, {self.config.epochs} asked for); {hint}")
         self.model.load_state_dict(st["model_state"])
         self.optimizer.load_state_dict(st["optimizer_state"])
         self.epoch, self.step = int(st["epoch"]), int(st["step"])
         self.skip_counts = Counter(st["skip_counts"])
-        torch.set_rng_state(st["torch_rng"])
+        # checkpoints before the count was kept: the epoch's skips before them are not known
+        self.epoch_skipped = int(st.get("epoch_skipped", 0))
+        torch.set_rng_state(st["torch_rng"].cpu())
         log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
         self._truncate_log()
         return True
@@ -376,10 +398,10 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if len(self.dataset) == 0:
             raise TrainingError("the memory has no edges to train on")
-        if resume:
-            self.try_resume()
-        elif (self.out_dir / CHECKPOINT_NAME).exists() and self.rank == 0:
-            (self.out_dir / CHECKPOINT_NAME).unlink()
+        if not (resume and self.try_resume()):
+            # from scratch: no checkpoint, nor the log lines of a run killed before its first one
+            if self.rank == 0:
+                (self.out_dir / CHECKPOINT_NAME).unlink(missing_ok=True)
             self._log_path().unlink(missing_ok=True)
         B, W = cfg.pairs_per_step, self.world_size
         n_steps = self.steps_per_epoch()
@@ -389,7 +411,6 @@ class Trainer:
             while self.epoch < cfg.epochs:
                 order = self.epoch_order(self.epoch)
                 run: dict[str, list[float]] = {"loss": [], "corr": [], "pose": []}
-                n_skipped = 0
                 bar = tqdm(total=n_steps, initial=self.step, desc=f"epoch {self.epoch + 1}/{cfg.epochs}",
                            disable=not cfg.progress or self.rank != 0, leave=False)
                 while self.step < n_steps:
@@ -416,7 +437,7 @@ class Trainer:
                             except SkipSample as exc:
                                 if exc.reason != "no_pair":
                                     self.skip_counts[exc.reason] += 1
-                                    n_skipped += 1
+                                    self.epoch_skipped += 1
                                     log.warning("skipping pair: %s", exc)
                                 rec["skipped"] = exc.reason
                                 out = C if C is not None else self._dummy_output()
@@ -424,8 +445,9 @@ class Trainer:
                         records.append(rec)
                     update = self.apply_gradients()
                     grads_ok = update == "applied"
-                    if update == "nonfinite":
+                    if update == "nonfinite":  # the step's pairs are lost: they count as skipped
                         self.skip_counts["nonfinite_grad"] += 1
+                        self.epoch_skipped += sum(1 for rec in records if "skipped" not in rec)
                         log.warning("step %d: non-finite gradient, update not applied", self.step)
                     self.step_seconds.append(time.perf_counter() - t0)  # not in the log: it must not vary
                     for rec in records:
@@ -444,13 +466,15 @@ class Trainer:
                         callback(records[-1])
                 bar.close()
                 n_pairs = max(1, min(len(self.dataset), n_steps * B * W) // W)
-                if n_skipped > cfg.max_skip_fraction * n_pairs:
+                if self.epoch_skipped > cfg.max_skip_fraction * n_pairs:
                     raise TrainingError(
-                        f"epoch {self.epoch}: {n_skipped} of ~{n_pairs} pairs skipped ({dict(self.skip_counts)})"
+                        f"epoch {self.epoch}: {self.epoch_skipped} of ~{n_pairs} pairs skipped "
+                        f"({dict(self.skip_counts)})"
                     )
                 log.info("epoch %d done: %s", self.epoch, {k: float(np.mean(v)) for k, v in run.items() if v})
                 self.epoch += 1
                 self.step = 0
+                self.epoch_skipped = 0
                 self.save_checkpoint()
         return self._finish()
 

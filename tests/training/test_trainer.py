@@ -18,7 +18,15 @@ from training.predict import predict_covariances
 from training.toy_scenes import make_memory, pose_xy_yaw, street_scene
 from training.train import main as train_main
 from training.train import train_from_memory
-from training.trainer import CHECKPOINT_FORMAT, TrainConfig, TrainConfigError, Trainer, TrainingError, load_model
+from training.trainer import (
+    CHECKPOINT_FORMAT,
+    CheckpointMismatch,
+    TrainConfig,
+    TrainConfigError,
+    Trainer,
+    TrainingError,
+    load_model,
+)
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[2]
@@ -146,6 +154,15 @@ def test_bad_config_is_rejected():
         TrainConfig.from_dict({"epochz": 1})
     with pytest.raises(TrainConfigError, match="corr_reduction: Input should be 'mean' or 'sum'"):
         TrainConfig.from_dict({"corr_reduction": "median"})
+    with pytest.raises(TrainConfigError, match="seed: Input should be greater than or equal to 0"):
+        TrainConfig.from_dict({"seed": -1})  # numpy's generators take no negative seed: refused at once
+
+
+def test_a_memory_without_edges_is_refused_by_name(tmp_path):
+    scans = [np.asarray(_memory(n_scans=2).scan(0))]
+    Memory.from_scans(scans, np.eye(4)[None], [], [], [], [], []).save(tmp_path / "empty")
+    with pytest.raises(TrainingError, match=r"empty: the memory has no edges to train on"):
+        train_from_memory(tmp_path / "empty", tmp_path / "out", _cfg())
 
 
 def test_student_t_correspondence_likelihood_reaches_the_loss(memory_dir, tmp_path):
@@ -177,7 +194,9 @@ def test_student_t_correspondence_likelihood_reaches_the_loss(memory_dir, tmp_pa
         TrainConfig.from_dict({"corr_likelihood": "student_t", "corr_dof": 0})
 
 
-def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
+def _memory_with_bad_pairs():
+    """3 good scans and 2 of a line: edges 0-1 train, edge 2 has no correspondences (empty_pair), edge 3
+    lies on a line (degenerate_H)."""
     mem = _memory(n_scans=3)
     # edge 2: no correspondences; edge 3: correspondences on 20 collinear-ish points only
     scans = [np.asarray(mem.scan(k)) for k in range(3)]
@@ -187,8 +206,12 @@ def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
     scans.append(line.copy())
     edges = [tuple(map(int, mem.edges[e])) for e in range(mem.n_edges)] + [(0, 2), (3, 4)]
     corr = [mem.edge(e).corr for e in range(mem.n_edges)] + [np.zeros((0, 2), np.int32), np.stack([np.arange(40)] * 2, 1)]
-    m2 = Memory.from_scans(scans, np.stack([np.eye(4)] * 5), edges, [0] * 4, [mem.edge_T[0], mem.edge_T[1], np.eye(4), np.eye(4)],
-                           [np.eye(6)] * 4, corr)
+    return Memory.from_scans(scans, np.stack([np.eye(4)] * 5), edges, [0] * 4,
+                             [mem.edge_T[0], mem.edge_T[1], np.eye(4), np.eye(4)], [np.eye(6)] * 4, corr)
+
+
+def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
+    m2 = _memory_with_bad_pairs()
     tr = Trainer(m2, tmp_path, _cfg(epochs=1, net={**SMALL_NET, "n_points": 256}))
     with pytest.raises(SkipSample):
         tr.dataset.sample(2)
@@ -202,9 +225,75 @@ def test_empty_and_degenerate_pairs_are_skipped_and_counted(tmp_path):
         Trainer(m2, tmp_path / "x", _cfg(epochs=1, max_skip_fraction=0.2, net={**SMALL_NET, "n_points": 256})).fit(resume=False)
 
 
+def test_a_failed_epoch_fails_again_when_its_run_is_repeated(tmp_path):
+    """The epoch's skipped pairs are in the checkpoint: a rerun resumes from the last one written in the
+    failed epoch and fails again, not only counting the pairs after it."""
+    m2 = _memory_with_bad_pairs()
+    cfg = _cfg(epochs=1, checkpoint_every=1, max_skip_fraction=0.3, net={**SMALL_NET, "n_points": 256})
+    with pytest.raises(TrainingError, match="2 of ~4 pairs skipped"):
+        Trainer(m2, tmp_path, cfg).fit(resume=False)
+    st = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert (st["epoch"], st["step"]) == (0, 3)  # the last checkpoint written before the epoch's end
+    with pytest.raises(TrainingError, match="2 of ~4 pairs skipped"):
+        Trainer(m2, tmp_path, cfg).fit(resume=True)
+    assert not (tmp_path / "model.pt").exists()
+
+
+def test_steps_lost_to_nonfinite_gradients_count_as_skipped_pairs(memory_dir, tmp_path):
+    """Every gradient non-finite: no weight moves, and the run fails instead of writing the initial weights."""
+    tr = Trainer(load_memory(memory_dir), tmp_path, _cfg(epochs=1))
+    tr.model.head.weight.register_hook(lambda grad: grad * float("nan"))
+    with pytest.raises(TrainingError, match="5 of ~5 pairs skipped"):
+        tr.fit(resume=False)
+    assert tr.skip_counts["nonfinite_grad"] == 5 and not (tmp_path / "model.pt").exists()
+
+
+def test_checkpoints_that_cannot_be_continued_are_refused_by_name(memory_dir, tmp_path):
+    mem = load_memory(memory_dir)
+    Trainer(mem, tmp_path, _cfg(epochs=2)).fit(resume=False)
+    ck = tmp_path / "checkpoint.pt"
+    # 2 epochs trained are not a 1-epoch model
+    with pytest.raises(CheckpointMismatch, match=r"checkpoint.pt.*2 epochs trained, 1 asked for"):
+        Trainer(mem, tmp_path, _cfg(epochs=1)).fit(resume=True)
+    # more epochs continue it (epochs are not part of the resume key)
+    Trainer(mem, tmp_path, _cfg(epochs=3)).fit(resume=True)
+    assert torch.load(tmp_path / "model.pt", weights_only=True)["epochs_done"] == 3
+    # an unreadable checkpoint names the file; training from scratch replaces it
+    ck.write_bytes(ck.read_bytes()[:200])
+    with pytest.raises(CheckpointMismatch, match=r"checkpoint.pt: unreadable checkpoint"):
+        Trainer(mem, tmp_path, _cfg(epochs=1)).fit(resume=True)
+    Trainer(mem, tmp_path, _cfg(epochs=1)).fit(resume=False)
+    assert torch.load(ck, weights_only=True)["epoch"] == 1
+    # other training data with the same counts (two memories of 5 edges): not resumed
+    other = tmp_path / "other_memory"
+    _memory(seed=5, extra_edges=[(0, 2), (1, 3)]).save(other)
+    with pytest.raises(CheckpointMismatch, match="other training data"):
+        Trainer(load_memory(other), tmp_path, _cfg(epochs=2)).fit(resume=True)
+
+
+def test_a_run_killed_before_its_first_checkpoint_leaves_no_log_lines_behind(memory_dir, tmp_path):
+    mem = load_memory(memory_dir)
+    cfg = _cfg(epochs=1, checkpoint_every=100)
+    Trainer(mem, tmp_path / "a", cfg).fit(resume=False)
+
+    class Kill(Exception):
+        pass
+
+    def killer(rec):
+        if rec["step"] == 2:
+            raise Kill()
+
+    with pytest.raises(Kill):
+        Trainer(mem, tmp_path / "b", cfg).fit(resume=False, callback=killer)
+    assert not (tmp_path / "b" / "checkpoint.pt").exists() and len(_log(tmp_path / "b")) == 3
+    Trainer(mem, tmp_path / "b", cfg).fit(resume=True)
+    assert _log(tmp_path / "b") == _log(tmp_path / "a")
+
+
 def test_nonfinite_network_output_and_gradient_never_reach_the_weights(memory_dir, tmp_path):
     mem = load_memory(memory_dir)
-    tr = Trainer(mem, tmp_path, _cfg(epochs=1, checkpoint_every=100))
+    # 2 pairs skipped and 1 step's pair lost of 5: allowed here
+    tr = Trainer(mem, tmp_path, _cfg(epochs=1, checkpoint_every=100, max_skip_fraction=0.8))
     before = {k: v.clone() for k, v in tr.model.state_dict().items()}
     real_forward = tr.model.forward
     calls = {"n": 0}
