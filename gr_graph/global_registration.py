@@ -123,11 +123,25 @@ def save_pairs(path: str | os.PathLike[str], pairs: np.ndarray, meta: dict[str, 
 
 
 def load_pairs(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, Any]]:
-    """Read a file written by :func:`save_pairs`: ``(pairs (n, 2), meta)``."""
-    doc = json.loads(Path(path).read_text())
-    if "pairs" not in doc:
+    """Read a file written by :func:`save_pairs`: ``(pairs (n, 2), meta)``.
+
+    Raises ``ValueError`` naming the file when it is not JSON, has no ``pairs`` or holds a row
+    that is not two different non-negative frame numbers.
+    """
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a pair file ({exc})") from None
+    if not isinstance(doc, dict) or "pairs" not in doc:
         raise ValueError(f"{path}: no 'pairs' entry")
-    pairs = np.asarray(doc.pop("pairs"), dtype=np.int64).reshape(-1, 2)
+    try:
+        pairs = np.asarray(doc.pop("pairs"), dtype=np.int64).reshape(-1, 2)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: 'pairs' must be rows of two frame numbers ({exc})") from None
+    bad = np.flatnonzero((pairs[:, 0] == pairs[:, 1]) | (pairs < 0).any(axis=1))
+    if len(bad):
+        raise ValueError(f"{path}: pair row {int(bad[0])} {pairs[bad[0]].tolist()} is not two different frames "
+                         f"({len(bad)} such rows)")
     return pairs, doc
 
 
@@ -196,7 +210,10 @@ def evaluate_pairs(
     -------
     dict
         JSON-serialisable: ``settings``, ``summary`` (per solver: success_rate, n_success,
-        n_pairs, median errors and time) and ``pairs`` (one row per pair and solver).
+        n_pairs, n_invalid (no solution: a failure), success_rate_nontrivial over the
+        n_nontrivial pairs the identity does not solve, median errors and time), ``identity``
+        (the identity's success: the share of pairs solved by doing nothing, e.g. scans of a
+        stopped vehicle) and ``pairs`` (one row per pair and solver).
     """
     from tqdm import tqdm
 
@@ -212,9 +229,11 @@ def evaluate_pairs(
         logger.warning("kiss_matcher is not installed (pip install kiss-matcher): skipping that solver")
         wanted.remove("kiss_matcher")
     rows: list[dict[str, Any]] = []
+    trivial: list[bool] = []  # the identity succeeds: the pair is solved by doing nothing
     for src_i, tgt_i in tqdm(pairs.tolist(), desc="global registration", disable=not progress):
         src, tgt = _scan(scans, src_i), _scan(scans, tgt_i)
         T_ref = relative_transform(P, src_i, tgt_i)
+        trivial.append(is_success(np.eye(4), T_ref, max_rot_deg, max_trans_m))
         for s in wanted:
             out = register(s, src, tgt, voxel=voxel, seed=seed)
             re, te = rotation_error_deg(out.T, T_ref), translation_error_m(out.T, T_ref)
@@ -226,7 +245,10 @@ def evaluate_pairs(
                     "gt_distance_m": float(np.linalg.norm(T_ref[:3, 3])),
                     "rot_err_deg": re,
                     "trans_err_m": te,
-                    "success": bool(re < max_rot_deg and te < max_trans_m),
+                    # no solution is a failure, even where the identity it returns is close enough
+                    "success": bool(out.valid and re < max_rot_deg and te < max_trans_m),
+                    "valid": bool(out.valid),
+                    "identity_success": trivial[-1],
                     "n_inliers": out.n_inliers,
                     "seconds": out.seconds,
                     "T_est": out.T.tolist(),
@@ -236,10 +258,14 @@ def evaluate_pairs(
     for s in wanted:
         r = [x for x in rows if x["solver"] == s]
         ok = [x["success"] for x in r]
+        hard = [x["success"] for x in r if not x["identity_success"]]
         summary[s] = {
             "n_pairs": len(r),
             "n_success": int(sum(ok)),
             "success_rate": float(np.mean(ok)) if r else None,
+            "n_invalid": int(sum(not x["valid"] for x in r)),
+            "n_nontrivial": len(hard),
+            "success_rate_nontrivial": float(np.mean(hard)) if hard else None,
             "median_rot_err_deg": float(np.median([x["rot_err_deg"] for x in r])) if r else None,
             "median_trans_err_m": float(np.median([x["trans_err_m"] for x in r])) if r else None,
             "median_seconds": float(np.median([x["seconds"] for x in r])) if r else None,
@@ -251,7 +277,8 @@ def evaluate_pairs(
         "max_trans_m": max_trans_m,
         "solvers": wanted,
     }
-    return {"settings": settings, "summary": summary, "pairs": rows}
+    identity = {"n_success": int(sum(trivial)), "success_rate": float(np.mean(trivial)) if trivial else None}
+    return {"settings": settings, "summary": summary, "identity": identity, "pairs": rows}
 
 
 def write_results(path: str | os.PathLike[str], results: dict[str, Any]) -> Path:
@@ -314,7 +341,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     poses = np.asarray(seq.gt_poses)
     out = Path(args.out)
     if args.pairs:
-        pairs, meta = load_pairs(args.pairs)
+        try:
+            pairs, meta = load_pairs(args.pairs)
+            if len(pairs) and pairs.max() >= len(poses):
+                raise ValueError(f"{args.pairs}: frame {int(pairs.max())} is past the sequence's {len(poses)} frames "
+                                 f"({desc}; the file's: {meta.get('sequence', 'not recorded')})")
+        except (OSError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     else:
         min_frame = args.min_frame if args.min_frame is not None else (14 if args.seq in ("00", "0") else 0)
         pairs = sample_pairs(poses, args.n_pairs, args.max_distance, args.seed, min_frame=min_frame)
@@ -335,8 +369,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     res["settings"].update(sequence=desc, channels=args.channels, pairs_file=str(out / "pairs.json"))
     write_results(out / "results.json", res)
+    logger.info("identity (no registration): success %d/%d", res["identity"]["n_success"], len(pairs))
     for s, v in res["summary"].items():
-        logger.info("%s: success %d/%d (%.1f%%)", s, v["n_success"], v["n_pairs"], 100 * (v["success_rate"] or 0))
+        logger.info("%s: success %d/%d (%.1f%%), %d without a solution; %.1f%% of the %d pairs the identity "
+                    "does not solve", s, v["n_success"], v["n_pairs"], 100 * (v["success_rate"] or 0), v["n_invalid"],
+                    100 * (v["success_rate_nontrivial"] or 0), v["n_nontrivial"])
     return 0
 
 

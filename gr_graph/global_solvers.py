@@ -30,12 +30,17 @@ SOLVER_NAMES = ("kiss_matcher", "fpfh_ransac")
 
 @dataclass(frozen=True)
 class RegistrationOutcome:
-    """One global registration: the estimate ``T_target_source`` and solver diagnostics."""
+    """One global registration: the estimate ``T_target_source`` and solver diagnostics.
+
+    ``valid`` is False when the solver found no solution (``T`` is then the identity, which the
+    evaluation must count as a failure: near pairs are often within the success thresholds of it).
+    """
 
     solver: str
     T: np.ndarray
     n_inliers: int
     seconds: float
+    valid: bool = True
 
 
 def _check_cloud(points: np.ndarray, name: str) -> np.ndarray:
@@ -84,7 +89,7 @@ def register_fpfh_ransac(
     -------
     RegistrationOutcome
         ``T`` maps source points into the target frame; ``n_inliers`` is the RANSAC
-        correspondence-set size.
+        correspondence-set size (``valid`` False under 3: no hypothesis was accepted).
     """
     import open3d as o3d
 
@@ -109,7 +114,9 @@ def register_fpfh_ransac(
         reg.RANSACConvergenceCriteria(int(max_iterations), float(confidence)),
     )
     T = np.array(res.transformation, dtype=np.float64)
-    return RegistrationOutcome("fpfh_ransac", T, int(len(res.correspondence_set)), time.perf_counter() - t0)
+    n_in = int(len(res.correspondence_set))
+    # no hypothesis passed the checkers: open3d returns the identity with no correspondences
+    return RegistrationOutcome("fpfh_ransac", T, n_in, time.perf_counter() - t0, valid=n_in >= 3)
 
 
 def kiss_matcher_available() -> bool:
@@ -129,8 +136,8 @@ def register_kiss_matcher(
     Returns
     -------
     RegistrationOutcome
-        ``T`` maps source points into the target frame (identity when KISS-Matcher reports
-        no valid solution); ``n_inliers`` is its final inlier count.
+        ``T`` maps source points into the target frame (identity and ``valid`` False when
+        KISS-Matcher reports no valid solution); ``n_inliers`` is its final inlier count.
 
     Raises
     ------
@@ -153,7 +160,7 @@ def register_kiss_matcher(
     else:
         logger.debug("KISS-Matcher returned no valid solution")
     n_in = int(matcher.get_num_final_inliers()) if sol.valid else 0
-    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0)
+    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0, valid=bool(sol.valid))
 
 
 def available_solvers() -> tuple[str, ...]:

@@ -153,3 +153,44 @@ def test_evaluate_pairs_end_to_end(small_gicp_pair_dir: Path, tmp_path: Path) ->
         evaluate_pairs(scans, poses, np.array([[3, 0]]), solvers=["fpfh_ransac"], progress=False)
     with pytest.raises(ValueError, match="unknown solver"):
         evaluate_pairs(scans, poses, pairs, solvers=["teaser"], progress=False)
+
+
+def test_no_solution_is_a_failure_and_the_identity_baseline_is_reported(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A solver that finds nothing returns the identity: on a pair 0.5 m apart that is within the
+    thresholds, yet it must count as a failure; the identity's own success is reported beside."""
+    import gr_graph.global_registration as gr
+    from gr_graph.global_solvers import RegistrationOutcome
+
+    poses = np.stack([np.eye(4), make_T([0, 0, 0.01], [0.5, 0, 0]), make_T([0, 0, 1.0], [8.0, 0, 0])])
+    scans = [np.zeros((20, 3))] * 3
+    answers = {(1, 0): RegistrationOutcome("fpfh_ransac", np.eye(4), 0, 0.0, valid=False),
+               (2, 0): RegistrationOutcome("fpfh_ransac", relative_transform(poses, 2, 0), 50, 0.0)}
+    calls = iter([(1, 0), (2, 0), (2, 1)])
+
+    def fake_register(solver, src, tgt, voxel, seed):
+        key = next(calls)
+        return answers.get(key, RegistrationOutcome("fpfh_ransac", relative_transform(poses, *key), 40, 0.0))
+
+    monkeypatch.setattr(gr, "register", fake_register)
+    res = evaluate_pairs(scans, poses, np.array([[1, 0], [2, 0], [2, 1]]), solvers=["fpfh_ransac"], progress=False)
+    rows = res["pairs"]
+    assert [r["success"] for r in rows] == [False, True, True] and [r["valid"] for r in rows] == [False, True, True]
+    assert rows[0]["rot_err_deg"] < 10 and rows[0]["trans_err_m"] < 2  # the identity was close enough
+    assert res["identity"] == {"n_success": 1, "success_rate": pytest.approx(1 / 3)}
+    s = res["summary"]["fpfh_ransac"]
+    assert s["n_invalid"] == 1 and s["n_success"] == 2 and s["n_nontrivial"] == 2
+    assert s["success_rate_nontrivial"] == 1.0
+
+
+def test_pair_files_are_checked(tmp_path: Path) -> None:
+    path = tmp_path / "pairs.json"
+    for doc, message in [({"pairs": [[3, 3]]}, r"pair row 0 \[3, 3\] is not two different frames"),
+                         ({"pairs": [[5, 1], [2, -1]]}, r"pair row 1 \[2, -1\]"),
+                         ({"pairs": [[1, 2, 3]]}, "rows of two frame numbers"),
+                         ({"seed": 0}, "no 'pairs' entry")]:
+        path.write_text(json.dumps(doc))
+        with pytest.raises(ValueError, match=message):
+            load_pairs(path)
+    path.write_bytes(b"\x89PNG\r\n")
+    with pytest.raises(ValueError, match="pairs.json: not a pair file"):
+        load_pairs(path)
