@@ -25,7 +25,7 @@ import numpy as np
 from gr_graph.atomic import atomic_path
 from gr_graph.datasets.base import DatasetError
 
-__all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "read_cloud", "write_cloud", "write_ply",
+__all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "check_suffix", "read_cloud", "write_cloud", "write_ply",
            "read_ply_covariances"]
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".bin", ".pcd", ".ply", ".npy")
@@ -36,7 +36,8 @@ COVARIANCE_PROPERTIES: dict[str, tuple[int, int]] = {
 PathLike = str | os.PathLike[str]
 
 
-def _suffix(path: Path) -> str:
+def check_suffix(path: Path) -> str:
+    """The lower-case extension of ``path``; a DatasetError naming the file when it is not a cloud format."""
     suffix = path.suffix.lower()
     if suffix not in CLOUD_SUFFIXES:
         raise DatasetError(f"{path}: unknown point cloud format {suffix or '(no extension)'!r}; "
@@ -63,7 +64,7 @@ def read_cloud(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, 
     from gr_graph.datasets.point_files import read_point_file
 
     p = Path(path)
-    _suffix(p)
+    check_suffix(p)
     cloud = read_point_file(p, point_format)
     if len(cloud.points) == 0:
         raise DatasetError(f"{p}: the file holds no (finite) points")
@@ -85,7 +86,7 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
         Only for ``.ply`` (six properties per point, see the module docstring).
     """
     p = Path(path)
-    suffix = _suffix(p)
+    suffix = check_suffix(p)
     xyz = np.asarray(points, np.float32).reshape(-1, 3)
     inten = None if intensity is None else np.asarray(intensity, np.float32).reshape(-1)
     if inten is not None and len(inten) != len(xyz):

@@ -21,8 +21,9 @@ cached. Same ``len``, ``timestamps``, ``gt_poses`` and ``T_cam_velo`` as the inp
 ``training.keep_dropped`` true: densification that adds, never removes, structure; the default since
 2026-12-05, measured in the README's Results). The paper's Algorithm 2 (both false) does not include
 the kept points themselves (its S+ holds only their samples) and drops the points the filter drops.
-Intensity: every output point inherits the intensity of its source point (the raw point nearest to
-the downsampled point); ``ring`` is None.
+Intensity and per-point time: every output point inherits those of its source point (the raw point
+nearest to the downsampled point), so learning rounds deskew with the sensor's times as round 0 does;
+``ring`` is None.
 
 Fallbacks (each logged with a warning and recorded in :attr:`DensifiedSequence.fallbacks`,
 ``{frame index: reason}``; :meth:`DensifiedSequence.stats` counts them):
@@ -278,25 +279,36 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     return DensifiedPoints(dense, source.astype(np.int64), s, C, kept, None)
 
 
-def source_intensity(raw_points: np.ndarray, raw_intensity: np.ndarray | None, points: np.ndarray) -> np.ndarray:
-    """Intensity of the raw point nearest to each of ``points`` (zeros without intensity).
+def nearest_raw_rows(raw_points: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+    """Row of the raw point nearest to each of ``points`` (None when no raw point is finite).
 
     A voxel centroid of two raw points is as near to one as to the other; such ties go to either
     (small_gicp's k-d tree, ~1.5x faster here than scipy's, breaks them differently from it).
     """
-    if raw_intensity is None or len(raw_points) == 0 or len(points) == 0:
-        return np.zeros(len(points), np.float32)
     if not np.isfinite(points).all():
-        raise ValueError("source_intensity: points must be finite (the preprocessed scan's)")
+        raise ValueError("nearest_raw_rows: points must be finite (the preprocessed scan's)")
+    finite = np.flatnonzero(np.isfinite(raw_points).all(axis=1))
+    if len(finite) == 0 or len(points) == 0:
+        return None if len(finite) == 0 else np.zeros(0, np.int64)
     import small_gicp
 
-    finite = np.isfinite(raw_points).all(axis=1)
-    if not finite.any():
-        return np.zeros(len(points), np.float32)
     raw = np.ascontiguousarray(raw_points[finite], np.float64)
     j, _ = small_gicp.KdTree(raw, num_threads=1).batch_nearest_neighbor_search(
         np.ascontiguousarray(points, np.float64), num_threads=1)
-    return np.asarray(raw_intensity, np.float32)[finite][np.asarray(j, np.int64)]
+    return finite[np.asarray(j, np.int64)]
+
+
+def source_intensity(raw_points: np.ndarray, raw_intensity: np.ndarray | None, points: np.ndarray,
+                     rows: np.ndarray | None = None) -> np.ndarray:
+    """Intensity of the raw point nearest to each of ``points`` (zeros without intensity);
+    ``rows``: :func:`nearest_raw_rows` of them when already known."""
+    if raw_intensity is None or len(raw_points) == 0 or len(points) == 0:
+        return np.zeros(len(points), np.float32)
+    if rows is None:
+        rows = nearest_raw_rows(raw_points, points)
+    if rows is None:
+        return np.zeros(len(points), np.float32)
+    return np.asarray(raw_intensity, np.float32)[rows]
 
 
 class DensifiedSequence:
@@ -447,10 +459,14 @@ class DensifiedSequence:
             self._record(idx, len(s), res.n_kept, len(raw.points), None, n_horizontal)
             return raw
         self._record(idx, len(s), res.n_kept, len(res.points), res.fallback, n_horizontal)
-        intensity = source_intensity(raw.points, raw.intensity, s)[res.source]
+        # every output point takes the intensity and per-point time of the raw point nearest to its source
+        # point: learning rounds deskew with the sensor's times like round 0, not with azimuth-guessed ones
+        rows = nearest_raw_rows(raw.points, s) if len(raw.points) else None
+        intensity = source_intensity(raw.points, raw.intensity, s, rows)[res.source]
+        time = None if raw.time is None or rows is None else np.asarray(raw.time, np.float64)[rows][res.source]
         return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),
                           intensity=intensity.astype(np.float32), ring=None, n_rings=raw.n_rings,
-                          dropped_nonfinite=raw.dropped_nonfinite)
+                          dropped_nonfinite=raw.dropped_nonfinite, time=time)
 
 
 def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: TrainingConfig | None = None,

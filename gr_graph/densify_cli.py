@@ -79,10 +79,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
 
     from gr_graph.atomic import atomic_path
-    from gr_graph.cloud_io import read_cloud, write_cloud
+    from gr_graph.cloud_io import check_suffix, read_cloud, write_cloud
     from gr_graph.densify import densify_cloud
 
     out = Path(args.output)
+    check_suffix(out)  # before the network runs: an OUT of unknown format fails at once
     if args.ply_covariances and out.suffix.lower() != ".ply":
         raise ValueError(f"{out}: --ply-covariances needs a .ply OUT")
     if args.covariances is not None and Path(args.covariances).suffix.lower() != ".npy":
@@ -97,10 +98,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except (ValueError, FloatingPointError) as exc:
         raise ValueError(f"{args.input}: {exc}") from None
     C = res.covariances
+    if args.covariances is not None:  # first: OUT beside covariances of another run is never left behind
+        with atomic_path(args.covariances) as tmp, open(tmp, "wb") as fh:  # a handle: np.save appends ".npy"
+            np.save(fh, C)  # to a name that ends otherwise (".NPY")
     write_cloud(out, res.points, res.intensity, C if args.ply_covariances else None)
-    if args.covariances is not None:
-        with atomic_path(args.covariances) as tmp:
-            np.save(tmp, C)
     return {"input": str(args.input), "output": str(out), "input_points": len(points),
             "network_points": len(res.network_input), "kept_points": res.n_kept, "output_points": len(res.points),
             "fallback": res.fallback, "covariances": args.covariances}
@@ -114,8 +115,11 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         summary = run(args)
-    except (DatasetError, ValueError, FileNotFoundError, RuntimeError) as exc:  # TrainingError is a RuntimeError
+    except (DatasetError, ValueError, OSError, RuntimeError) as exc:  # TrainingError is a RuntimeError
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ImportError as exc:  # open3d for .pcd files
+        print(f"error: {exc} (needed for {args.input} / {args.output})", file=sys.stderr)
         return 2
     print(json.dumps(summary))
     return 0

@@ -98,6 +98,10 @@ def _as_poses(x: np.ndarray | Trajectory, name: str) -> np.ndarray:
     return check_poses(x, name)
 
 
+#: two timed trajectories are paired frame by frame only where their timestamps agree within this [s]
+TIMESTAMP_TOLERANCE = 1e-3
+
+
 def _pair(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory) -> tuple[np.ndarray, np.ndarray]:
     e = _as_poses(est, "est")
     r = _as_poses(ref, "ref")
@@ -108,6 +112,14 @@ def _pair(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory) -> tuple[n
         )
     if len(e) == 0:
         raise ValueError("empty trajectories")
+    if isinstance(est, Trajectory) and isinstance(ref, Trajectory):  # both timed: the times must agree too
+        gap = np.abs(est.timestamps - ref.timestamps)
+        if gap.max() > TIMESTAMP_TOLERANCE:
+            k = int(np.argmax(gap > TIMESTAMP_TOLERANCE))
+            raise ValueError(
+                f"est and ref are paired frame by frame, but their timestamps differ by up to {gap.max():.6g} s "
+                f"(first at pose {k}: {est.timestamps[k]!r} against {ref.timestamps[k]!r}); associate them by "
+                "time first (e.g. evo's associate_trajectories) or pass the pose arrays")
     return e, r
 
 

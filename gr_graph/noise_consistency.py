@@ -5,7 +5,9 @@ every edge's measurement ``edge_T``, kind and information, the optimised poses, 
 position covariances and the re-anchored ground truth):
 
 - **edge NEES**: for each edge ``(k, l)`` with measurement ``T̂_kl`` and information
-  ``Lambda`` (the one the graph used), the ground-truth relative pose
+  ``Lambda`` (the one given to the graph, before its factors raise eigenvalues under
+  ``graph.min_information_eigenvalue``, 1e-2: along an unconstrained axis the NEES is lower than
+  the factor's), the ground-truth relative pose
   ``T_kl = G_l^-1 G_k`` gives the error ``xi = Log(T̂_kl^-1 T_kl)`` ([omega, v], right
   perturbation, as gtsam's ``BetweenFactorPose3``) and ``NEES = xi^T Lambda xi``. If
   ``Lambda^-1`` is the covariance of the measurement error, NEES ~ chi2(6): mean 6. Reported
@@ -16,7 +18,8 @@ position covariances and the re-anchored ground truth):
 - **position NEES of the marginals**: ``e = p_k - p_k^GT`` (world = first scan, both
   anchored there) and ``NEES = e^T Sigma_k^-1 e`` with the world-frame position marginal
   ``Sigma_k`` (``position_cov_world``): mean 3 if consistent (the first pose, fixed by the
-  prior, is left out). The same definition as the notebook ``marginal_covariances.ipynb``.
+  prior, is left out, and so are poses whose marginals failed or whose graph component was
+  marginalised anchored on its own first pose: :func:`poses_without_world_marginals`). The same definition as the notebook ``marginal_covariances.ipynb``.
   Split into horizontal (ideal 2) and vertical (ideal 1) parts (:func:`position_nees_split`).
 
 A mean NEES far above the ideal means over-confident information, far below conservative.
@@ -30,6 +33,7 @@ Command line (prints a table, ``--json`` writes the figures)::
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -156,8 +160,26 @@ def _stats(x: np.ndarray, dof: int) -> dict[str, Any]:
             "ideal_median": float(chi2.median(dof))}
 
 
-def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
+def poses_without_world_marginals(covariance_world: np.ndarray, marginals: dict[str, Any] | None) -> np.ndarray:
+    """Boolean ``(K,)``: poses whose position covariance cannot be compared with world-frame errors.
+
+    Those are the poses with non-finite covariances (marginals that ``status`` "failed") and the poses of
+    graph components gtsam could only marginalise anchored on their own first pose (``marginals``:
+    a :class:`gr_graph.pose_graph.MarginalsReport` as a dict; each ``unanchored_components`` entry
+    ``[first, last, n]`` leaves out poses first..last).
+    """
+    out = ~np.isfinite(covariance_world).reshape(len(covariance_world), -1).all(axis=1)
+    for first, last, _n in (marginals or {}).get("unanchored_components") or []:
+        out[int(first): int(last) + 1] = True
+    return out
+
+
+def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | None = None) -> dict[str, Any]:
     """Edge NEES per kind and position NEES of the marginals of one finished round.
+
+    ``marginals`` is the round's :class:`gr_graph.pose_graph.MarginalsReport` as a dict (default: read
+    from its ``round.json`` when there is one): the position NEES leaves out the poses of
+    :func:`poses_without_world_marginals`, counted in ``position["n_left_out"]``.
 
     Raises
     ------
@@ -190,8 +212,15 @@ def round_noise_consistency(round_dir: str | Path) -> dict[str, Any]:
     odometry = (d["edge_kind"] == 0) & ok  # the same edges as the NEES: flagged registrations left out
     out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edge_T"][odometry], T_gt[odometry])
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
-    out["position"] = _stats(position_nees(d["poses"], d["position_cov_world"], gt), 3)
-    out["position"].update(position_nees_split(d["poses"], d["position_cov_world"], gt))
+    if marginals is None and (Path(round_dir) / "round.json").is_file():
+        marginals = (json.loads((Path(round_dir) / "round.json").read_text()) or {}).get("marginals")
+    left_out = poses_without_world_marginals(d["position_cov_world"], marginals)
+    left_out[0] = False  # the first pose is never compared (fixed by the prior)
+    keep = ~left_out
+    poses, cov, gt_kept = d["poses"][keep], d["position_cov_world"][keep], gt[keep]
+    out["position"] = _stats(position_nees(poses, cov, gt_kept), 3)
+    out["position"].update(position_nees_split(poses, cov, gt_kept))
+    out["position"]["n_left_out"] = int(left_out.sum())
     return out
 
 

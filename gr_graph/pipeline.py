@@ -644,7 +644,11 @@ class SlamPipeline:
         map_counts = None
         if cfg.output.map.enabled:
             with timer("map"):
-                map_counts = write_round_map(rd, res, cfg.output.map.voxel_size)
+                try:
+                    map_counts = write_round_map(rd, res, cfg.output.map.voxel_size)
+                except (OSError, ValueError) as exc:  # a view of the result: never lose the round over it
+                    log.error("round %d: the map %s was not written: %s", r, rd / "map.ply", exc)
+                    map_counts = {"error": f"{rd / 'map.ply'}: {type(exc).__name__}: {exc}"}
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
@@ -664,7 +668,7 @@ class SlamPipeline:
             summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap, cfg.loops.min_path_length))
             if res.covariances is not None:  # NEES of edges and marginals against ground truth
                 try:
-                    summary["noise_consistency"] = round_noise_consistency(rd)
+                    summary["noise_consistency"] = round_noise_consistency(rd, summary.get("marginals"))
                 except Exception as exc:  # a diagnostic: never lose the round over it
                     log.warning("round %d: noise consistency not computed (%s: %s)", r, type(exc).__name__, exc)
                     summary["noise_consistency"] = {"error": f"{type(exc).__name__}: {exc}"}

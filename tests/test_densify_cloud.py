@@ -247,11 +247,25 @@ def test_gr_densify_errors_name_the_file(model_path: Path, pcd_file: Path, tmp_p
     bad = tmp_path / "bad.npy"
     np.save(bad, np.zeros((10, 2)))
     cases.append(([str(bad), str(tmp_path / "o.ply"), "--weights", str(model_path)], "bad.npy"))
+    # an OUT of unknown format is refused before anything is read (the input does not even exist)
+    cases.append(([str(tmp_path / "missing.pcd"), str(tmp_path / "o.xyz"), "--weights", str(model_path)],
+                  "o.xyz: unknown point cloud format"))
+    (tmp_path / "a_file").write_text("")  # OUT inside a file: the OS refuses, the message names it
+    cases.append(([str(pcd_file), str(tmp_path / "a_file" / "o.ply"), "--weights", str(model_path)], "a_file"))
     for argv, name in cases:
         assert densify_main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("error: ") and name in err, err
     assert not list(tmp_path.glob("o.*"))  # nothing written
+
+
+def test_gr_densify_writes_covariances_under_an_upper_case_suffix(model_path: Path, pcd_file: Path,
+                                                                   tmp_path: Path) -> None:
+    out, cov = tmp_path / "dense.ply", tmp_path / "COV.NPY"
+    assert densify_main([str(pcd_file), str(out), "--weights", str(model_path), "--covariances", str(cov)]) == 0
+    C = np.load(cov)  # numpy would have written "COV.NPY.npy" beside an empty COV.NPY
+    assert C.ndim == 3 and C.shape[1:] == (3, 3) and len(C) == len(read_cloud(out)[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["COV.NPY", "dense.ply"]
 
 
 def test_write_cloud_round_trips(tmp_path: Path) -> None:
@@ -290,3 +304,46 @@ def test_source_intensity_is_the_nearest_raw_points() -> None:
     q[3] = np.nan  # a non-finite query has no nearest point: an error, not some point's intensity
     with pytest.raises(ValueError, match="finite"):
         source_intensity(raw, inten, q)
+
+
+def test_densified_frames_keep_the_sensor_times_of_their_source_points() -> None:
+    """A frame with per-point times: every densified point carries the time of the raw point nearest
+    to its source point (the preprocessed point it was sampled around), as intensity does."""
+    from gr_graph.config import PreprocessConfig, TrainingConfig
+    from gr_graph.datasets.base import LidarFrame
+    from gr_graph.densify import densified_sequence, nearest_raw_rows
+    from gr_graph.preprocess import preprocess_scan
+
+    pts, inten = street_cloud()
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    time = (az + np.pi) / (2 * np.pi)  # a sweep fraction per point
+
+    class OneFrame:
+        name = "one-frame"
+        timestamps = np.zeros(1)
+        gt_poses = None
+        T_cam_velo = np.eye(4)
+        motion_compensated = False
+
+        def __len__(self) -> int:
+            return 1
+
+        def __getitem__(self, i: int) -> LidarFrame:
+            return LidarFrame(index=0, timestamp=0.0, points=pts, intensity=inten, time=time)
+
+    def planes(p: np.ndarray) -> np.ndarray:  # anisotropic everywhere: every point kept and sampled
+        return np.tile(np.diag([0.04, 0.04, 1e-4]), (len(p), 1, 1))
+
+    pre = PreprocessConfig()
+    frame = densified_sequence(OneFrame(), planes, TrainingConfig(), preprocess=pre)[0]
+    s = preprocess_scan(pts, pre, index=0).points
+    rows = nearest_raw_rows(pts, s)
+    assert frame.time is not None and len(frame.time) == len(frame.points) > len(s)
+    # each output point's time is that of a source point; the kept originals exactly their own
+    assert set(np.unique(frame.time)) <= set(np.unique(time[rows]))
+    where = {tuple(p): k for k, p in enumerate(s)}
+    originals = [(o, where[tuple(p)]) for o, p in enumerate(frame.points) if tuple(p) in where]
+    assert len(originals) == len(s)
+    out_rows, s_rows = np.array(originals).T
+    np.testing.assert_array_equal(frame.time[out_rows], time[rows][s_rows])
+    np.testing.assert_array_equal(frame.intensity[out_rows], inten[rows][s_rows])

@@ -342,3 +342,19 @@ def test_trajectory_metrics_short_and_mismatched(caplog: pytest.LogCaptureFixtur
         bad = est.copy()
         bad[3, 0, 3] = np.inf
         rpe_translation(bad, ref, delta=10)
+
+
+def test_timed_trajectories_are_paired_only_where_their_times_agree() -> None:
+    """Two timed trajectories of equal length but shifted times (an estimate of frames 5.. against a
+    reference of frames 0..) are refused, not paired by index; equal times, or pose arrays, are paired."""
+    ref_poses = arc(120, 0.05)
+    times = 0.1 * np.arange(120)
+    ref = Trajectory(times, ref_poses)
+    same = Trajectory(times + 2e-4, ref_poses.copy())  # timestamp jitter below the tolerance
+    assert ate(same, ref).rmse == pytest.approx(0.0, abs=1e-9)
+    shifted = Trajectory(times + 0.5, ref_poses.copy())
+    with pytest.raises(ValueError, match=r"timestamps differ by up to 0.5 s \(first at pose 0"):
+        ate(shifted, ref)
+    with pytest.raises(ValueError, match="timestamps differ"):
+        trajectory_metrics(shifted, ref, delta=10)
+    assert ate(shifted.poses, ref.poses).rmse == pytest.approx(0.0, abs=1e-9)  # arrays: the caller paired them

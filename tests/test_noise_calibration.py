@@ -406,7 +406,24 @@ def test_round_noise_consistency_reads_a_round_and_names_a_bad_file(tmp_path, ca
                                               arrays["edge_ok"]) if kind == 0 and good]  # flagged edge 3 left out
     measured, true = np.sum(steps, axis=0)
     assert out["edges"]["odometry"]["path_error_percent"] == pytest.approx(100 * (measured / true - 1))
-    assert out["position"]["n"] == 29
+    assert out["position"]["n"] == 29 and out["position"]["n_left_out"] == 0
+    full = position_nees(arrays["poses"], arrays["position_cov_world"], gt)
+    assert out["position"]["mean"] == pytest.approx(full.mean())
+    # marginals that failed for some poses (NaN) and a component anchored on its own first pose (round.json's
+    # report): those poses are left out and counted, not averaged in as NaN or against world-frame errors
+    failed = dict(arrays, position_cov_world=arrays["position_cov_world"].copy())
+    failed["position_cov_world"][[4, 5]] = np.nan
+    np.savez(rd / "marginals.npz", **failed)
+    (rd / "round.json").write_text(json.dumps({"marginals": {"status": "anchored",
+                                                              "unanchored_components": [[20, 24, 5]]}}))
+    out = round_noise_consistency(rd)
+    keep = np.ones(30, bool)
+    keep[[4, 5, 20, 21, 22, 23, 24]] = False
+    assert out["position"]["n_left_out"] == 7 and out["position"]["n"] == 22
+    assert out["position"]["mean"] == pytest.approx(full[keep[1:]].mean())
+    assert round_noise_consistency(rd, {"status": "failed"})["position"]["n_left_out"] == 2  # given, not read
+    (rd / "round.json").unlink()
+    np.savez(rd / "marginals.npz", **arrays)
     assert main([str(tmp_path / "run"), "--json", str(tmp_path / "nees.json")]) == 0
     assert "| 1 |" in capsys.readouterr().out
     assert json.loads((tmp_path / "nees.json").read_text())["1"]["edges"]["loop"]["n"] == 6

@@ -408,3 +408,19 @@ def test_a_failed_rerun_leaves_no_final_trajectory_of_the_run_before(tmp_path, m
     with pytest.raises(RuntimeError, match="the rerun fails"):
         pipe.run()
     assert not (out / "poses_kitti.txt").exists() and not (out / "poses_tum.txt").exists()
+
+
+def test_a_map_that_cannot_be_written_does_not_lose_the_round(tmp_path, monkeypatch, caplog):
+    import gr_graph.pipeline as pipeline_module
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pipeline_module, "write_round_map", no_space)
+    scans, _, _ = drive(list(range(4)))
+    out = tmp_path / "out"
+    assert run_cli(write_folder(tmp_path / "scans", scans), out) == 0
+    summary = json.loads((out / "round_0" / "round.json").read_text())
+    assert "map.ply: OSError" in summary["map"]["error"] and "No space left" in summary["map"]["error"]
+    assert (out / "poses_kitti.txt").is_file() and not (out / "round_0" / "map.ply").exists()
+    assert any("the map" in r.getMessage() and r.levelname == "ERROR" for r in caplog.records)
