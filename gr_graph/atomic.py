@@ -86,13 +86,14 @@ def atomic_write_json(path: PathLike, obj: Any) -> Path:
 
 
 def read_json_or_none(path: PathLike) -> Any:
-    """The JSON in ``path``, or None when the file is missing or not valid JSON (e.g. cut short)."""
+    """The JSON in ``path``, or None when the file is missing or not valid JSON (e.g. cut short, or
+    bytes that are not text)."""
     p = Path(path)
     if not p.is_file():
         return None
     try:
         return json.loads(p.read_text())
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, UnicodeDecodeError):
         return None
 
 

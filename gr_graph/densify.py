@@ -561,6 +561,14 @@ def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity:
         raise ValueError(f"densify_cloud: points must be (N, 3) or (N, >=4), got {x.shape}")
     if intensity is None and x.shape[1] >= 4:
         intensity = x[:, 3]
+    if intensity is not None:
+        intensity = np.asarray(intensity, np.float32).reshape(-1)
+        if len(intensity) != len(x):
+            raise ValueError(f"densify_cloud: {len(intensity)} intensities for {len(x)} points")
+        bad = ~np.isfinite(intensity)
+        if bad.any():  # as the file readers do: 0, counted
+            log.warning("densify_cloud: %d non-finite intensities set to 0", int(bad.sum()))
+            intensity = np.where(bad, np.float32(0.0), intensity)
     xyz = np.asarray(x[:, :3], np.float64)
     pre = preprocess or PreprocessConfig()
     updates = {k: v for k, v in (("tau_ani", tau_ani), ("samples_per_point", samples_per_point),

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gr_graph.atomic import atomic_path, atomic_save_npz, atomic_write_json, atomic_write_text
+from gr_graph.atomic import atomic_path, atomic_save_npz, atomic_write_json, atomic_write_text, read_json_or_none
 
 
 def test_text_json_npz_round_trip(tmp_path: Path) -> None:
@@ -41,3 +41,13 @@ def test_mode_follows_umask(tmp_path: Path) -> None:
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "r.txt").stat().st_mode) == 0o644
+
+
+def test_read_json_or_none_takes_a_broken_file_as_missing(tmp_path: Path) -> None:
+    """A resume reads round.json / cell.json with it: a file cut short or of binary garbage is no record."""
+    atomic_write_json(tmp_path / "ok.json", {"a": 1})
+    assert read_json_or_none(tmp_path / "ok.json") == {"a": 1}
+    (tmp_path / "cut.json").write_text('{"a": ')
+    (tmp_path / "binary.json").write_bytes(b"\x89PNG\r\n\xff\xfe")
+    assert read_json_or_none(tmp_path / "cut.json") is None and read_json_or_none(tmp_path / "binary.json") is None
+    assert read_json_or_none(tmp_path / "missing.json") is None

@@ -137,6 +137,13 @@ def test_densify_cloud_refuses_bad_input(model_path: Path) -> None:
         densify_cloud(np.random.default_rng(0).uniform(5, 6, (50, 3)), model_path)
     with pytest.raises(ValueError, match="tau_ani"):
         densify_cloud(street_cloud()[0], model_path, tau_ani=1.5)
+    pts, inten = street_cloud()
+    with pytest.raises(ValueError, match=f"{len(pts) - 1} intensities for {len(pts)} points"):
+        densify_cloud(pts, model_path, intensity=inten[:-1])
+    nan_inten = inten.copy()
+    nan_inten[::2] = np.nan  # set to 0, as the file readers do, never passed on as NaN
+    res = densify_cloud(pts, model_path, intensity=nan_inten)
+    assert np.isfinite(res.intensity).all() and (res.intensity == 0).any()
 
 
 def test_gr_densify_pcd_to_ply_with_covariances(model_path: Path, pcd_file: Path, tmp_path: Path, capsys) -> None:

@@ -148,6 +148,12 @@ def test_npy_bin_and_side_files(tmp_path: Path, frames: list) -> None:
 
     tum_seq, _ = open_sequence(path=npy3, poses=tmp_path / "gt.tum")
     np.testing.assert_allclose(tum_seq.timestamps, times - 3.0)  # the TUM times, for want of a times file
+    # TUM poses beside a times file: their times must follow the scans' (another clock's offset is fine)
+    write_tum_poses(tmp_path / "gt_other_clock.tum", times + 1.7e9, gt)
+    assert FolderSequence(npy4, poses=tmp_path / "gt_other_clock.tum").gt_poses is not None
+    write_tum_poses(tmp_path / "gt_resampled.tum", np.array([3.0, 3.2, 3.4]), gt)  # same rows, other instants
+    with pytest.raises(DatasetError, match=r"gt_resampled.tum: .*row by row.*times.txt.*row 2 is \+0.2 s off"):
+        FolderSequence(npy4, poses=tmp_path / "gt_resampled.tum")
     np.testing.assert_array_equal(tum_seq[2].points, frames[2].points)  # float64 kept
     assert not tum_seq[2].intensity.any()
 

@@ -171,6 +171,15 @@ def test_registry_frames_and_poses(tmp_path: Path, frames: list) -> None:
     seq, source = open_sequence(path=bag, frames="1:3", poses=tmp_path / "gt.txt")
     assert "ground truth" in source and len(seq) == 2 and seq[0].index == 1
     np.testing.assert_allclose(seq.gt_poses[:, 0, 3], [1.0, 2.0])  # relative to the first scan
+    # a TUM file: its times must follow the messages' (up to an offset), else it is refused naming it
+    from gr_graph.trajectory import write_tum_poses
+
+    stamps = RosbagSequence(bag).timestamps
+    write_tum_poses(tmp_path / "gt.tum", stamps + 100.0, poses)
+    assert RosbagSequence(bag, poses=tmp_path / "gt.tum").gt_poses is not None
+    write_tum_poses(tmp_path / "gt_2x.tum", 2 * stamps + 100.0, poses)
+    with pytest.raises(DatasetError, match=r"gt_2x.tum: .*row by row.*b"):
+        RosbagSequence(bag, poses=tmp_path / "gt_2x.tum")
 
 
 def test_a_bag_without_per_point_times_says_what_it_assumes(tmp_path: Path, frames: list,

@@ -252,6 +252,28 @@ def read_pose_file(path: Path, n_frames: int) -> tuple[np.ndarray, np.ndarray | 
     return np.linalg.inv(poses[0]) @ poses, times
 
 
+def check_pose_times(pose_times: np.ndarray, frame_times: np.ndarray, pose_path: Path, times_path: Path) -> None:
+    """Ground-truth poses are paired with the scans row by row: their own times (a TUM file's) must then
+    follow the scans' (``times_path``: a timestamps file, or a bag's messages), up to a constant offset
+    (another clock's origin).
+
+    Raises
+    ------
+    DatasetError
+        Naming both files, when the two disagree by more than half a frame spacing after the offset.
+    """
+    if len(pose_times) < 2:
+        return
+    gap = (np.asarray(pose_times, np.float64) - pose_times[0]) - (np.asarray(frame_times, np.float64) - frame_times[0])
+    tolerance = 0.5 * float(np.median(np.diff(frame_times)))
+    k = int(np.argmax(np.abs(gap)))
+    if abs(gap[k]) > tolerance:
+        raise DatasetError(
+            f"{pose_path}: its poses are paired with the scans row by row, but their times do not follow the "
+            f"scans' ({times_path}): row {k} is {gap[k]:+.4g} s off after the first row's offset (tolerance "
+            f"{tolerance:.3g} s, half a frame spacing); give one pose a scan, at the scan's time")
+
+
 class FolderSequence:
     """A folder of point files, streamed one file per frame (LidarSequence protocol).
 
@@ -301,6 +323,8 @@ class FolderSequence:
             self.gt_poses, pose_times = read_pose_file(pose_path, n)
             log.info("%s: ground-truth poses from %s%s", self.folder, pose_path, "" if poses is not None else " (found)")
         stamps = read_timestamps_file(times_path, n) if times_path is not None else pose_times
+        if times_path is not None and pose_times is not None:
+            check_pose_times(pose_times, stamps, pose_path, times_path)
         at_10hz = np.arange(n) * DEFAULT_FRAME_PERIOD_S  # the frames' times when neither they nor the sweep are known
         self.empty_frames: set[int] = set()
         self._read_ahead: dict[int, DecodedCloud] = {}

@@ -161,9 +161,11 @@ class RosbagSequence:
                         "(times from the azimuth)", self.path, self.topic)
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
-            from gr_graph.datasets.folder import read_pose_file
+            from gr_graph.datasets.folder import check_pose_times, read_pose_file
 
-            self.gt_poses, _ = read_pose_file(Path(poses), len(self))
+            self.gt_poses, pose_times = read_pose_file(Path(poses), len(self))
+            if pose_times is not None:  # a TUM file: its times must follow the messages' (up to an offset)
+                check_pose_times(pose_times, self.timestamps, Path(poses), self.path)
 
     def _source(self, k: int) -> str:
         return f"{self.path}: topic {self.topic} message {k}"
