@@ -646,6 +646,9 @@ class SlamPipeline:
             with timer("map"):
                 try:
                     map_counts = write_round_map(rd, res, cfg.output.map.voxel_size)
+                    # what the map's points are: a learning round's densified scans hold samples of N(s, C)
+                    map_counts["scans"] = ("densified (samples of the network's covariances included)"
+                                           if densified is not None and cfg.training.densify else "measured")
                 except (OSError, ValueError) as exc:  # a view of the result: never lose the round over it
                     log.error("round %d: the map %s was not written: %s", r, rd / "map.ply", exc)
                     map_counts = {"error": f"{rd / 'map.ply'}: {type(exc).__name__}: {exc}"}

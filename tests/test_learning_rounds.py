@@ -359,6 +359,7 @@ def test_rounds_end_to_end(learning_run):
     r1 = m["rounds"]["1"]
     assert np.isfinite(r1["trajectory_change"]) and r1["trajectory_change"] < ATE_BOUND_M
     assert r1["densify"]["frames"] == 30 and r1["runtime_s"]["training"] > 0
+    assert r1["map"]["scans"].startswith("densified") and m["rounds"]["0"]["map"]["scans"] == "measured"
     assert r1["densify"]["mean_output_points"] > 0
     # no frame or training pair met non-finite / indefinite network covariances (issue 10: < 0.1 %)
     cf = r1["covariance_failures"]

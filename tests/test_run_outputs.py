@@ -137,6 +137,7 @@ def test_revisit_run_writes_its_map_and_plot(revisit_run: Path) -> None:
     cloud = o3d.t.io.read_point_cloud(str(map_path(rd)))
     pts = cloud.point.positions.numpy().astype(np.float64)
     assert summary["map"]["voxels"] == len(pts) and summary["map"]["voxel_size"] == 0.2
+    assert summary["map"]["scans"] == "measured"
     with np.load(rd / "marginals.npz") as z:
         poses = z["poses"]
     mem = load_memory(rd / "memory")
