@@ -461,7 +461,8 @@ class DensifiedSequence:
         self._record(idx, len(s), res.n_kept, len(res.points), res.fallback, n_horizontal)
         # every output point takes the intensity and per-point time of the raw point nearest to its source
         # point: learning rounds deskew with the sensor's times like round 0, not with azimuth-guessed ones
-        rows = nearest_raw_rows(raw.points, s) if len(raw.points) else None
+        wanted = raw.intensity is not None or raw.time is not None
+        rows = nearest_raw_rows(raw.points, s) if wanted and len(raw.points) else None
         intensity = source_intensity(raw.points, raw.intensity, s, rows)[res.source]
         time = None if raw.time is None or rows is None else np.asarray(raw.time, np.float64)[rows][res.source]
         return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),

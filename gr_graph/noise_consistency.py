@@ -19,7 +19,8 @@ position covariances and the re-anchored ground truth):
   anchored there) and ``NEES = e^T Sigma_k^-1 e`` with the world-frame position marginal
   ``Sigma_k`` (``position_cov_world``): mean 3 if consistent (the first pose, fixed by the
   prior, is left out, and so are poses whose marginals failed or whose graph component was
-  marginalised anchored on its own first pose: :func:`poses_without_world_marginals`). The same definition as the notebook ``marginal_covariances.ipynb``.
+  marginalised anchored on its own first pose: :func:`poses_without_world_marginals`). The same
+  definition as the notebook ``marginal_covariances.ipynb``.
   Split into horizontal (ideal 2) and vertical (ideal 1) parts (:func:`position_nees_split`).
 
 A mean NEES far above the ideal means over-confident information, far below conservative.
@@ -33,7 +34,6 @@ Command line (prints a table, ``--json`` writes the figures)::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,8 +41,11 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from gr_graph.atomic import read_json_or_none
+
 __all__ = ["edge_nees", "gt_relative_poses", "edge_errors", "axis_stats", "path_error_percent", "AXES",
-           "position_nees", "position_nees_split", "round_noise_consistency", "run_noise_consistency", "main"]
+           "position_nees", "position_nees_split", "poses_without_world_marginals", "round_noise_consistency",
+           "run_noise_consistency", "main"]
 
 EDGE_KINDS = {0: "odometry", 1: "loop"}
 
@@ -212,8 +215,8 @@ def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | N
     odometry = (d["edge_kind"] == 0) & ok  # the same edges as the NEES: flagged registrations left out
     out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edge_T"][odometry], T_gt[odometry])
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
-    if marginals is None and (Path(round_dir) / "round.json").is_file():
-        marginals = (json.loads((Path(round_dir) / "round.json").read_text()) or {}).get("marginals")
+    if marginals is None:
+        marginals = (read_json_or_none(Path(round_dir) / "round.json") or {}).get("marginals")
     left_out = poses_without_world_marginals(d["position_cov_world"], marginals)
     left_out[0] = False  # the first pose is never compared (fixed by the prior)
     keep = ~left_out
