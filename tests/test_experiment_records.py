@@ -118,6 +118,47 @@ def test_a_cell_shared_by_two_budgets_takes_the_other_budgets_record(tmp_path):
     assert own.shared == {} and own.results[twin.key]["rounds"]["1"]["slam"]["rpe300_consecutive_mean"] == 2.0
 
 
+def test_table2_densified_cells_take_only_results_made_from_their_own_table1_models(tmp_path):
+    """Table II's cell definitions are equal across budgets, but the densified cells use that budget's Table I
+    models: another budget's record is shared only for the raw scans, or when it names the same Table I cell
+    definition; in a root, a result or a source of another definition is not this budget's."""
+    paper = {c.key: c for c in cells_for("table2", "paper")}
+    t = {c.key: c for c in cells_for("table2", "student-t")}
+    src_paper = next(c for c in cells_for("table1", "paper") if c.key == "16ch-s0")
+    src_t = next(c for c in cells_for("table1", "student-t") if c.key == "16ch-s0")
+    r0, r1 = "16ch-s0-r0", "16ch-s0-r1"
+    assert paper[r1].fingerprint() == t[r1].fingerprint() and src_paper.fingerprint() != src_t.fingerprint()
+    assert t[r1].source_fingerprint == src_t.fingerprint() and t[r0].source_fingerprint is None
+    records = tmp_path / "records"
+    figures = {"summary": {"kiss_matcher": {"success_rate": 0.35}}}
+    for cell in (src_paper, paper[r0], paper[r1]):
+        atomic = record_path(records, "paper", cell)
+        atomic.parent.mkdir(parents=True, exist_ok=True)
+        atomic.write_text(json.dumps({"fingerprint": cell.fingerprint(), **figures}))
+    got = read_records(records, "student-t", [t[r0], t[r1]])
+    assert got.shared == {r0: "paper"} and r1 not in got.results  # the paper's models are not the t's
+    assert set(read_records(records, "paper", [paper[r0], paper[r1]]).results) == {r0, r1}  # its own: kept
+    # a record that names the t's Table I cell is shared; one of the budget itself naming another is stale
+    record_path(records, "paper", paper[r1]).write_text(json.dumps(
+        {"fingerprint": paper[r1].fingerprint(), "source_fingerprint": src_t.fingerprint(), **figures}))
+    assert read_records(records, "student-t", [t[r1]]).shared == {r1: "paper"}
+    mine = record_path(records, "student-t", t[r1])
+    mine.parent.mkdir(parents=True)
+    mine.write_text(json.dumps({"fingerprint": t[r1].fingerprint(), "source_fingerprint": "0" * 16, **figures}))
+    assert read_records(records, "student-t", [t[r1]]).stale == [r1]
+    # in a root: a finished result made from the paper's Table I cell is not done for the t, and running it
+    # on that source is refused naming both definitions
+    root = tmp_path / "root"
+    for cell in (src_paper, paper[r1]):
+        d = rc.cell_dir(root, cell)
+        d.mkdir(parents=True)
+        (d / rc.CELL_JSON).write_text(json.dumps({"fingerprint": cell.fingerprint()}))
+    assert rc.is_done(root, paper[r1]) and not rc.is_done(root, t[r1])
+    with pytest.raises(rc.CellDependencyError, match=f"this root's was made with another definition "
+                                                     f"\\({src_paper.fingerprint()}"):
+        rc._run_registration_cell(root, rc.cell_dir(root, t[r1]), t[r1], "cpu")
+
+
 def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch, capsys):
     cells = cells_for("ablations", "smoke")
     records = tmp_path / "records"

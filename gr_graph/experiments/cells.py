@@ -35,7 +35,8 @@ from typing import Any, Literal
 
 from gr_graph.config import merge_config
 
-__all__ = ["Budget", "BUDGETS", "Cell", "TABLES", "cells_for", "table1_cells", "table2_cells", "ablation_cells",
+__all__ = ["Budget", "BUDGETS", "Cell", "TABLES", "cells_for", "source_mismatch", "table1_cells", "table2_cells",
+           "ablation_cells",
            "PAPER_REDUCTIONS", "PAPER_REGISTRATION", "TABLE1_WINDOW", "ABLATION_WINDOW", "REVISIT_WINDOW", "ABLATIONS",
            "estimate_slam_minutes", "estimate_registration_minutes", "CELL_TRAINING_PINS"]
 
@@ -209,11 +210,17 @@ class Cell:
     source: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
     est_minutes: float = 0.0  # wall minutes on 2 cores, rough (constants above)
+    #: Table II's densified cells: the fingerprint of the Table I cell whose models they use. Not in the
+    #: definition (the records published before it existed keep their fingerprints), but a result made
+    #: from another source (another budget's models) is not this cell's: :func:`source_mismatch`.
+    source_fingerprint: str | None = None
 
     def definition(self) -> dict[str, Any]:
-        """Everything that determines the cell's result (JSON-serialisable; no estimate)."""
+        """Everything that determines the cell's result (JSON-serialisable; no estimate), but for
+        ``source_fingerprint``, checked apart."""
         d = asdict(self)
         d.pop("est_minutes")
+        d.pop("source_fingerprint")
         d["frames"] = list(self.frames)
         return d
 
@@ -294,8 +301,26 @@ def table2_cells(budget: Budget) -> list[Cell]:
                               src.channels, src.frames, f"{src.channels}ch", source=f"table1/{src.key}",
                               params={"round": r, "n_pairs": budget.n_pairs, "max_distance": 10.0,
                                       "solvers": ["kiss_matcher", "fpfh_ransac"]},
-                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels)))
+                              est_minutes=estimate_registration_minutes(budget.n_pairs, src.channels),
+                              source_fingerprint=src.fingerprint() if r > 0 else None))  # raw scans: no model
     return cells
+
+
+def source_mismatch(cell: Cell, result: dict[str, Any], source_result: dict[str, Any] | None) -> str | None:
+    """Why ``result`` (a cell.json or record of ``cell``) was made from another source than the cell's, or None.
+
+    Only cells with a ``source_fingerprint`` (Table II's densified cells) are checked: against the
+    ``source_fingerprint`` the result names, or, in results made before it was stored, against the
+    fingerprint of ``source_result`` (the source cell's result beside it: in the same root, or the
+    record of the same budget). With neither, the source is unknown: reported as a mismatch.
+    """
+    want = cell.source_fingerprint
+    if want is None:
+        return None
+    have = result.get("source_fingerprint") or (source_result or {}).get("fingerprint")
+    if have is None:
+        return f"made from {cell.source} of unknown definition"
+    return None if have == want else f"made from {cell.source} of another definition ({have}, now {want})"
 
 
 def ablation_cells(budget: Budget) -> list[Cell]:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from gr_graph.atomic import atomic_write_json, read_json_or_none
-from gr_graph.experiments.cells import Cell
+from gr_graph.experiments.cells import Cell, source_mismatch
 from gr_graph.provenance import format_machine
 
 log = logging.getLogger(__name__)
@@ -113,15 +113,21 @@ class RecordSet:
             elif rec.get("fingerprint") != c.fingerprint():
                 log.warning("%s: made with another definition of cell %s (stale); ignored", p, c.key)
                 self.stale.append(c.key)
+            elif (why := source_mismatch(c, rec, _source_record(records_dir, budget, c))) is not None:
+                log.warning("%s: %s (stale); ignored", p, why)
+                self.stale.append(c.key)
             else:
                 self.results[c.key] = rec
 
     def _share(self, records_dir: str | Path, budget: str, cell: Cell) -> None:
-        """Take another budget's record of ``cell`` whose fingerprint equals the cell's, if one exists."""
+        """Take another budget's record of ``cell`` whose fingerprint equals the cell's, if one exists
+        (Table II's densified cells: only one made from the same Table I cell definition, the models
+        of that budget's Table I being another budget's otherwise)."""
         for other in sorted(Path(records_dir).glob(f"*/{cell.table}/{cell.key}.json")):
             name = other.parent.parent.name
             rec = read_json_or_none(other) if name != budget else None
-            if isinstance(rec, dict) and rec.get("fingerprint") == cell.fingerprint():
+            if (isinstance(rec, dict) and rec.get("fingerprint") == cell.fingerprint()
+                    and source_mismatch(cell, rec, _source_record(records_dir, name, cell)) is None):
                 self.results[cell.key] = rec
                 self.shared[cell.key] = name
                 return
@@ -132,6 +138,14 @@ class RecordSet:
         return (f"commit {(rec.get('commit') or 'unknown')[:10]}{', uncommitted changes' if rec.get('dirty') else ''}, "
                 f"{rec.get('machine') or 'machine not recorded'}"
                 + (f", record of budget `{self.shared[key]}` (same definition)" if key in self.shared else ""))
+
+
+def _source_record(records_dir: str | Path, budget: str, cell: Cell) -> dict[str, Any] | None:
+    """The record of ``budget`` of the cell ``cell`` uses (``cell.source``, e.g. ``table1/16ch-s0``), or None."""
+    if cell.source is None:
+        return None
+    rec = read_json_or_none(Path(records_dir) / budget / f"{cell.source}.json")
+    return rec if isinstance(rec, dict) else None
 
 
 def read_records(records_dir: str | Path, budget: str, cells: list[Cell]) -> RecordSet:

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.atomic import atomic_write_json, read_json_or_none
-from gr_graph.experiments.cells import Cell
+from gr_graph.experiments.cells import Cell, source_mismatch
 from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
@@ -75,6 +75,11 @@ def read_cell_result(root: str | Path, cell: Cell) -> dict[str, Any] | None:
     d = read_json_or_none(cell_dir(root, cell) / CELL_JSON)
     if d is None or d.get("fingerprint") != cell.fingerprint():
         return None
+    if cell.source_fingerprint is not None:  # Table II on densified scans: made with these models?
+        why = source_mismatch(cell, d, read_json_or_none(Path(root) / str(cell.source) / CELL_JSON))
+        if why is not None:
+            log.info("%s/%s: %s; recomputed", cell.table, cell.key, why)
+            return None
     return d
 
 
@@ -314,10 +319,16 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
 
     assert cell.source is not None
     src = Path(root) / cell.source
-    if read_json_or_none(src / CELL_JSON) is None:
-        table, key = cell.source.split("/")
+    source_doc = read_json_or_none(src / CELL_JSON)
+    table, key = cell.source.split("/")
+    if source_doc is None:
         raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished in this root (its models; "
                                   "a published record of it holds figures only): run "
+                                  f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
+    if cell.source_fingerprint is not None and source_doc.get("fingerprint") != cell.source_fingerprint:
+        raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} of this budget (fingerprint "
+                                  f"{cell.source_fingerprint}); this root's was made with another definition "
+                                  f"({source_doc.get('fingerprint')}, another budget or an older one): run "
                                   f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
     cfg = load_config(src / "slam" / "config.yaml", {"device": device})
     seq, desc = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
@@ -375,6 +386,8 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
            "est_minutes": cell.est_minutes, "peak_rss_mb": peak_rss_mb(), "git": git_state(),
            "machine": machine_line(), **result}
+    if cell.source_fingerprint is not None:
+        doc["source_fingerprint"] = cell.source_fingerprint
     atomic_write_json(d / CELL_JSON, doc)
     return doc
 
