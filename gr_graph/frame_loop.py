@@ -22,8 +22,9 @@ scans of the learning rounds (``data.read_threads``; :func:`prefetch_frames`), a
 After the last frame, a sequence with fewer than two usable scans (no trajectory, only guesses)
 stops the run (:func:`check_usable_scans`: :class:`UnusableScansError`, naming the likely causes);
 more than half of the scans unusable is a logged warning with the counts.
-At the end the whole graph is optimised; in learning rounds every edge's information is then
-scaled by one factor from the graph's residuals (:meth:`_FrameLoop.calibrate_noise`,
+At the end the whole graph is optimised; in learning rounds every learned edge's information H(C) is
+then scaled by one factor from the graph's residuals (:func:`scale_learned_information`; edges that kept
+their registration information are calibrated already) (:meth:`_FrameLoop.calibrate_noise`,
 :mod:`gr_graph.noise_calibration`) and the graph solved again. Then its marginal covariances
 are computed (:class:`SlamResult`). Wall time is accumulated per stage (``read`` is time spent waiting
 for frames).
@@ -90,6 +91,24 @@ class UnusableScansError(DatasetError):
 
     def __str__(self) -> str:
         return str(self.args[0])
+
+
+def scale_learned_information(edges: list[RegistrationEdge], scale: float) -> int:
+    """Multiply the information of every edge that has the learned H(C) (``info["edge_noise"] ==
+    "learned"``) by ``scale``; return how many edges were left as they are.
+
+    The others carry the registration information, already divided by their own residuals' variance
+    factor (:func:`gr_graph.odometry.scaled_information`), or a failed registration's weak fallback:
+    scaled by the variance factor of the raw H(C) (0.002-0.4 in the published runs) they would
+    count hundreds of times less than their precision.
+    """
+    kept = 0
+    for e in edges:
+        if e.info.get("edge_noise") == "learned":
+            e.information = scale * np.asarray(e.information, np.float64)
+        else:
+            kept += 1
+    return kept
 
 
 def check_usable_scans(n_usable: int, n_frames: int, name: str, cfg: SlamConfig) -> None:
@@ -507,7 +526,7 @@ class _FrameLoop:
             self.schedule.reoptimized(i)
 
     def calibrate_noise(self, poses: np.ndarray) -> GraphResult:
-        """Scale every edge's information by ``1 / sigma0^2`` of the graph and solve it again.
+        """Scale every learned edge's information by ``1 / sigma0^2`` of the graph and solve it again.
 
         ``sigma0^2`` (:func:`gr_graph.noise_calibration.variance_factor`) is taken at the
         optimum of the Gaussian graph (loops without their robust kernel, started from
@@ -527,8 +546,10 @@ class _FrameLoop:
             log.info("edge noise calibration: sigma0^2 = %.4g over redundancy %d (chi2 odometry %.4g, loops %.4g): "
                      "every edge's information x %.4g", vf.sigma0_sq, vf.redundancy, vf.chi2["odometry"],
                      vf.chi2["loop"], vf.scale)
-        for e in self.edges:  # flagged edges too: their fallback information must stay weak relative to the rest
-            e.information = vf.scale * np.asarray(e.information, np.float64)
+        kept = scale_learned_information(self.edges, vf.scale)
+        if kept:
+            log.info("edge noise calibration: %d edges without H(C) keep their registration information", kept)
+        self.edge_noise.calibration["n_edges_not_scaled"] = kept
         self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
         return self.graph.optimize(marginals=False)
 

@@ -183,3 +183,19 @@ def test_round1_uses_learned_noise_end_to_end(learning_run):
     with np.load(out / "round_0" / "marginals.npz") as z0:  # round 0 (registration information) differs
         row0 = int(np.flatnonzero((z0["edges"][:, 0] == k) & (z0["edges"][:, 1] == l) & (z0["edge_kind"] == 0))[0])
         assert not np.allclose(info[row], z0["edge_information"][row0], rtol=1e-2)
+
+
+def test_the_calibration_scales_only_the_learned_information():
+    """Edges that kept their registration information (or a failed registration's fallback) are
+    calibrated already: the graph's variance factor of the raw H(C) leaves them as they are."""
+    from gr_graph.frame_loop import scale_learned_information
+    from gr_graph.odometry import RegistrationEdge
+
+    def edge(noise: str | None, ok: bool = True) -> RegistrationEdge:
+        info = {} if noise is None else {"edge_noise": noise}
+        return RegistrationEdge(1, 0, np.eye(4), np.eye(6), 4.0 * np.eye(6), 0.9, 0.01, 5, ok, info=info)
+
+    edges = [edge("learned"), edge("registration (few_correspondences)"), edge("registration (registration_failed)",
+                                                                               ok=False), edge(None), edge("learned")]
+    assert scale_learned_information(edges, 0.01) == 3
+    np.testing.assert_allclose([e.information[0, 0] for e in edges], [0.04, 4.0, 4.0, 4.0, 0.04])
