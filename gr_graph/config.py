@@ -86,6 +86,12 @@ class DataConfig(_Section):
         "for unit tests; kitti: residential world with moving actors and KITTI-like sensor errors; raw: kitti with "
         "the full motion distortion); None: the sequence's default (kitti)")
 
+    @field_validator("seq", mode="before")
+    @classmethod
+    def _yaml_sequence_number(cls, v: Any) -> Any:
+        """YAML reads an unquoted ``00`` or ``05`` as an integer: taken as the two-digit KITTI sequence."""
+        return f"{v:02d}" if isinstance(v, int) and not isinstance(v, bool) and v >= 0 else v
+
     @field_validator("frames", mode="before")
     @classmethod
     def _parse_frames(cls, v: Any) -> Any:
@@ -143,6 +149,12 @@ class OdometryConfig(_Section):
     deskew_scan_period: float | None = Field(
         None, gt=0.0, description="sweep duration [s]; None: the sequence's scan_period, else the frame spacing"
     )
+
+    @field_validator("deskew", mode="before")
+    @classmethod
+    def _yaml_on_off(cls, v: Any) -> Any:
+        """YAML 1.1 reads an unquoted ``on`` / ``off`` as a boolean: taken as the word meant."""
+        return {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v
 
 
 class LoopConfig(_Section):

@@ -31,8 +31,8 @@ __all__ = ["times_from_azimuth", "normalise_times", "resolve_time_reference", "T
            "sweep_motion_from_velocity"]
 
 
-def times_from_azimuth(points: np.ndarray, clockwise: bool = True) -> np.ndarray:
-    """Per-point sweep fraction in ``[0, 1]`` from the azimuth (start and end facing backward).
+def times_from_azimuth(points: np.ndarray, clockwise: bool = True, start_azimuth_deg: float = 180.0) -> np.ndarray:
+    """Per-point sweep fraction in ``[0, 1]`` from the azimuth.
 
     Parameters
     ----------
@@ -40,15 +40,22 @@ def times_from_azimuth(points: np.ndarray, clockwise: bool = True) -> np.ndarray
         Points in the sensor frame (x forward, y left, z up).
     clockwise : bool
         Rotation seen from above; clockwise (Velodyne, Ouster) means the azimuth decreases
-        with time.
+        with time (``sensor.rotation``).
+    start_azimuth_deg : float
+        Azimuth where the sweep starts and ends (``sensor.sweep_start_azimuth_deg``; 0 = straight
+        ahead, 90 = left); by default facing backward, where 0.5 is straight ahead.
 
     Returns
     -------
     np.ndarray
-        ``(N,)`` float64; 0.5 straight ahead.
+        ``(N,)`` float64.
     """
     az = np.arctan2(points[:, 1], points[:, 0])
-    t = 0.5 * (1.0 - az / np.pi) if clockwise else 0.5 * (1.0 + az / np.pi)
+    if start_azimuth_deg == 180.0:  # facing backward (the formula before the option existed, bit for bit)
+        t = 0.5 * (1.0 - az / np.pi) if clockwise else 0.5 * (1.0 + az / np.pi)
+    else:
+        start = np.radians(start_azimuth_deg)
+        t = np.mod(start - az if clockwise else az - start, 2.0 * np.pi) / (2.0 * np.pi)
     return np.clip(t, 0.0, 1.0)
 
 

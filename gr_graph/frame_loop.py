@@ -235,6 +235,10 @@ class FrameDeskewer:
     ----------
     scan_period : float, optional
         Sweep duration [s].
+    clockwise, start_azimuth_deg : bool, float
+        Frames without per-point times: the spin and the sweep's start azimuth their times are
+        taken from (:func:`gr_graph.deskew.times_from_azimuth`; ``sensor.rotation``,
+        ``sensor.sweep_start_azimuth_deg``).
 
     Attributes
     ----------
@@ -246,8 +250,10 @@ class FrameDeskewer:
         Frames deskewed with times from the data (``"data"``) or the azimuth (``"azimuth"``).
     """
 
-    def __init__(self, scan_period: float | None = None) -> None:
+    def __init__(self, scan_period: float | None = None, clockwise: bool = True,
+                 start_azimuth_deg: float = 180.0) -> None:
         self.scan_period = scan_period
+        self.clockwise, self.start_azimuth_deg = clockwise, start_azimuth_deg  # times from the azimuth
         self.n_deskewed = 0
         self.n_without_motion = 0
         self.time_sources: dict[str, int] = {"data": 0, "azimuth": 0}
@@ -267,7 +273,7 @@ class FrameDeskewer:
         if frame.time is not None:
             times, source = frame.time, "data"
         else:
-            times, source = times_from_azimuth(frame.points), "azimuth"
+            times, source = times_from_azimuth(frame.points, self.clockwise, self.start_azimuth_deg), "azimuth"
         self.n_deskewed += 1
         self.time_sources[source] += 1
         return replace(frame, points=deskew(frame.points, times, motion))
@@ -379,7 +385,7 @@ class _FrameLoop:
         scan_period = cfg.odometry.deskew_scan_period
         if scan_period is None and getattr(sequence, "scan_period", None) is not None:
             scan_period = float(sequence.scan_period)
-        self.deskewer = FrameDeskewer(scan_period)
+        self.deskewer = FrameDeskewer(scan_period, cfg.sensor.rotation == "clockwise", cfg.sensor.sweep_start_azimuth_deg)
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
         if self.deskew_on:

@@ -30,7 +30,8 @@ Resume: a rerun with the same ``--out`` skips every round whose ``round.json`` e
 whose ``config_fingerprint`` (:func:`round_fingerprint`: a hash of the options the round
 depends on) equals the current one; a round with a missing or different ``round.json`` is
 recomputed, with everything after it. A finished round also records the identity of its input
-(``data_fingerprint``, :func:`data_fingerprint`: the number of frames and, for data read from files,
+(``data_fingerprint``, :func:`data_fingerprint`: the number of frames and, for data read from files
+(or a synthetic world rendered along a given pose file: its timestamps and poses),
 a hash of the files' names and sizes, the first and last 64 KiB of the first, middle and last
 file, the timestamps, ground truth and
 calibration): when the data at the same path changed (scans replaced, deleted or added), the rerun
@@ -101,6 +102,8 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                               ("odometry", "map_keyframe_translation"): 0.0,
                                               ("odometry", "map_keyframe_rotation_deg"): 0.0,
                                               ("loops", "min_path_length"): 0.0, ("loops", "sc_height_offset"): 2.0,
+                                              ("sensor", "rotation"): "clockwise",
+                                              ("sensor", "sweep_start_azimuth_deg"): 180.0,
                                               **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
 
 # sensor options whose default became None (guessed from the data) after runs were published: None
@@ -116,7 +119,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
-    options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``; the trainer's
+    options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
+    ``sensor.rotation`` and ``sweep_start_azimuth_deg``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as their former
@@ -196,7 +200,8 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
     -------
     dict
         ``n_frames``; ``files`` (how many files the frames come from, None for made frames: the
-        synthetic world, whose identity is its configuration) and ``digest`` (None for made frames),
+        synthetic world, whose identity is its configuration) and ``digest`` (None for made frames,
+        but for a synthetic world rendered along a given pose file: a hash of its timestamps and poses),
         a hash of the files' names and sizes, the first and last 64 KiB of the first, middle and
         last file (data swapped for another drive with files of the same sizes, e.g. organized
         clouds, differ there), the sequence's timestamps, ground truth and ``T_cam_velo``.
@@ -205,7 +210,17 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
     """
     files = _input_files(sequence)
     if files is None:
-        return {"n_frames": len(sequence), "files": None, "digest": None}
+        # made frames are their configuration, but for a synthetic world rendered along a given pose file
+        # (data.trajectory), whose content the configuration names only by its path
+        if find_in_chain(sequence, "trajectory", accept=lambda v: isinstance(v, str)) is None:
+            return {"n_frames": len(sequence), "files": None, "digest": None}
+        h = hashlib.sha256()
+        for name in ("timestamps", "gt_poses"):
+            value = getattr(sequence, name, None)
+            h.update(name.encode())
+            if value is not None:
+                h.update(np.ascontiguousarray(value, np.float64).tobytes())
+        return {"n_frames": len(sequence), "files": None, "digest": h.hexdigest()[:16]}
     h = hashlib.sha256()
     sizes = []
     for f in files:

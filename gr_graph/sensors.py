@@ -195,6 +195,12 @@ class SensorConfig(BaseModel):
         None, description="per-point times count from the sweep's start (>= 0), back from its end (<= 0), "
         "or are absolute stamps (same clock as the frame timestamps); None: from what the values show "
         "(times_to_fractions: sweep_start)")
+    rotation: Literal["clockwise", "counterclockwise"] = Field(
+        "clockwise", description="spin seen from above (Velodyne, Ouster: clockwise); deskewing without per-point "
+        "times takes them from the azimuth in this direction")
+    sweep_start_azimuth_deg: float = Field(
+        180.0, ge=-180.0, le=360.0, description="azimuth where a sweep starts [deg] (0 ahead, 90 left; 180: "
+        "facing backward, KITTI's); deskewing without per-point times counts the sweep from it")
     scan_period: float | None = Field(None, gt=0.0, description="sweep duration [s]; None: the sequence's (the "
                                                                 "frame spacing, or a full revolution's per-point time span "
                                                                 "when they differ by more than 10 %)")

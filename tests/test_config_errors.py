@@ -101,3 +101,14 @@ def test_pipeline_trainer_config_combines_section_and_run_settings():
     # the resolved SLAM configuration round-trips through YAML with the full trainer section
     slam = SlamConfig(training=tc)
     assert SlamConfig.model_validate(yaml.safe_load(yaml.safe_dump(slam.model_dump(mode="json")))) == slam
+
+
+def test_yaml_on_off_and_sequence_numbers_are_read_as_meant(tmp_path):
+    """YAML 1.1 turns an unquoted `off` into False and `05` into 5: the spelling the README uses works."""
+    path = tmp_path / "c.yaml"
+    for text, deskew, seq in [("odometry: {deskew: off}\ndata: {seq: 05}\n", "off", "05"),
+                              ("odometry: {deskew: on}\ndata: {seq: 00}\n", "on", "00"),
+                              ("odometry: {deskew: auto}\ndata: {seq: '08'}\n", "auto", "08")]:
+        path.write_text(text)
+        cfg = load_config(path, {})
+        assert (cfg.odometry.deskew, cfg.data.seq) == (deskew, seq), text

@@ -48,6 +48,31 @@ def test_times_from_azimuth_clockwise_sweep() -> None:
     np.testing.assert_allclose(times_from_azimuth(pts, clockwise=False), [1.0, 0.75, 0.5, 0.25, 0.0], atol=1e-6)
 
 
+def test_times_from_azimuth_follow_the_sensors_spin_and_start() -> None:
+    """sensor.rotation and sensor.sweep_start_azimuth_deg: a counter-clockwise sensor, or one whose sweep
+    starts straight ahead, gets its own times; the default (clockwise from behind) is the formula of before."""
+    deg = np.array([0.0, -90.0, 90.0, 179.0, -179.0, 45.0])
+    pts = np.column_stack([np.cos(np.radians(deg)), np.sin(np.radians(deg)), np.zeros(len(deg))])
+    np.testing.assert_allclose(times_from_azimuth(pts, True, 0.0), [0.0, 0.25, 0.75, 181 / 360, 179 / 360, 315 / 360],
+                               atol=1e-12)
+    np.testing.assert_allclose(times_from_azimuth(pts, False, 0.0), [0.0, 0.75, 0.25, 179 / 360, 181 / 360, 45 / 360],
+                               atol=1e-12)
+    np.testing.assert_allclose(times_from_azimuth(pts, False, 90.0)[[2, 0, 1]], [0.0, 0.75, 0.5], atol=1e-12)
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    np.testing.assert_array_equal(times_from_azimuth(pts), np.clip(0.5 * (1.0 - az / np.pi), 0, 1))
+    np.testing.assert_allclose(times_from_azimuth(pts, True, -180.0), times_from_azimuth(pts), atol=1e-12)
+    # deskewing a counter-clockwise sweep with its own times undoes it; with the clockwise default it does not
+    rng = np.random.default_rng(2)
+    world = rng.uniform(-20, 20, (2000, 3))
+    motion = exp_se3(np.array([0.0, 0.0, 0.05, 1.0, 0.1, 0.0]))
+    ccw = times_from_azimuth(world, False, 0.0)
+    measured = distort(world, ccw, motion)
+    again = times_from_azimuth(measured, False, 0.0)
+    err_own = np.linalg.norm(deskew(measured, again, motion) - world, axis=1)
+    err_default = np.linalg.norm(deskew(measured, times_from_azimuth(measured), motion) - world, axis=1)
+    assert np.median(err_own) < 0.2 * np.median(err_default)
+
+
 def test_normalise_times_units_and_errors() -> None:
     ns = np.array([1_000_000_000, 1_050_000_000, 1_100_000_000], np.float64)
     np.testing.assert_allclose(normalise_times(ns), [0, 0.5, 1])
@@ -73,3 +98,19 @@ def test_closed_form_matches_per_point_matrices_and_distort_inverts(xi: np.ndarr
     np.testing.assert_allclose(deskew(p, t, exp_se3(xi)), expected, atol=1e-9)
     np.testing.assert_allclose(deskew(distort(p, t, exp_se3(xi)), t, exp_se3(xi)), p, atol=1e-9)
     assert np.abs(distort(p, t, exp_se3(xi)) - p).max() > 0.1
+
+
+def test_the_frame_deskewer_takes_the_sensors_spin_for_frames_without_times() -> None:
+    from gr_graph.config import load_config
+    from gr_graph.datasets.base import LidarFrame
+    from gr_graph.frame_loop import FrameDeskewer
+
+    cfg = load_config(None, {"sensor": {"rotation": "counterclockwise", "sweep_start_azimuth_deg": 0.0}})
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-20, 20, (500, 3))
+    frame = LidarFrame(0, 0.0, pts, np.zeros(500, np.float32))
+    step = exp_se3(np.array([0.0, 0.0, 0.02, 0.8, 0.0, 0.0]))
+    sensor = cfg.sensor
+    out = FrameDeskewer(None, sensor.rotation == "clockwise", sensor.sweep_start_azimuth_deg)(frame, step, 0.1)
+    np.testing.assert_allclose(out.points, deskew(pts, times_from_azimuth(pts, False, 0.0), step))
+    assert not np.allclose(out.points, FrameDeskewer(None)(frame, step, 0.1).points)

@@ -676,11 +676,12 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
 
     keyframes = {"map_keyframe_translation", "map_keyframe_rotation_deg"}
     loop_options = {"min_path_length", "sc_height_offset"}
+    spin_options = {"rotation", "sweep_start_azimuth_deg"}
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                     "render_process"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
                                                                       "cluster_size", "min_clusters"},
-                                           "odometry": keyframes, "loops": loop_options})
+                                           "odometry": keyframes, "loops": loop_options, "sensor": spin_options})
     # sensor.time_unit / time_reference became None (guessed): hashed as their former defaults
     d["sensor"].update(time_unit="s", time_reference="sweep_start")
     assert round_fingerprint(a, 0) == hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
@@ -695,9 +696,10 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                                    "map_keyframe_rotation_deg": 1.0}})
     assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
     # loops.min_path_length and sc_height_offset likewise
-    for loops in ({"min_path_length": 20.0}, {"sc_height_offset": 3.0}):
-        lp = load_config(None, {"training": {"rounds": 2}, "loops": loops})
-        assert all(round_fingerprint(lp, r) != round_fingerprint(a, r) for r in (0, 1)), loops
+    for section, options in (("loops", {"min_path_length": 20.0}), ("loops", {"sc_height_offset": 3.0}),
+                             ("sensor", {"rotation": "counterclockwise"}), ("sensor", {"sweep_start_azimuth_deg": 0.0})):
+        lp = load_config(None, {"training": {"rounds": 2}, section: options})
+        assert all(round_fingerprint(lp, r) != round_fingerprint(a, r) for r in (0, 1)), options
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, **legacy, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
@@ -705,6 +707,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                                      "render_process"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
                                                       "min_clusters"}, "odometry": keyframes, "loops": loop_options,
+                                            "sensor": spin_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")

@@ -47,6 +47,57 @@ def test_ring_order_and_frames() -> None:
         conv.frame(too_many, 4, 0.4, "later.bag")
 
 
+def test_interleaved_ring_numbers_are_renumbered_by_elevation(caplog: pytest.LogCaptureFixture) -> None:
+    """Laser ids in firing order (VLP-16-style: even ids the lower half, odd ids the upper, each rising):
+    the frames' rings count from the highest beam by elevation, so --channels keeps beams spread over
+    the whole field of view, not the upper half only."""
+    import logging
+
+    from gr_graph.datasets.base import LidarFrame
+    from gr_graph.datasets.channels import subsample_channels
+
+    n = 64
+    elevation_deg = np.linspace(2.0, -24.8, n)  # by beam, highest first
+    beam_of_id = np.array([n - 1 - k // 2 if k % 2 == 0 else n // 2 - 1 - k // 2 for k in range(n)])
+    assert sorted(beam_of_id) == list(range(n))  # even ids: lowest beams rising, odd ids: upper half rising
+    az = np.linspace(-np.pi, np.pi, 40, endpoint=False)
+    ids = np.repeat(np.arange(n), len(az))
+    e, a = np.radians(elevation_deg[beam_of_id[ids]]), np.tile(az, n)
+    pts = 15.0 * np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    cloud = DecodedCloud(pts, None, None, None, ids, 0)
+    with caplog.at_level(logging.WARNING):
+        conv = FieldConventions.probe(cloud, 0.1, "firing_order.pcd")
+    assert "not in elevation order" in caplog.text and conv.ring_table is not None and not conv.flip_rings
+    frame = conv.frame(cloud, 0, 0.0, "firing_order.pcd")
+    np.testing.assert_array_equal(frame.ring, beam_of_id[ids])  # numbered by elevation, highest first
+    kept = subsample_channels(LidarFrame(0, 0.0, frame.points, frame.intensity, frame.ring, n), 16)
+    kept_elevation = np.degrees(np.arctan2(kept.points[:, 2], np.hypot(kept.points[:, 0], kept.points[:, 1])))
+    assert kept_elevation.max() == pytest.approx(2.0) and kept_elevation.min() < -23.0  # every 4th beam
+    # rings in order (or reversed) need no table: the frames are as before
+    assert FieldConventions.probe(_cloud(16, lowest_first=True), 0.1, "src").ring_table is None
+    assert FieldConventions.probe(_cloud(16, lowest_first=False), 0.1, "src").ring_table is None
+    # neighbours out of order by less than the tolerance (interleaved HDL-64E lasers): left in storage order
+    elev = np.radians(np.linspace(15.0, -15.0, 16))
+    elev[6] = elev[5] + np.radians(0.05)  # ring 6 0.05 deg above ring 5
+    r = np.repeat(np.arange(16), 50)
+    az16 = np.tile(np.linspace(-np.pi, np.pi, 50, endpoint=False), 16)
+    pts16 = 10.0 * np.column_stack([np.cos(elev[r]) * np.cos(az16), np.cos(elev[r]) * np.sin(az16), np.sin(elev[r])])
+    assert FieldConventions.probe(DecodedCloud(pts16, None, None, None, r, 0), 0.1, "src").ring_table is None
+
+
+def test_a_first_frame_with_constant_times_does_not_hide_the_sequences_times() -> None:
+    """A first message whose time field is all zeros, then real sweeps: the sequence has per-point times
+    (raw sweeps, deskewed with them), not 'motion-compensated' because of its first frame."""
+    ns = np.linspace(0.0, 99_000_000.0, 800)
+    zero = _cloud(16, lowest_first=False, times=np.zeros(800))
+    later = [(_cloud(16, lowest_first=False, times=ns), f"{k}.pcd") for k in range(1, 5)]
+    conv = FieldConventions.probe(zero, 0.1, "0.pcd", more=later)
+    assert conv.has_time and conv.motion_compensated is False and conv.time_unit_s == 1e-9
+    np.testing.assert_allclose(conv.frame(later[0][0], 1, 0.1, "1.pcd").time, ns * 1e-9 / 0.1)
+    # every probe constant: no times (as before), logged
+    assert not FieldConventions.probe(zero, 0.1, "0.pcd", more=[(zero, "1.pcd")]).has_time
+
+
 def test_times_become_sweep_fractions() -> None:
     ns = np.linspace(0.0, 99_000_000.0, 800)  # Ouster: uint32 nanoseconds from the sweep start
     cloud = _cloud(16, lowest_first=False, times=ns)

@@ -326,6 +326,18 @@ def test_data_fingerprint_of_files_and_of_the_synthetic_world(tmp_path):
     # the synthetic world has no files: its identity is its configuration (in the round fingerprint)
     syn = SyntheticSequence(seed=0, preset="clean")
     assert data_fingerprint(syn) == {"n_frames": len(syn), "files": None, "digest": None}
+    # ... but for one rendered along a given pose file: that file's content is part of its identity
+    from gr_graph.trajectory import write_kitti_poses
+
+    path = np.tile(np.eye(4), (40, 1, 1))
+    path[:, 0, 3] = np.arange(40) * 0.8
+    write_kitti_poses(tmp_path / "path.txt", path)
+    along = data_fingerprint(SyntheticSequence(seed=0, preset="clean", trajectory=tmp_path / "path.txt"))
+    assert along["files"] is None and along["digest"] is not None
+    path[20:, 1, 3] = 0.5  # the same file name, another path
+    write_kitti_poses(tmp_path / "path.txt", path)
+    assert data_fingerprint(SyntheticSequence(seed=0, preset="clean", trajectory=tmp_path / "path.txt"))["digest"] \
+        != along["digest"]
 
 
 def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tmp_path, caplog):

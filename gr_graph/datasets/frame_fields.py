@@ -140,6 +140,36 @@ def rings_rise_with_elevation(points: np.ndarray, ring: np.ndarray) -> bool:
     return float(np.corrcoef(ids, medians)[0, 1]) > 0.0
 
 
+#: after the flip, a ring whose median elevation lies more than this above the ring before it (by number)
+#: means the numbers are not in elevation order (e.g. a driver's firing-order laser ids): renumbered
+RING_ORDER_TOLERANCE_DEG = 0.1
+
+
+def ring_renumbering(clouds: list[DecodedCloud], n_rings: int, flip: bool) -> np.ndarray | None:
+    """A lookup table ``stored ring -> ring numbered from the highest beam`` when the stored numbers are
+    not in elevation order (beyond :data:`RING_ORDER_TOLERANCE_DEG` between neighbours), else None.
+
+    The rings seen in ``clouds`` (the probe frames) are numbered by their median elevation, highest
+    first; rings not seen there take the numbers left, in their stored order (they are named in the
+    log). Rings in order, or in reverse order (``flip``), need no table.
+    """
+    elevation = np.concatenate([np.arctan2(c.points[:, 2], np.hypot(c.points[:, 0], c.points[:, 1]))
+                                for c in clouds])
+    ring = np.concatenate([np.asarray(c.ring, np.int64) for c in clouds])
+    ids = np.unique(ring)
+    if len(ids) < 3:
+        return None
+    medians = np.degrees(np.array([np.median(elevation[ring == r]) for r in ids]))
+    in_storage_order = medians[::-1] if flip else medians  # by the number the frames will carry
+    if not (np.diff(in_storage_order) > RING_ORDER_TOLERANCE_DEG).any():
+        return None
+    table = np.full(n_rings, -1, np.int16)
+    table[ids[np.argsort(-medians, kind="stable")]] = np.arange(len(ids))
+    unseen = np.flatnonzero(table < 0)
+    table[unseen] = np.arange(len(ids), n_rings)
+    return table
+
+
 @dataclass
 class FieldConventions:
     """How a sequence turns decoded fields into frames (fixed by :meth:`probe` on the probe frames).
@@ -147,8 +177,8 @@ class FieldConventions:
     Attributes
     ----------
     has_time : bool
-        The first probe frame has a per-point time field (and it spans more than 0): the scans are
-        raw sweeps, not motion-compensated (also when ``use_time`` is False).
+        A probe frame has a per-point time field that spans more than 0: the scans are raw sweeps,
+        not motion-compensated (also when ``use_time`` is False).
     time_unit_s : float
         Seconds per unit of the time field.
     scan_period : float
@@ -163,6 +193,9 @@ class FieldConventions:
         later frame with a higher ring is an error naming the fix (name the sensor).
     flip_rings : bool
         Rings are numbered from the lowest beam and get flipped.
+    ring_table : np.ndarray or None
+        Rings whose stored numbers are not in elevation order (:func:`ring_renumbering`): stored
+        number -> number from the highest beam (replaces the flip).
     time_reference : str
         What times count from (:data:`gr_graph.deskew.TIME_REFERENCES`; ``auto``: judged per
         frame from the values).
@@ -187,6 +220,7 @@ class FieldConventions:
     has_ring: bool = False
     n_rings: int = 64
     flip_rings: bool = False
+    ring_table: np.ndarray | None = None
     time_reference: str = "auto"
     time_tolerance: float | None = None
     use_time: bool = True
@@ -248,8 +282,11 @@ class FieldConventions:
     def _probe_time(self, probes: list[tuple[DecodedCloud, str]], frame_period: float,
                     sensor: SensorConfig | None) -> None:
         want = None if sensor is None else sensor.has_time
-        cloud, source = probes[0]
-        if cloud.time is not None and len(cloud.time) and np.ptp(cloud.time) > 0:
+        # the first probe frame whose times vary: a first message with a constant (e.g. zero) time field
+        # does not make a sequence of raw sweeps look motion-compensated
+        varying = [(c, src) for c, src in probes if c.time is not None and len(c.time) and np.ptp(c.time) > 0]
+        cloud, source = varying[0] if varying else probes[0]
+        if varying:
             self.has_time = True
             if want is False:
                 self.use_time = False
@@ -323,7 +360,17 @@ class FieldConventions:
         else:
             self.n_rings = ring_count(highest)
         self.flip_rings = rings_rise_with_elevation(cloud.points, cloud.ring)
-        if self.flip_rings:
+        self.ring_table = ring_renumbering([c for c, _ in ringed], self.n_rings, self.flip_rings)
+        if self.ring_table is not None:
+            self.flip_rings = False
+            seen = np.unique(np.concatenate([np.asarray(c.ring) for c, _ in ringed]))
+            unseen = sorted(set(range(self.n_rings)) - set(seen.tolist()))
+            log.warning("%s: the ring numbers are not in elevation order (e.g. a driver's firing-order laser "
+                        "ids): rings renumbered by their median elevation over the %d probe frames, highest "
+                        "first%s", source, len(ringed),
+                        f"; rings {unseen} not seen there take the numbers {len(seen)}-{self.n_rings - 1}"
+                        if unseen else "")
+        elif self.flip_rings:
             log.info("%s: ring 0 is the lowest beam: rings flipped to number from the highest", source)
 
     def _check_named_rings(self, highest: int, source: str) -> None:
@@ -372,6 +419,8 @@ class FieldConventions:
             raise DatasetError(f"{source}: ring {highest} >= {self.n_rings} rings counted in the probe frames (which "
                                "misses some beams, e.g. the sky): name the sensor so the count does not come from "
                                "the data (--sensor NAME, or sensor: {model: custom, n_beams: N, ...})")
+        if self.ring_table is not None:
+            return self.ring_table[np.asarray(cloud.ring, np.int64)]
         r = (self.n_rings - 1 - cloud.ring) if self.flip_rings else cloud.ring
         return np.asarray(r).astype(np.int16)
 
@@ -390,7 +439,7 @@ class FieldConventions:
             elif n == 0:  # an empty message declaring no fields: an empty frame like the others
                 time = np.zeros(0)
             else:
-                raise DatasetError(f"{source}: no per-point time field, but the sequence's first frame has one")
+                raise DatasetError(f"{source}: no per-point time field, but the sequence's probe frames have one")
         ring = None
         if self.has_ring and self.use_ring:
             if cloud.ring is not None:
