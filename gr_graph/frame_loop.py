@@ -95,16 +95,18 @@ class UnusableScansError(DatasetError):
 
 def scale_learned_information(edges: list[RegistrationEdge], scale: float) -> int:
     """Multiply the information of every edge that has the learned H(C) (``info["edge_noise"] ==
-    "learned"``) by ``scale``; return how many edges were left as they are.
+    "learned"``), and of every failed registration, by ``scale``; return how many edges were left as
+    they are.
 
-    The others carry the registration information, already divided by their own residuals' variance
-    factor (:func:`gr_graph.odometry.scaled_information`), or a failed registration's weak fallback:
-    scaled by the variance factor of the raw H(C) (0.002-0.4 in the published runs) they would
-    count hundreds of times less than their precision.
+    Those left are registrations that kept their registration information, already divided by their own
+    residuals' variance factor (:func:`gr_graph.odometry.scaled_information`): scaled by the variance
+    factor of the raw H(C) (0.002-0.4 in the published runs) they would count hundreds of times less
+    than their precision. A failed registration's fallback (a guess, ``graph.fallback_sigmas``) is
+    scaled with the learned edges, so that it stays weak beside them.
     """
     kept = 0
     for e in edges:
-        if e.info.get("edge_noise") == "learned":
+        if e.info.get("edge_noise") == "learned" or not e.ok:
             e.information = scale * np.asarray(e.information, np.float64)
         else:
             kept += 1
