@@ -320,6 +320,11 @@ def test_mean_std_and_reduction_by_hand():
     assert d["n"] == 3 and d["mean"] == pytest.approx(7 / 3)
     assert d["std"] == pytest.approx(statistics.stdev([1.0, 2.0, 4.0]))
     assert agg.mean_std([5.0])["std"] is None and agg.mean_std([None])["mean"] is None
+    # a seed left out (None, or NaN: a diverged run) shows in the printed figure, not only in n
+    assert d["n_given"] == 4 and agg.fmt_ms(d) == "2.333 ± 1.528 (n=3 of 4)"
+    assert agg.fmt_ms(agg.mean_std([0.5, float("nan"), 0.7]), pct=True) == "0.600 ± 0.141 % (n=2 of 3)"
+    assert agg.fmt_ms(agg.mean_std([0.5, 0.7])) == "0.600 ± 0.141" and agg.fmt_ms(agg.mean_std([5.0, None])) == \
+        "5.000 (n=1 of 2)"
     assert agg.reduction_percent(0.2, 0.15) == pytest.approx(25.0)
     assert agg.reduction_percent(0.2, 0.3) == pytest.approx(-50.0)
     assert agg.reduction_percent(None, 1.0) is None and agg.reduction_percent(0.0, 1.0) is None
@@ -385,6 +390,12 @@ def test_table2_success_mean_std_and_best_step():
     assert s["best_step"]["fpfh_ransac"]["step"] == "2-step"  # 87.5 > 85
     assert s["best_step"]["fpfh_ransac"]["mean"] == pytest.approx(87.5)
     assert s["paper"] == {"raw": 90.0, "best_step": 96.0}
+    # a cell without a success rate (no pair evaluated) is missing, not 0 %
+    res.append({"definition": {"channels": 32, "seed": 2, "params": {"round": 0}},
+                "summary": {"fpfh_ransac": {"success_rate": None, "n_pairs": 0}}})
+    raw = agg.table2_summary(res)["32"]["steps"]["raw"]["fpfh_ransac"]
+    assert raw["mean"] == pytest.approx(75.0) and raw["n"] == 2 and raw["n_given"] == 3
+    assert [p["success_percent"] for p in raw["per_seed"]] == [pytest.approx(80.0), pytest.approx(70.0), None]
 
 
 def test_ablation_differences_and_the_consistency_rule():
@@ -407,6 +418,11 @@ def test_ablation_differences_and_the_consistency_rule():
     noise = s["rounding"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]
     assert all(v < 0 for v in noise["values"]) and abs(noise["mean"]) > noise["std"]
     assert not noise["consistent"]
+    # an ablation finished for 2 of the baseline's 3 seeds cannot be called consistent, however they agree
+    two = agg.ablation_summary([r for r in res if not (r["definition"]["group"] == "pca"
+                                                       and r["definition"]["seed"] == 2)])
+    d2 = two["pca"]["steps"]["2-step"]["diff_rpe300_consecutive_mean"]
+    assert d2["values"] == pytest.approx([0.05, 0.06]) and not d2["consistent"]
 
 
 def test_ablation_reductions_against_round0_guarded_step_and_acceptance(tmp_path, monkeypatch):

@@ -54,14 +54,16 @@ NEES_IDEAL = {"nees_odometry_mean": 6, "nees_loop_mean": 6, "nees_position_mean"
 
 
 def mean_std(values: Iterable[float | None]) -> dict[str, Any]:
-    """``{"mean", "std", "n", "values"}`` over the non-None, finite values (std: ddof=1, None if n < 2)."""
-    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    """``{"mean", "std", "n", "n_given", "values"}`` over the non-None, finite values (std: ddof=1, None if
+    n < 2); ``n_given`` counts every value given, so a seed left out (None, NaN: a diverged run) shows."""
+    given = list(values)
+    vals = [float(v) for v in given if v is not None and math.isfinite(float(v))]
     n = len(vals)
     if n == 0:
-        return {"mean": None, "std": None, "n": 0, "values": []}
+        return {"mean": None, "std": None, "n": 0, "n_given": len(given), "values": []}
     m = sum(vals) / n
     s = math.sqrt(sum((v - m) ** 2 for v in vals) / (n - 1)) if n >= 2 else None
-    return {"mean": m, "std": s, "n": n, "values": vals}
+    return {"mean": m, "std": s, "n": n, "n_given": len(given), "values": vals}
 
 
 def reduction_percent(raw: float | None, value: float | None) -> float | None:
@@ -106,13 +108,15 @@ def _reductions(cell: dict[str, Any], fig: dict[str, Any], diagnostics: dict[str
 
 
 def fmt_ms(d: dict[str, Any] | None, fmt: str = "{:.3f}", pct: bool = False) -> str:
-    """``mean ± std`` (``n/a`` parts when missing)."""
+    """``mean ± std`` (``n/a`` parts when missing); ``(n=k of N)`` when values were left out (None, NaN)."""
     if not d or d.get("mean") is None:
         return "n/a"
     u = " %" if pct else ""
+    given = d.get("n_given", d["n"])
+    left_out = f" (n={d['n']} of {given})" if given > d["n"] else ""
     if d.get("std") is None:
-        return f"{fmt.format(d['mean'])}{u} (n={d['n']})"
-    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])}{u}"
+        return f"{fmt.format(d['mean'])}{u} (n={d['n']}{f' of {given}' if given > d['n'] else ''})"
+    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])}{u}{left_out}"
 
 
 def acceptance_recorded(results: Sequence[dict[str, Any]]) -> bool:
@@ -191,7 +195,8 @@ def table2_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         ch, step = d["channels"], ("raw" if d["params"]["round"] == 0 else f"{d['params']['round']}-step")
         for solver, s in c["summary"].items():
             row = out.setdefault(str(ch), {}).setdefault(step, {}).setdefault(solver, {"per_seed": []})
-            row["per_seed"].append({"seed": d["seed"], "success_percent": 100.0 * (s["success_rate"] or 0.0),
+            rate = s["success_rate"]  # None (no pair evaluated) stays missing, not 0 %
+            row["per_seed"].append({"seed": d["seed"], "success_percent": None if rate is None else 100.0 * rate,
                                     "n_pairs": s["n_pairs"], "note": c.get("note")})
     for ch, steps in out.items():
         for step, solvers in list(steps.items()):
@@ -249,7 +254,9 @@ def ablation_summary(results: Sequence[dict[str, Any]], baseline: str = "default
                 base_mean = mean_std(p[k] - p[f"diff_{k}"] for p in per_seed
                                      if p.get(k) is not None and p.get(f"diff_{k}") is not None)["mean"]
                 resolution = MIN_RELATIVE_GAP * abs(base_mean) if base_mean is not None else 0.0
-                diff["consistent"] = bool(len(vals) >= 2 and (all(v > 0 for v in vals) or all(v < 0 for v in vals))
+                # every seed of the ablation, each with a difference (a seed left out cannot agree)
+                diff["consistent"] = bool(len(vals) >= 2 and len(vals) == len(per_seed) == len(base)
+                                          and (all(v > 0 for v in vals) or all(v < 0 for v in vals))
                                           and diff["std"] is not None and abs(diff["mean"]) > diff["std"]
                                           and abs(diff["mean"]) > resolution)
                 entry[f"diff_{k}"] = diff

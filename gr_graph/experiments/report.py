@@ -140,6 +140,11 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
             "| KISS-ICP | peak memory [GiB] |", "|---|---|---|---|---|---|---|---|", *rows, ""]
 
 
+def _percent(value: float | None) -> str:
+    """A success rate [%] of one seed, ``n/a`` when no pair was evaluated."""
+    return "n/a" if value is None else f"{value:.0f}"
+
+
 def _table2_md(summary: dict[str, Any]) -> list[str]:
     lines = ["Success = rotation error < 10° and translation error < 2 m, pairs within 10 m (ground truth), "
              "sampled with the world seed; the same pairs for every step of a seed.", "",
@@ -150,7 +155,7 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
             for solver, row in solvers.items():
                 pap = paper.get("raw") if step == "raw" else None
                 lines.append(f"| {ch} | {step} | {solver} | {agg.fmt_ms(row, '{:.1f}')} | "
-                             f"{', '.join('%.0f' % q['success_percent'] for q in row['per_seed'])} | "
+                             f"{', '.join(_percent(q['success_percent']) for q in row['per_seed'])} | "
                              f"{'' if pap is None else f'raw {pap:.0f}'} |")
         for solver, b in s["best_step"].items():
             lines.append(f"| {ch} | best densified step | {solver} | {b['mean']:.1f} ({b['step']}) | | "
