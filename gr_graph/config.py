@@ -74,7 +74,7 @@ class DataConfig(_Section):
         "xyzi", description="KITTI .bin layout: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)"
     )
     kitti_vertical_correction_deg: float = Field(
-        0.0, ge=-2.0, le=2.0, description="KITTI folders and the synthetic sequence: raise every point's elevation "
+        0.0, ge=-2.0, le=2.0, description="raise every point's elevation (any data: KITTI folders and raw drives, the synthetic sequence, folders, bags) "
         "by this angle (HDL-64E vertical-angle error; KISS-ICP 1.3.0 uses 0.205, published values 0.195-0.22; the "
         "kitti/raw presets have 0.22); 0: off (any KITTI-layout folder, synthetic exports included, is read unchanged)"
     )
@@ -480,10 +480,17 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         if not isinstance(loaded, dict):
             raise ValueError(f"{p}: a config file must hold a mapping of sections")
         data = loaded
+    # a sensor section listing every key is taken for a config.yaml of before the section kept only the
+    # given keys (gr_graph.sensors.SensorConfig): only when one source (the file, or the overrides) lists
+    # them all, not when command-line options (--sensor) complete a file's section
+    from gr_graph.sensors import FORMER_FULL_DUMP_KEYS
+
+    sections = [data.get("sensor"), (overrides or {}).get("sensor")]
+    one_file = any(isinstance(d, dict) and set(FORMER_FULL_DUMP_KEYS) <= set(d) for d in sections)
     if overrides:
         data = merge_config(data, overrides)
     try:
-        return SlamConfig.model_validate(data)
+        return SlamConfig.model_validate(data, context={"sensor_section_from_one_file": one_file})
     except ValidationError as exc:
         source = f"configuration ({path} and command line)" if path is not None else "configuration"
         raise ConfigError(describe_validation_error(exc, SlamConfig, what=source)) from None

@@ -77,16 +77,18 @@ by the former ``(t - t_min) / period``)."""
 def resolve_time_reference(times: np.ndarray, scan_period: float) -> str:
     """What ``times`` (seconds) count from, judged from their values (``reference="auto"``).
 
-    ``"sweep_start"`` when every time lies in ``[0, scan_period]`` (up to
-    :data:`RELATIVE_SLACK` periods), ``"sweep_end"`` when every time lies in
-    ``[-scan_period, 0]``, else ``"absolute"`` (stamps on some clock). Empty times count as
-    ``"sweep_start"``.
+    ``"sweep_end"`` when every time lies in ``[-scan_period, 0]`` and one is below 0 (also a
+    sweep's last few milliseconds, which would fit the start's slack too), ``"sweep_start"`` when
+    every time lies in ``[0, scan_period]`` (up to :data:`RELATIVE_SLACK` periods), else
+    ``"absolute"`` (stamps on some clock). Empty times count as ``"sweep_start"``.
     """
     t = np.asarray(times, np.float64)
     if t.size == 0:
         return "sweep_start"
     slack = RELATIVE_SLACK * float(scan_period)
     lo, hi = float(t.min()), float(t.max())
+    if lo < 0.0 and hi <= 0.0 and lo >= -scan_period - slack:  # all back from 0: the tail of a sweep-end sweep
+        return "sweep_end"
     if lo >= -slack and hi <= scan_period + slack:
         return "sweep_start"
     if lo >= -scan_period - slack and hi <= slack:

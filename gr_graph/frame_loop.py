@@ -113,6 +113,16 @@ def scale_learned_information(edges: list[RegistrationEdge], scale: float) -> in
     return kept
 
 
+def deskew_scan_period(cfg: SlamConfig, sequence: Any) -> float | None:
+    """The sweep duration deskewing assumes [s]: ``odometry.deskew_scan_period``, else ``sensor.scan_period``
+    (said for the sensor: also for KITTI-layout folders, whose loader has no sweep duration of its own),
+    else the sequence's ``scan_period``, else None (one frame spacing)."""
+    for value in (cfg.odometry.deskew_scan_period, cfg.sensor.scan_period, getattr(sequence, "scan_period", None)):
+        if value is not None:
+            return float(value)
+    return None
+
+
 def check_usable_scans(n_usable: int, n_frames: int, name: str, cfg: SlamConfig) -> None:
     """Stop a run whose scans give no trajectory; warn when most of them are unusable.
 
@@ -384,9 +394,7 @@ class _FrameLoop:
         self.n_dropped = 0
         self.usable: list[bool] = []  # per run position: the scan was usable (preprocess.min_points)
         self.deskew_on, self.deskew_reason = deskew_enabled(cfg.odometry.deskew, sequence)
-        scan_period = cfg.odometry.deskew_scan_period
-        if scan_period is None and getattr(sequence, "scan_period", None) is not None:
-            scan_period = float(sequence.scan_period)
+        scan_period = deskew_scan_period(cfg, sequence)
         self.deskewer = FrameDeskewer(scan_period, cfg.sensor.rotation == "clockwise", cfg.sensor.sweep_start_azimuth_deg)
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are

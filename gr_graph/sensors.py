@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 __all__ = [
     "SensorModel", "SENSOR_MODELS", "DEFAULT_SENSOR", "CUSTOM", "sensor_model", "sensor_names",
@@ -216,8 +216,10 @@ class SensorConfig(BaseModel):
         return key
 
     @model_validator(mode="after")
-    def _resolve(self) -> "SensorConfig":
-        self._forget_former_default_dump()
+    def _resolve(self, info: ValidationInfo) -> "SensorConfig":
+        # a section completed by command-line options is not a former dump (gr_graph.config.load_config)
+        if (info.context or {}).get("sensor_section_from_one_file", True):
+            self._forget_former_default_dump()
         if self.model == CUSTOM:
             self._resolve_custom()
         else:

@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="constant-velocity motion compensation of each scan to mid-sweep; auto: on for sequences "
                         f"that are not motion-compensated, off for KITTI odometry folders (default: {d.odometry.deskew})")
     p.add_argument("--kitti-vertical-correction", type=float, default=None, metavar="DEG",
-                   help="KITTI folders and the synthetic sequence: raise every point's elevation by DEG degrees "
+                   help="raise every point's elevation by DEG degrees (KITTI folders and raw drives, the synthetic sequence; any data) "
                         "(KISS-ICP: 0.205) "
                         f"(default: {d.data.kitti_vertical_correction_deg})")
     p.add_argument("--loop-variance", choices=("fixed", "estimated", "estimated_axes"), default=None,

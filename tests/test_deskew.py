@@ -114,3 +114,35 @@ def test_the_frame_deskewer_takes_the_sensors_spin_for_frames_without_times() ->
     out = FrameDeskewer(None, sensor.rotation == "clockwise", sensor.sweep_start_azimuth_deg)(frame, step, 0.1)
     np.testing.assert_allclose(out.points, deskew(pts, times_from_azimuth(pts, False, 0.0), step))
     assert not np.allclose(out.points, FrameDeskewer(None)(frame, step, 0.1).points)
+
+
+def test_the_deskewing_sweep_duration_follows_what_was_said() -> None:
+    """odometry.deskew_scan_period, else sensor.scan_period (also for loaders without a sweep duration, e.g.
+    KITTI-layout folders), else the sequence's, else None (one frame spacing)."""
+    from types import SimpleNamespace
+
+    from gr_graph.config import load_config
+    from gr_graph.frame_loop import deskew_scan_period
+
+    kitti_like, timed = SimpleNamespace(), SimpleNamespace(scan_period=0.1)
+    assert deskew_scan_period(load_config(None, {}), kitti_like) is None
+    assert deskew_scan_period(load_config(None, {}), timed) == 0.1
+    said = load_config(None, {"sensor": {"scan_period": 0.05}})
+    assert deskew_scan_period(said, kitti_like) == 0.05 and deskew_scan_period(said, timed) == 0.05
+    both = load_config(None, {"sensor": {"scan_period": 0.05}, "odometry": {"deskew_scan_period": 0.08}})
+    assert deskew_scan_period(both, timed) == 0.08
+
+
+def test_the_tail_of_a_sweep_end_sweep_stays_at_the_end() -> None:
+    """Times of a sweep's last 4 ms counted back from its end ([-0.004, 0] s) also fit the sweep start's
+    slack; they are the end of the sweep (fractions 0.96-1), not its start."""
+    from gr_graph.deskew import resolve_time_reference
+
+    tail = np.linspace(-0.004, 0.0, 50)
+    assert resolve_time_reference(tail, 0.1) == "sweep_end"
+    np.testing.assert_allclose(normalise_times(tail, 0.1), 1.0 + tail / 0.1)
+    # as before: start-relative times with a little jitter below 0, a whole sweep back from its end, stamps
+    assert resolve_time_reference(np.array([-0.001, 0.05, 0.099]), 0.1) == "sweep_start"
+    assert resolve_time_reference(np.linspace(-0.1, 0.0, 20), 0.1) == "sweep_end"
+    assert resolve_time_reference(np.zeros(5), 0.1) == "sweep_start"
+    assert resolve_time_reference(1.7e9 + np.linspace(0, 0.1, 20), 0.1) == "absolute"

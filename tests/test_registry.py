@@ -132,3 +132,20 @@ def test_synthetic_vertical_correction_raises_every_point(monkeypatch: pytest.Mo
                            np.arctan2(a.points[:, 2], np.hypot(a.points[:, 0], a.points[:, 1])))
     assert np.allclose(elevation, 0.22, atol=1e-9)
     assert release_render_cache(fixed)  # the town is still reachable through the correcting view
+
+
+def test_vertical_correction_applies_to_a_folder_of_scans_too(tmp_path: Path) -> None:
+    """Given with a path (a folder here, a KITTI raw drive or a bag likewise), the correction is applied
+    and named in the source, not dropped without a word."""
+    from gr_graph.datasets.kitti import correct_vertical_angle
+
+    rng = np.random.default_rng(6)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(3):
+        np.save(folder / f"{k:06d}.npy", rng.uniform(-20, 20, (500, 3)).astype(np.float32))
+    plain, src_plain = open_sequence(path=folder)
+    fixed, src_fixed = open_sequence(path=folder, kitti_vertical_correction_deg=0.205)
+    assert "vertical-angle correction" not in src_plain and "), vertical-angle correction 0.205 deg" in src_fixed
+    np.testing.assert_array_equal(fixed[1].points, correct_vertical_angle(plain[1].points, 0.205))
+    assert len(fixed) == 3 and fixed[2].index == 2

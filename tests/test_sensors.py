@@ -308,3 +308,16 @@ def test_config_yaml_of_earlier_versions_keeps_its_meaning():
         assert round_fingerprint(SlamConfig(), r) == round_fingerprint(
             load_config(None, {"sensor": {"time_unit": "s", "time_reference": "sweep_start"}}), r)
     assert round_fingerprint(SlamConfig(), 0) != round_fingerprint(load_config(None, {"sensor": {"time_unit": "ns"}}), 0)
+
+
+def test_a_sensor_section_completed_by_the_command_line_keeps_what_it_says(tmp_path):
+    """A config file giving has_ring, has_time, time_unit: s, time_reference: sweep_start and scan_period,
+    with --sensor adding the other four keys, is no former full dump: its time unit and reference stay said."""
+    from gr_graph import slam
+
+    path = tmp_path / "c.yaml"
+    path.write_text("sensor: {has_ring: null, has_time: null, time_unit: s, time_reference: sweep_start, "
+                    "scan_period: null}\n")
+    overrides = slam.overrides_from_args(slam.build_parser().parse_args(["--sensor", "vlp16"]))
+    cfg = load_config(path, overrides).sensor
+    assert cfg.model == "vlp16" and cfg.time_unit == "s" and cfg.time_reference == "sweep_start"

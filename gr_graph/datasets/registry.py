@@ -306,7 +306,8 @@ def open_sequence(
         KITTI and the synthetic sequence: raise every point's elevation by this angle (see
         :func:`gr_graph.datasets.kitti.correct_vertical_angle`; the ``kitti`` and ``raw``
         presets' sensors point 0.22 deg higher than their calibration says, like KITTI's
-        HDL-64E); 0 reads the scans unchanged. Other recordings ignore it.
+        HDL-64E); 0 reads the scans unchanged. Given for other recordings (a KITTI raw drive, a folder,
+        a bag), it is applied to them too, and the description says so.
     synthetic_preset : str, optional
         Preset of the synthetic sequence, its world and sensor effects (``clean``, ``kitti``,
         ``raw``; default: ``kitti``, see
@@ -356,6 +357,8 @@ def open_sequence(
                                    f"it cannot be combined with {p}")
             base, source = _open_path(kind, p, point_format, topic, None if timestamps is None else str(timestamps),
                                       None if poses is None else str(poses), sensor)
+            if kitti_vertical_correction_deg:  # asked for: applied (a KITTI raw drive is the HDL-64E's data too)
+                base, source = _vertical_corrected(base, source, float(kitti_vertical_correction_deg))
             return _view(base, source, frames, sensor, n_rings)
     elif kind in ("kitti_raw", "folder", "rosbag"):
         raise DatasetError(f"dataset {kind!r} needs a path (python -m gr_graph.slam PATH, or data.path)")
@@ -413,12 +416,17 @@ def open_sequence(
             f"{synth.effects.describe()})"
         )
         if kitti_vertical_correction_deg:  # the presets' sensors carry KITTI's vertical-angle error too
-            from gr_graph.datasets.kitti import correct_vertical_angle
-
-            angle = float(kitti_vertical_correction_deg)
-            base = SequenceView(base, transform=lambda f: replace(f, points=correct_vertical_angle(f.points, angle)))
-            source += f", vertical-angle correction {angle:g} deg"
+            base, source = _vertical_corrected(base, source, float(kitti_vertical_correction_deg))
     return _view(base, source, frames, sensor, n_rings)
+
+
+def _vertical_corrected(base: LidarSequence, source: str, angle_deg: float) -> tuple[LidarSequence, str]:
+    """``base`` with every point's elevation raised by ``angle_deg`` (``data.kitti_vertical_correction_deg``)
+    as it is read, and its description saying so."""
+    from gr_graph.datasets.kitti import correct_vertical_angle
+
+    view = SequenceView(base, transform=lambda f: replace(f, points=correct_vertical_angle(f.points, angle_deg)))
+    return view, source + f", vertical-angle correction {angle_deg:g} deg"
 
 
 def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int] | None,
