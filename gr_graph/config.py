@@ -469,12 +469,15 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         If the file does not hold a mapping.
     """
     data: dict[str, Any] = {}
+    written_since_given_keys = False
     if path is not None:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config file not found: {p}")
+        text = p.read_text()
+        written_since_given_keys = text.startswith(GIVEN_SENSOR_KEYS_MARK)
         try:
-            loaded = yaml.safe_load(p.read_text()) or {}
+            loaded = yaml.safe_load(text) or {}
         except yaml.YAMLError as exc:  # e.g. a tab in the indentation
             raise ValueError(f"{p}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
@@ -485,7 +488,8 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
     # them all, not when command-line options (--sensor) complete a file's section
     from gr_graph.sensors import FORMER_FULL_DUMP_KEYS
 
-    sections = [data.get("sensor"), (overrides or {}).get("sensor")]
+    sections = [] if written_since_given_keys else [data.get("sensor")]  # a file of ours says what was given
+    sections.append((overrides or {}).get("sensor"))
     one_file = any(isinstance(d, dict) and set(FORMER_FULL_DUMP_KEYS) <= set(d) for d in sections)
     if overrides:
         data = merge_config(data, overrides)
@@ -508,6 +512,11 @@ def merge_config(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+#: first line of every configuration this version writes: its sensor section lists the keys that were given,
+#: so a section listing all of them is what was said, not an older full dump (:func:`load_config`)
+GIVEN_SENSOR_KEYS_MARK = "# gr_graph configuration (sensor: the keys given)"
+
+
 def config_to_yaml(cfg: SlamConfig) -> str:
     """The resolved configuration as YAML text (round-trips through :func:`load_config`).
 
@@ -519,7 +528,7 @@ def config_to_yaml(cfg: SlamConfig) -> str:
     """
     d = cfg.model_dump(mode="json")
     d["sensor"] = cfg.sensor.model_dump(mode="json", exclude_unset=True)
-    return yaml.safe_dump(d, sort_keys=False)
+    return GIVEN_SENSOR_KEYS_MARK + "\n" + yaml.safe_dump(d, sort_keys=False)
 
 
 def dump_config(cfg: SlamConfig, path: str | os.PathLike[str]) -> Path:

@@ -396,6 +396,12 @@ def test_table2_success_mean_std_and_best_step():
     raw = agg.table2_summary(res)["32"]["steps"]["raw"]["fpfh_ransac"]
     assert raw["mean"] == pytest.approx(75.0) and raw["n"] == 2 and raw["n_given"] == 3
     assert [p["success_percent"] for p in raw["per_seed"]] == [pytest.approx(80.0), pytest.approx(70.0), None]
+    # a densified step with no success rate at all: no mean, and no best step from it
+    only = [{"definition": {"channels": 16, "seed": 0, "params": {"round": r}},
+             "summary": {"kiss_matcher": {"success_rate": 0.7 if r == 0 else None, "n_pairs": 100 if r == 0 else 0}}}
+            for r in (0, 1)]
+    s16 = agg.table2_summary(only)["16"]
+    assert s16["steps"]["1-step"]["kiss_matcher"]["mean"] is None and s16["best_step"] == {}
 
 
 def test_ablation_differences_and_the_consistency_rule():

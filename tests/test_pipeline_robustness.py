@@ -436,3 +436,22 @@ def test_a_map_that_cannot_be_written_does_not_lose_the_round(tmp_path, monkeypa
     assert "map.ply: OSError" in summary["map"]["error"] and "No space left" in summary["map"]["error"]
     assert (out / "poses_kitti.txt").is_file() and not (out / "round_0" / "map.ply").exists()
     assert any("the map" in r.getMessage() and r.levelname == "ERROR" for r in caplog.records)
+
+
+def test_rounds_along_a_pose_file_finished_before_its_digest_was_kept_still_resume(tmp_path, caplog):
+    """A synthetic world along a pose file: rounds written before the file's poses were hashed (digest None)
+    resume; a round whose stored digest differs is refused, saying it is the pose file's poses."""
+    from types import SimpleNamespace
+
+    from gr_graph.pipeline import ResumeDataError, SlamPipeline
+
+    now = {"n_frames": 50, "files": None, "digest": "abcdef0123456789"}
+    stub = SimpleNamespace(data_fingerprint=now, source_description="the synthetic world", out=tmp_path,
+                           round_dir=lambda r: tmp_path / f"round_{r}")
+    with caplog.at_level(logging.INFO):
+        SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {"n_frames": 50, "files": None, "digest": None}})
+    assert "no digest of the synthetic world's pose file" in caplog.text
+    with pytest.raises(ResumeDataError, match="poses of the pose file it is rendered along differ"):
+        SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {**now, "digest": "0" * 16}})
+    with pytest.raises(ResumeDataError, match="40 frames then, 50 now"):
+        SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {"n_frames": 40, "files": None, "digest": None}})

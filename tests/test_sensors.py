@@ -319,5 +319,12 @@ def test_a_sensor_section_completed_by_the_command_line_keeps_what_it_says(tmp_p
     path.write_text("sensor: {has_ring: null, has_time: null, time_unit: s, time_reference: sweep_start, "
                     "scan_period: null}\n")
     overrides = slam.overrides_from_args(slam.build_parser().parse_args(["--sensor", "vlp16"]))
-    cfg = load_config(path, overrides).sensor
+    first = load_config(path, overrides)
+    cfg = first.sensor
     assert cfg.model == "vlp16" and cfg.time_unit == "s" and cfg.time_reference == "sweep_start"
+    # the run's config.yaml now lists all nine keys; a rerun from it alone still reads them as said
+    from gr_graph.config import dump_config
+
+    dump_config(first, tmp_path / "config.yaml")
+    again = load_config(tmp_path / "config.yaml").sensor
+    assert again.time_unit == "s" and again.time_reference == "sweep_start" and again == cfg

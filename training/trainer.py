@@ -84,6 +84,16 @@ class CheckpointMismatch(TrainingError):
     replaces it; :mod:`gr_graph.pipeline` does so, logged."""
 
 
+def _without_edge_hashes(description: Any) -> Any:
+    """A dataset description (:meth:`training.dataset.PairDataset.describe`) without its ``edges_sha256``
+    entries: the counts alone, as checkpoints written before the hash was kept hold them."""
+    if isinstance(description, dict):
+        return {k: _without_edge_hashes(v) for k, v in description.items() if k != "edges_sha256"}
+    if isinstance(description, list):
+        return [_without_edge_hashes(v) for v in description]
+    return description
+
+
 def save_atomic(obj: Any, path: Path) -> None:
     """``torch.save`` to ``path`` atomically (temporary sibling, fsync, ``os.replace``).
 
@@ -291,11 +301,24 @@ class Trainer:
         }
 
     def save_checkpoint(self) -> Path:
-        """Write ``checkpoint.pt`` atomically (rank 0 only); returns its path."""
+        """Write ``checkpoint.pt`` atomically (rank 0 only; every rank calls it); returns its path.
+
+        It holds the epoch's skipped pairs summed over the ranks (:meth:`skipped_this_epoch`)."""
         path = self.out_dir / CHECKPOINT_NAME
+        skipped = self.skipped_this_epoch()  # a collective: before the rank test
         if self.rank == 0:
-            save_atomic(self.state(), path)
+            save_atomic({**self.state(), "epoch_skipped": skipped}, path)
         return path
+
+    def skipped_this_epoch(self) -> int:
+        """Pairs of the current epoch skipped so far, over every rank (an all-reduce when distributed)."""
+        if self.world_size == 1:
+            return self.epoch_skipped
+        import torch.distributed as dist
+
+        total = torch.tensor([self.epoch_skipped], dtype=torch.int64, device=self.device)
+        dist.all_reduce(total)
+        return int(total.item())
 
     def try_resume(self) -> bool:
         """Load ``checkpoint.pt`` if present; True if resumed.
@@ -315,7 +338,11 @@ class Trainer:
         needed = ("model_state", "optimizer_state", "epoch", "step", "skip_counts", "torch_rng")
         if not isinstance(st, dict) or any(k not in st for k in needed):
             raise CheckpointMismatch(f"{path}: not a training checkpoint (needs {', '.join(needed)}); {hint}")
-        if st.get("dataset", self.dataset.describe()) != self.dataset.describe():
+        now = self.dataset.describe()
+        stored = st.get("dataset", now)
+        if stored != now and _without_edge_hashes(stored) == stored:  # written before the hash was kept:
+            now = _without_edge_hashes(now)  # its counts only
+        if stored != now:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration (other "
                                      f"training data: {st['dataset']}, now {self.dataset.describe()}); {hint}")
         if st.get("resume_key") != self.config.resume_key() or st.get("world_size") != self.world_size:
@@ -328,8 +355,8 @@ class Trainer:
         self.optimizer.load_state_dict(st["optimizer_state"])
         self.epoch, self.step = int(st["epoch"]), int(st["step"])
         self.skip_counts = Counter(st["skip_counts"])
-        # checkpoints before the count was kept: the epoch's skips before them are not known
-        self.epoch_skipped = int(st.get("epoch_skipped", 0))
+        # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
+        self.epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
         torch.set_rng_state(st["torch_rng"].cpu())
         log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
         self._truncate_log()
@@ -465,11 +492,11 @@ class Trainer:
                     if callback is not None:
                         callback(records[-1])
                 bar.close()
-                n_pairs = max(1, min(len(self.dataset), n_steps * B * W) // W)
-                if self.epoch_skipped > cfg.max_skip_fraction * n_pairs:
+                n_pairs = max(1, min(len(self.dataset), n_steps * B * W))  # over every rank
+                skipped = self.skipped_this_epoch()  # every rank decides alike
+                if skipped > cfg.max_skip_fraction * n_pairs:
                     raise TrainingError(
-                        f"epoch {self.epoch}: {self.epoch_skipped} of ~{n_pairs} pairs skipped "
-                        f"({dict(self.skip_counts)})"
+                        f"epoch {self.epoch}: {skipped} of ~{n_pairs} pairs skipped ({dict(self.skip_counts)})"
                     )
                 log.info("epoch %d done: %s", self.epoch, {k: float(np.mean(v)) for k, v in run.items() if v})
                 self.epoch += 1

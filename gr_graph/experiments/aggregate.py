@@ -205,7 +205,8 @@ def table2_summary(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         best: dict[str, Any] = {}
         solvers_all = {s for st in steps.values() for s in st}
         for solver in sorted(solvers_all):
-            dens = [(st, steps[st][solver]["mean"]) for st in steps if st != "raw" and solver in steps[st]]
+            dens = [(st, steps[st][solver]["mean"]) for st in steps if st != "raw" and solver in steps[st]
+                    and steps[st][solver]["mean"] is not None]  # a step without any success rate: none
             if dens:
                 st, m = max(dens, key=lambda x: x[1])
                 best[solver] = {"step": st, "mean": m}
