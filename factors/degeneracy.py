@@ -77,6 +77,9 @@ class DegeneracyReport:
         Whether any weak direction was found.
     threshold : float
         The eigenvalue threshold that was applied.
+    length_scale : float or None
+        The ``length_scale`` of the analysis: the eigenvectors' rotational parts are then arc
+        lengths at that distance (``omega * length_scale``).
     """
 
     eigenvalues: np.ndarray
@@ -85,6 +88,7 @@ class DegeneracyReport:
     condition_number: float
     is_degenerate: bool
     threshold: float
+    length_scale: float | None = None
 
     def direction_names(self) -> list[str]:
         """Human-readable name of every weak direction.
@@ -94,7 +98,9 @@ class DegeneracyReport:
         are unit vectors) it is named ``"translation along [vx, vy, vz]"``; otherwise it is
         the screw motion ``"rotation about [axis] through [point]"`` with
         ``point = omega x v / |omega|^2`` (omitted when at the origin) and a pitch (translation
-        along the axis per radian) when that is not negligible.
+        along the axis per radian) when that is not negligible. With a ``length_scale`` the
+        test is on the arc-length part, and the point and pitch use ``omega`` itself (the
+        eigenvector's rotational part divided by the length scale).
         """
         names = []
         for k in self.weak_directions:
@@ -105,8 +111,10 @@ class DegeneracyReport:
                 text = "translation along " + _fmt_vec(t / np.linalg.norm(t))
             else:
                 axis = w / nw
-                point = np.cross(w, t) / nw**2
-                pitch = float(w @ t) / nw**2
+                omega = w / self.length_scale if self.length_scale is not None else w
+                n_omega = float(np.linalg.norm(omega))
+                point = np.cross(omega, t) / n_omega**2
+                pitch = float(omega @ t) / n_omega**2
                 text = "rotation about " + _fmt_vec(axis)
                 if np.linalg.norm(point) > 1e-3:
                     text += " through " + _fmt_vec(point)
@@ -193,4 +201,5 @@ def degeneracy_report(
         condition_number=cond,
         is_degenerate=len(weak) > 0,
         threshold=threshold,
+        length_scale=None if length_scale is None else float(length_scale),
     )

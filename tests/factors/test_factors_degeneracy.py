@@ -114,3 +114,18 @@ def test_collinear_points_leave_one_rotation_free_and_the_solver_still_fits(capl
     assert np.linalg.norm(offset - (offset @ axis) * axis) < 1e-6
     text = rep.describe()
     assert "rotation about" in text and "through" in text and "pitch" not in text
+
+
+@pytest.mark.parametrize("length_scale", [None, 10.0])
+def test_a_screw_direction_is_named_with_its_axis_point_and_pitch_at_any_length_scale(length_scale):
+    """Information blind to one screw motion: rotation about z through (5, 0, 0) with a pitch of 0.2 m per
+    rad. Its name gives that point and pitch whether or not rotations were analysed as arc lengths."""
+    omega = np.array([0.0, 0.0, 1.0])
+    v = -np.cross(omega, [5.0, 0.0, 0.0]) + 0.2 * omega
+    xi = np.concatenate([omega, v]) / np.linalg.norm(np.concatenate([omega, v]))
+    H = 1e4 * (np.eye(6) - np.outer(xi, xi))
+    rep = degeneracy_report(H, length_scale=length_scale)
+    assert rep.is_degenerate and len(rep.weak_directions) == 1
+    name = rep.direction_names()[0]
+    assert "rotation about [0.000, 0.000, " in name and "through [5.000, 0.000, 0.000]" in name, name  # axis: +-z
+    assert "(pitch 0.2 per rad)" in name, name
