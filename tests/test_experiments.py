@@ -263,6 +263,16 @@ def test_unfinished_cell_with_another_definition_is_cleared(tmp_path, monkeypatc
     rc.run_cell(tmp_path, changed)
     assert not (d / "partial.txt").exists()
 
+    # budgets in one root (keys repeat between them): a finished cell of another budget is never deleted
+    rc.run_cell(tmp_path, cell, budget="smoke")
+    finished = (d / "cell.json").read_text()
+    assert json.loads(finished)["budget"] == "smoke"
+    with pytest.raises(rc.CellConflictError, match="holds the finished cell .* of budget 'smoke'"):
+        rc.run_cell(tmp_path, changed, budget="paper")
+    assert (d / "cell.json").read_text() == finished
+    rc.run_cell(tmp_path, changed, budget="smoke")  # the same budget's changed definition: recomputed
+    assert json.loads((d / "cell.json").read_text())["fingerprint"] == changed.fingerprint()
+
 
 def test_pruning_keeps_models_and_poses_and_waits_for_reusing_cells(tmp_path, monkeypatch):
     calls: list[str] = []

@@ -44,7 +44,8 @@ from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError", "cell_dir",
+__all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError",
+           "CellConflictError", "cell_dir",
            "read_cell_result", "is_done", "run_cell", "prune_cell", "prune_finished", "round_figures",
            "with_noise_consistency", "with_short_range_rpe", "resumed_work", "reused_from_source", "cell_wall_s"]
 
@@ -63,6 +64,11 @@ DEFINITION_JSON = "definition.json"
 
 class CellDependencyError(RuntimeError):
     """A cell needs another cell's results that are not there (run that cell first)."""
+
+
+class CellConflictError(CellDependencyError):
+    """A cell's folder holds a finished cell of another budget (keys repeat between budgets): its results
+    are not deleted to make room."""
 
 
 def cell_dir(root: str | Path, cell: Cell) -> Path:
@@ -88,11 +94,19 @@ def is_done(root: str | Path, cell: Cell) -> bool:
     return read_cell_result(root, cell) is not None
 
 
-def _start(root: Path, cell: Cell) -> Path:
-    """Create the cell's folder; delete it first if it holds another definition."""
+def _start(root: Path, cell: Cell, budget: str | None = None) -> Path:
+    """Create the cell's folder; delete it first if it holds another definition of the cell, but never
+    a finished cell of another budget (:class:`CellConflictError`)."""
     d = cell_dir(root, cell)
     fp = cell.fingerprint()
     stored = [read_json_or_none(d / n) for n in (DEFINITION_JSON, CELL_JSON)]
+    finished = stored[1]
+    other_budget = None if finished is None or budget is None else finished.get("budget")
+    if finished is not None and finished.get("fingerprint") != fp and other_budget not in (None, budget):
+        raise CellConflictError(  # keys repeat between budgets: two budgets sharing a root
+            f"{d} holds the finished cell {cell.table}/{cell.key} of budget {other_budget!r} (another definition "
+            f"than {budget!r}'s); its results are kept: use another --root for {budget!r}, or delete that "
+            "folder to recompute it")
     if any(s is not None and s.get("fingerprint") != fp for s in stored):
         log.warning("%s/%s: the stored results were made with another definition; recomputing from scratch",
                     cell.table, cell.key)
@@ -366,14 +380,18 @@ def peak_rss_mb() -> float | None:
     return usage / 1024.0  # KiB on Linux
 
 
-def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "") -> dict[str, Any]:
-    """Run ``cell`` under ``root`` unless it is finished; return its ``cell.json`` content."""
+def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "",
+             budget: str | None = None) -> dict[str, Any]:
+    """Run ``cell`` under ``root`` unless it is finished; return its ``cell.json`` content.
+
+    ``budget`` (the harness passes it) is stored in ``cell.json``: a finished cell of another budget in
+    the same folder is then never deleted to make room (:class:`CellConflictError`)."""
     root = Path(root)
     done = read_cell_result(root, cell)
     if done is not None:
         log.info("%s/%s: finished; skipped", cell.table, cell.key)
         return done
-    d = _start(root, cell)
+    d = _start(root, cell, budget)
     log.info("%s/%s: %s", cell.table, cell.key, cell.what)
     t0, c0 = time.perf_counter(), time.process_time()
     if cell.kind == "slam":
@@ -388,6 +406,8 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
            "machine": machine_line(), **result}
     if cell.source_fingerprint is not None:
         doc["source_fingerprint"] = cell.source_fingerprint
+    if budget is not None:
+        doc["budget"] = budget
     atomic_write_json(d / CELL_JSON, doc)
     return doc
 
