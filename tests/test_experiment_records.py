@@ -168,7 +168,7 @@ def test_run_all_skips_recorded_cells_and_list_marks_them(tmp_path, monkeypatch,
     write_records(records, "paper", [paper[2]], {paper[2].key: _result(paper[2], [0.4, 0.3], [True])})
     monkeypatch.setattr(cli, "RECORDS_DIR", records)
     ran: list[str] = []
-    monkeypatch.setattr(cli, "run_cell", lambda root, c, device, command: ran.append(c.key))
+    monkeypatch.setattr(cli, "run_cell", lambda root, c, device, command, budget=None: ran.append(c.key))
     monkeypatch.setattr(cli, "prune_finished", lambda root, cells: [])
     monkeypatch.setattr(report, "write_report", lambda *a, **k: tmp_path / "report.md")
     root = str(tmp_path / "exp")

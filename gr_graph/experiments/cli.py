@@ -133,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for c in todo:
         try:
             run_cell(root, c, args.device, command + (f" --cell {c.key}" if args.cell is not None else ""),
-                     budget.name)
+                     budget=budget.name)
         except CellDependencyError as exc:
             log.error("%s", exc)
             failed.append(c.key)
