@@ -182,10 +182,19 @@ def newest_candidate(estimate: np.ndarray, i: int, cfg: LoopConfig) -> int:
         return -1
     if cfg.min_path_length <= 0.0:
         return last
-    steps = np.linalg.norm(np.diff(estimate[: i + 1, :3, 3], axis=0), axis=1)  # steps[k]: scan k to k + 1
-    path_back = np.cumsum(steps[::-1])  # path_back[m]: from scan i − 1 − m to scan i
-    m = int(np.searchsorted(path_back, cfg.min_path_length))
-    return -1 if m == len(path_back) else min(last, i - 1 - m)
+    return min(last, last_scan_path_back(path_lengths(estimate[: i + 1, :3, 3]), i, cfg.min_path_length))
+
+
+def path_lengths(positions: np.ndarray) -> np.ndarray:
+    """``(K,)`` path length from the first of ``positions`` (K, 3) to each: summed distances between
+    consecutive positions."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+
+
+def last_scan_path_back(path: np.ndarray, i: int, length: float) -> int:
+    """The last scan j at least ``length`` of path before scan ``i`` (``path``: :func:`path_lengths`),
+    -1 when there is none."""
+    return int(np.searchsorted(path, path[i] - length, side="right")) - 1
 
 
 def proximity_candidate(poses: np.ndarray, i: int, cfg: LoopConfig, last: int | None = None) -> LoopCandidate | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors.se3 import rotation_angle
+from gr_graph.loop_closure import last_scan_path_back, path_lengths
 
 __all__ = ["true_revisits", "loop_error", "loop_precision_recall"]
 
@@ -21,12 +22,12 @@ def true_revisits(gt_poses: np.ndarray, min_frame_gap: int, radius: float, min_p
     of ground-truth path back: the loop candidates' limits) within ``radius`` in GT."""
     pos = np.asarray(gt_poses)[:, :3, 3]
     K = len(pos)
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    path = path_lengths(pos)
     out = np.zeros(K, dtype=bool)
     for i in range(min_frame_gap, K):
         last = i - min_frame_gap
         if min_path_length > 0.0:
-            last = min(last, int(np.searchsorted(path, path[i] - min_path_length, side="right")) - 1)
+            last = min(last, last_scan_path_back(path, i, min_path_length))
         if last >= 0:
             d = np.linalg.norm(pos[: last + 1] - pos[i], axis=1)
             out[i] = bool(d.min() <= radius)

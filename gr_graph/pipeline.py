@@ -63,6 +63,7 @@ from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
 from gr_graph.frame_loop import SlamResult, StageTimer, UnusableScansError, frames_read_ahead, run_slam
+from gr_graph.map_export import map_path
 from gr_graph.memory import load_memory
 from gr_graph.memory_builder import EDGE_H_DESCRIPTION, build_memory
 from gr_graph.noise_consistency import round_noise_consistency
@@ -215,11 +216,7 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
         if find_in_chain(sequence, "trajectory", accept=lambda v: isinstance(v, str)) is None:
             return {"n_frames": len(sequence), "files": None, "digest": None}
         h = hashlib.sha256()
-        for name in ("timestamps", "gt_poses"):
-            value = getattr(sequence, name, None)
-            h.update(name.encode())
-            if value is not None:
-                h.update(np.ascontiguousarray(value, np.float64).tobytes())
+        _hash_arrays(h, sequence, ("timestamps", "gt_poses"))
         return {"n_frames": len(sequence), "files": None, "digest": h.hexdigest()[:16]}
     h = hashlib.sha256()
     sizes = []
@@ -232,12 +229,17 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
         h.update(f"{f.name}\0{size}\n".encode())
     for k in sorted({0, len(files) // 2, len(files) - 1} if files else set()):
         h.update(_file_sample(files[k], sizes[k]))
-    for name in ("timestamps", "gt_poses", "T_cam_velo"):
+    _hash_arrays(h, sequence, ("timestamps", "gt_poses", "T_cam_velo"))
+    return {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
+
+
+def _hash_arrays(h: Any, sequence: Any, names: tuple[str, ...]) -> None:
+    """Feed ``h`` each named array of ``sequence`` (its name, then its float64 bytes when it has one)."""
+    for name in names:
         value = getattr(sequence, name, None)
         h.update(name.encode())
         if value is not None:
             h.update(np.ascontiguousarray(value, np.float64).tobytes())
-    return {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
 
 
 def check_learning_config(cfg: SlamConfig) -> None:
@@ -672,8 +674,8 @@ class SlamPipeline:
                     map_counts["scans"] = ("densified (samples of the network's covariances included)"
                                            if densified is not None and cfg.training.densify else "measured")
                 except (OSError, ValueError) as exc:  # a view of the result: never lose the round over it
-                    log.error("round %d: the map %s was not written: %s", r, rd / "map.ply", exc)
-                    map_counts = {"error": f"{rd / 'map.ply'}: {type(exc).__name__}: {exc}"}
+                    log.error("round %d: the map %s was not written: %s", r, map_path(rd), exc)
+                    map_counts = {"error": f"{map_path(rd)}: {type(exc).__name__}: {exc}"}
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)

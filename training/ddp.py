@@ -31,8 +31,8 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.memory import load_memory
-from training.trainer import TrainConfig, Trainer, TrainingError
+from training.train import load_training_memory
+from training.trainer import TrainConfig, Trainer
 
 __all__ = ["train_distributed", "main"]
 
@@ -45,10 +45,7 @@ def train_distributed(memory_dir: str | os.PathLike[str], out_dir: str | os.Path
     rank, world = dist.get_rank(), dist.get_world_size()
     if cfg.device.startswith("cuda"):
         cfg.device = f"cuda:{int(os.environ.get('LOCAL_RANK', rank))}"
-    memory = load_memory(memory_dir)
-    if memory.n_edges == 0:
-        raise TrainingError(f"{memory_dir}: the memory has no edges to train on (fewer than two usable scans?)")
-    trainer = Trainer(memory, out_dir, cfg, rank=rank, world_size=world)
+    trainer = Trainer(load_training_memory(memory_dir), out_dir, cfg, rank=rank, world_size=world)
     path = trainer.fit(resume=resume)
     dist.barrier()
     return path

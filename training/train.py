@@ -35,7 +35,7 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.memory import load_memory
+from gr_graph.memory import Memory, load_memory
 from training.config import TrainConfig, load_train_config
 from training.trainer import Trainer, TrainingError
 
@@ -81,14 +81,17 @@ def train_from_memory(
     dirs = [memory_dir] if isinstance(memory_dir, (str, os.PathLike)) else list(memory_dir)
     if not dirs:
         raise ValueError("train_from_memory: no memory given")
-    memories = []
-    for d in dirs:
-        memory = load_memory(d)
-        log.info("training on %s: %d scans, %d edges", d, memory.n_scans, memory.n_edges)
-        if memory.n_edges == 0:
-            raise TrainingError(f"{d}: the memory has no edges to train on (fewer than two usable scans?)")
-        memories.append(memory)
+    memories = [load_training_memory(d) for d in dirs]
     return Trainer(memories if len(memories) > 1 else memories[0], out_dir, cfg).fit(resume=resume)
+
+
+def load_training_memory(memory_dir: str | os.PathLike[str]) -> Memory:
+    """The memory in ``memory_dir`` (logged), refused naming the folder when it has no edge to train on."""
+    memory = load_memory(memory_dir)
+    log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
+    if memory.n_edges == 0:
+        raise TrainingError(f"{memory_dir}: the memory has no edges to train on (fewer than two usable scans?)")
+    return memory
 
 
 EXAMPLES = (

@@ -282,8 +282,9 @@ class Trainer:
         return self.ddp_model(*self._dummy)[1]
 
     # ------------------------------------------------------------------ checkpoints
-    def state(self) -> dict[str, Any]:
-        """Everything needed to resume exactly."""
+    def state(self, epoch_skipped: int) -> dict[str, Any]:
+        """Everything needed to resume exactly; ``epoch_skipped``: the epoch's skipped pairs over every
+        rank (:meth:`skipped_this_epoch`)."""
         return {
             "format_version": CHECKPOINT_FORMAT,
             "model_state": self.model.state_dict(),
@@ -296,7 +297,7 @@ class Trainer:
             "step": self.step,
             "world_size": self.world_size,
             "skip_counts": dict(self.skip_counts),
-            "epoch_skipped": self.epoch_skipped,
+            "epoch_skipped": epoch_skipped,
             "torch_rng": torch.get_rng_state(),
         }
 
@@ -307,7 +308,7 @@ class Trainer:
         path = self.out_dir / CHECKPOINT_NAME
         skipped = self.skipped_this_epoch()  # a collective: before the rank test
         if self.rank == 0:
-            save_atomic({**self.state(), "epoch_skipped": skipped}, path)
+            save_atomic(self.state(skipped), path)
         return path
 
     def skipped_this_epoch(self) -> int:

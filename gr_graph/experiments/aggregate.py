@@ -113,10 +113,10 @@ def fmt_ms(d: dict[str, Any] | None, fmt: str = "{:.3f}", pct: bool = False) -> 
         return "n/a"
     u = " %" if pct else ""
     given = d.get("n_given", d["n"])
-    left_out = f" (n={d['n']} of {given})" if given > d["n"] else ""
+    count = f" (n={d['n']} of {given})" if given > d["n"] else f" (n={d['n']})"
     if d.get("std") is None:
-        return f"{fmt.format(d['mean'])}{u} (n={d['n']}{f' of {given}' if given > d['n'] else ''})"
-    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])}{u}{left_out}"
+        return f"{fmt.format(d['mean'])}{u}{count}"
+    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])}{u}{count if given > d['n'] else ''}"
 
 
 def acceptance_recorded(results: Sequence[dict[str, Any]]) -> bool:
