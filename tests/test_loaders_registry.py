@@ -63,3 +63,40 @@ def test_cli_error_names_the_file(tmp_path: Path, capsys: pytest.CaptureFixture)
     (folder / "b.ply").write_text("ply\n")
     assert main([str(folder), "--out", str(tmp_path / "out")]) == 2
     assert f"error: {folder}: mixed file types (1 .npy, 1 .ply)" in capsys.readouterr().err
+
+
+def test_options_other_data_ignore_are_named_in_one_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        np.save(folder / f"scan{k}.npy", rng.normal(0, 5, (200, 3)))
+    (tmp_path / "t.txt").write_text("0.0\n0.1\n")
+    args = build_parser().parse_args([str(folder), "--synthetic-preset", "clean", "--route-seed", "3", "--seq", "05",
+                                      "--topic", "/points", "--timestamps", str(tmp_path / "t.txt")])
+    cfg = load_config(None, overrides_from_args(args))
+    with caplog.at_level("WARNING", logger="gr_graph.datasets.registry"):
+        seq, _ = open_configured_sequence(cfg.data)
+    assert len(seq) == 2
+    warnings = [r.getMessage() for r in caplog.records if "ignored for" in r.getMessage()]
+    assert warnings == ["ignored for folder data (they concern other kinds of data): seq=05, topic=/points, "
+                        "route_seed=3, synthetic_preset=clean"]  # timestamps concern folders: not named
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="gr_graph.datasets.registry"):
+        open_configured_sequence(load_config(None, {"data": {"path": str(folder)}}).data)  # nothing extra given
+    assert not [r for r in caplog.records if "ignored for" in r.getMessage()]
+
+
+def test_ignored_options_by_kind() -> None:
+    from gr_graph.datasets.registry import ignored_options
+
+    assert ignored_options("synthetic", topic="/p", poses="gt.txt", point_format="xyz", seq="00",
+                           route_seed=2) == ["topic=/p", "poses=gt.txt", "point_format=xyz"]
+    assert ignored_options("kitti", seq="05", route_seed=1, synthetic_preset="raw", point_format="xyz") == [
+        "route_seed=1", "synthetic_preset=raw"]
+    assert ignored_options("rosbag", topic="/p", poses="gt.txt", timestamps="t.txt", point_format="xyz") == [
+        "timestamps=t.txt", "point_format=xyz"]
+    assert ignored_options("kitti_raw", poses="gt.txt", data_root="/kitti") == ["data_root=/kitti", "poses=gt.txt"]
+    assert ignored_options("folder", route_seed=0, point_format="xyzi", seq="00") == []  # defaults: never named
+    with pytest.raises(KeyError, match="frames"):
+        ignored_options("folder", frames=(0, 2))

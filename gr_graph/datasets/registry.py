@@ -212,6 +212,47 @@ def guess_dataset(path: str | os.PathLike[str]) -> str:
     )
 
 
+OPTION_KINDS: dict[str, tuple[str, ...]] = {
+    "seq": ("kitti", "synthetic"),
+    "data_root": ("kitti",),
+    "topic": ("rosbag",),
+    "timestamps": ("folder",),
+    "poses": ("folder", "rosbag"),
+    "point_format": ("kitti", "kitti_raw", "folder"),
+    "route_seed": ("synthetic",),
+    "synthetic_preset": ("synthetic",),
+}
+"""The kinds of data (:data:`DATASETS`) each ``data`` option concerns; the others ignore it, with
+a warning (:func:`ignored_options`). ``trajectory`` is missing: with other data it is an error."""
+_OPTION_DEFAULTS: dict[str, object] = {"seq": "00", "data_root": None, "topic": None, "timestamps": None,
+                                       "poses": None, "point_format": "xyzi", "route_seed": 0,
+                                       "synthetic_preset": None}
+
+
+def ignored_options(kind: str, **given: object) -> list[str]:
+    """The options among ``given`` (``data`` keys of :data:`OPTION_KINDS` and their values) that
+    were set to something other than their default but that data of ``kind`` ignores, as
+    ``key=value`` strings in :data:`OPTION_KINDS`' order.
+
+    A value equal to the default cannot be told from one not given, and is never listed.
+    """
+    unknown = set(given) - set(OPTION_KINDS)
+    if unknown:
+        raise KeyError(f"not data options of OPTION_KINDS: {sorted(unknown)}")
+    return [f"{key}={given[key]}" for key, kinds in OPTION_KINDS.items()
+            if key in given and given[key] is not None and given[key] != _OPTION_DEFAULTS[key]
+            and kind not in kinds]
+
+
+def warn_ignored_options(kind: str, **given: object) -> list[str]:
+    """Log one warning naming the options :func:`ignored_options` finds for data of ``kind``
+    (e.g. ``--synthetic-preset`` given with a bag, ``--topic`` with a folder); returns them."""
+    ignored = ignored_options(kind, **given)
+    if ignored:
+        log.warning("ignored for %s data (they concern other kinds of data): %s", kind, ", ".join(ignored))
+    return ignored
+
+
 def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timestamps: str | None,
                poses: str | None, sensor: SensorConfig | None = None) -> tuple[LidarSequence, str]:
     """Open a ``kitti_raw``, ``folder`` or ``rosbag`` path."""
@@ -241,10 +282,6 @@ def _open_path(kind: str, p: Path, point_format: str, topic: str | None, timesta
         extras.append("ground truth")
     if not getattr(seq, "motion_compensated", True):
         extras.append("per-point times" if kind != "kitti_raw" else "not motion-compensated")
-    if kind in ("kitti_raw", "rosbag") and timestamps is not None:
-        log.warning("a timestamps file (%s) concerns folders of scans; ignored for %s", timestamps, kind)
-    if kind == "kitti_raw" and poses is not None:
-        log.warning("a poses file (%s) is ignored for a KITTI raw drive (ground truth comes from oxts/)", poses)
     return seq, source + (f" ({', '.join(extras)})" if extras else "")
 
 
@@ -352,6 +389,9 @@ def open_sequence(
                 p, seq = p.parent.parent, p.name
             data_root = p
         else:
+            warn_ignored_options(kind, seq=seq, data_root=data_root, topic=topic, timestamps=timestamps, poses=poses,
+                                 point_format=point_format, route_seed=route_seed,
+                                 synthetic_preset=synthetic_preset)
             if trajectory is not None:
                 raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
                                    f"it cannot be combined with {p}")
@@ -371,6 +411,9 @@ def open_sequence(
     if root is not None and trajectory is not None:
         raise DatasetError(f"a trajectory ({trajectory}) renders the synthetic sequence; "
                            f"it cannot be combined with the KITTI root {root}")
+    warn_ignored_options("synthetic" if root is None else "kitti", seq=seq, topic=topic, timestamps=timestamps,
+                         poses=poses, point_format=point_format, route_seed=route_seed,
+                         synthetic_preset=synthetic_preset)
     if root is not None:
         from gr_graph.datasets.kitti import KittiSequence
 
@@ -390,9 +433,6 @@ def open_sequence(
             )
         from gr_graph.datasets.synthetic import SyntheticSequence
 
-        if point_format != "xyzi":
-            log.warning("point_format %r concerns KITTI .bin files; without a KITTI root it has no effect",
-                        point_format)
         if sensor.model == CUSTOM:
             raise DatasetError("the synthetic sequence renders catalogue sensors only (sensor.model: "
                                "hdl64e, vlp16, os1-64), not a custom sensor")

@@ -20,7 +20,7 @@ cells prefer their default cell finished first, otherwise they compute everythin
 
 Modules: :mod:`~gr_graph.experiments.cells` (cell definitions and budgets, pure data),
 :mod:`~gr_graph.experiments.revisits` (windows with a revisit), :mod:`~gr_graph.experiments.run_cell`
-(one cell: resume, reuse, pruning), :mod:`~gr_graph.experiments.kiss_baseline` (KISS-ICP on the
+(one cell: resume, reuse, pruning), :mod:`~gr_graph.experiments.cell_lock` (one process a cell), :mod:`~gr_graph.experiments.kiss_baseline` (KISS-ICP on the
 same scans), :mod:`~gr_graph.experiments.aggregate` (mean ± std, reductions),
 :mod:`~gr_graph.experiments.figures`, :mod:`~gr_graph.experiments.report`,
 :mod:`~gr_graph.experiments.records` (published cell records: a report combines cells run in

@@ -18,7 +18,7 @@ from pathlib import Path
 from gr_graph.cli_common import add_device, add_log_level, make_parser, setup_logging
 from gr_graph.experiments.cells import BUDGETS, TABLES, Cell, cells_for
 from gr_graph.experiments.records import RECORDS_DIR, read_records
-from gr_graph.experiments.run_cell import CellDependencyError, is_done, prune_finished, run_cell
+from gr_graph.experiments.run_cell import CellBusyError, CellDependencyError, is_done, prune_finished, run_cell
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             run_cell(root, c, args.device, command + (f" --cell {c.key}" if args.cell is not None else ""),
                      budget=budget.name)
-        except CellDependencyError as exc:
+        except (CellDependencyError, CellBusyError) as exc:  # not this process's to run now
             log.error("%s", exc)
             failed.append(c.key)
         except Exception:  # one failing cell must not lose the others' runs; reported and counted

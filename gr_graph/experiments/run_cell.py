@@ -39,13 +39,14 @@ from typing import Any
 import numpy as np
 
 from gr_graph.atomic import atomic_write_json, read_json_or_none
+from gr_graph.experiments.cell_lock import CellBusyError, cell_lock
 from gr_graph.experiments.cells import Cell, source_mismatch
 from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
 
 __all__ = ["METRIC_KEYS", "NEES_KEYS", "SHORT_RANGE_DELTAS", "SHORT_RANGE_KEYS", "CellDependencyError",
-           "CellConflictError", "cell_dir",
+           "CellConflictError", "CellBusyError", "cell_dir",
            "read_cell_result", "is_done", "run_cell", "prune_cell", "prune_finished", "round_figures",
            "with_noise_consistency", "with_short_range_rpe", "resumed_work", "reused_from_source", "cell_wall_s"]
 
@@ -385,12 +386,24 @@ def run_cell(root: str | Path, cell: Cell, device: str = "cpu", command: str = "
     """Run ``cell`` under ``root`` unless it is finished; return its ``cell.json`` content.
 
     ``budget`` (the harness passes it) is stored in ``cell.json``: a finished cell of another budget in
-    the same folder is then never deleted to make room (:class:`CellConflictError`)."""
+    the same folder is then never deleted to make room (:class:`CellConflictError`). One process at a
+    time runs a cell: another one holding it raises :class:`~gr_graph.experiments.cell_lock.CellBusyError`
+    (:mod:`gr_graph.experiments.cell_lock`)."""
     root = Path(root)
     done = read_cell_result(root, cell)
     if done is not None:
         log.info("%s/%s: finished; skipped", cell.table, cell.key)
         return done
+    with cell_lock(cell_dir(root, cell)):  # CellBusyError when another process runs it
+        done = read_cell_result(root, cell)  # finished by another process since the first look
+        if done is not None:
+            log.info("%s/%s: finished meanwhile by another process; skipped", cell.table, cell.key)
+            return done
+        return _run_locked(root, cell, device, command, budget)
+
+
+def _run_locked(root: Path, cell: Cell, device: str, command: str, budget: str | None) -> dict[str, Any]:
+    """:func:`run_cell`'s work once the cell's lock is held."""
     d = _start(root, cell, budget)
     log.info("%s/%s: %s", cell.table, cell.key, cell.what)
     t0, c0 = time.perf_counter(), time.process_time()
