@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from gr_graph.round_acceptance import _signed
+
 
 def gt_errors(out: Path, r: int) -> tuple[float, float]:
     """(ATE RMSE, RPE-100 RMSE) [m] of round ``r`` of the run in ``out``."""
@@ -72,8 +74,8 @@ def table(runs: list[Path]) -> int:
             count[("RPE100", s["accepted"], worse_rpe)] += 1
             rp = a.get("relative_pose_agreement", {})
             mpv = a.get("mean_plane_variance_change")
-            rows.append(f"| {out.name} | {k} | {ref} | {s['accepted']} | {a['mean_entropy_increase']:+.4f} | "
-                        f"{a['window_entropy_increase']:+.4f} | {'-' if mpv is None else f'{1e6 * mpv:+.1f}'} | "
+            rows.append(f"| {out.name} | {k} | {ref} | {s['accepted']} | {_signed(a['mean_entropy_increase'])} | "
+                        f"{_signed(a['window_entropy_increase'])} | {'-' if mpv is None else f'{1e6 * mpv:+.1f}'} | "
                         f"{a['registration_failure_rate']:.3f} | "
                         f"{a['reference_loop_rejection_rate']:.2f}→{a['loop_rejection_rate']:.2f} | "
                         f"{rp.get('median_mahalanobis2', float('nan')):.3g} / "
@@ -145,8 +147,8 @@ def rescore(runs: list[Path], settings: list[str]) -> int:
             creep_mm = "-" if not st.get("stretches") else f"{1e3 * st['worst_creep_per_frame_m']:+.2f}"
             rpe300 = "-" if r300[0] is None else f"{r300[0]:.3f} → {r300[1]:.3f}"
             rows.append(f"| {out} | {k} | {ref} | {'accepted' if s['accepted'] else 'rejected'} | "
-                        f"{'accepted' if v['accepted'] else 'rejected'} | {v['mean_entropy_increase']:+.4f} | "
-                        f"{v['window_entropy_increase']:+.4f} | {creep_mm} | {ate0:.3f} → {ate1:.3f} | "
+                        f"{'accepted' if v['accepted'] else 'rejected'} | {_signed(v['mean_entropy_increase'])} | "
+                        f"{_signed(v['window_entropy_increase'])} | {creep_mm} | {ate0:.3f} → {ate1:.3f} | "
                         f"{rpe0:.3f} → {rpe1:.3f} | {rpe300} | {'; '.join(v['reasons'])} |")
     rows += ["", "Verdict now against ground truth (worse: more than 5 % above the reference round):", "",
              *count_rows(count, ("ATE", "RPE100", "RPE-300"))]

@@ -305,7 +305,7 @@ class SlamPipeline:
         self.resumed_rounds: list[int] = []  # rounds the last run() took from --out instead of computing them
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
-        self._raw_scans: list[np.ndarray] | None = None  # round 0's scans, for the acceptance test
+        self._raw_scans: list[np.ndarray] | None = None  # round 0's scans (memory-mapped), for the acceptance test
 
     def _open_frame_cache(self, sequence: LidarSequence) -> CachedFrames | None:
         """The on-disk frame cache ``<out>/frames`` (``data.frame_cache``,
@@ -531,8 +531,9 @@ class SlamPipeline:
             return True
         from gr_graph.round_acceptance import evaluate_round
 
-        if self._raw_scans is None:
-            self._raw_scans = [np.array(s, np.float64) for s in self._round0_scans()]
+        if self._raw_scans is None:  # memory-mapped views of round 0's scans: read per window, not held in RAM
+            mem = load_memory(self.round_dir(0) / "memory")
+            self._raw_scans = [mem.scan(k) for k in range(mem.n_scans)]
         verdict = json.loads(json.dumps(evaluate_round(self.out, r, reference, summaries, ac, scans=self._raw_scans)))
         stored = json.dumps([summary.get("accepted"), summary.get("acceptance")], sort_keys=True)
         if stored != json.dumps([verdict["accepted"], verdict], sort_keys=True):  # (NaN != NaN: compare text)
@@ -540,10 +541,6 @@ class SlamPipeline:
             summary["acceptance"] = verdict
             write_round_summary(self.round_dir(r), summary)  # the round's folder says whether it was accepted
         return summary["accepted"]
-
-    def _round0_scans(self) -> list[np.ndarray]:
-        mem = load_memory(self.round_dir(0) / "memory")
-        return [np.array(mem.scan(k)) for k in range(mem.n_scans)]
 
     def write_final(self, metrics: dict[str, Any]) -> None:
         """The run's final trajectory at the top of ``--out``: the last round of the unbroken run

@@ -262,11 +262,16 @@ def _rates(rd: Path, summary: dict[str, Any]) -> dict[str, float]:
 def round_figures(scans: Sequence[np.ndarray], poses: np.ndarray, rd: Path, summary: dict[str, Any],
                   cfg: AcceptanceConfig) -> dict[str, Any]:
     """The GT-free figures of one round: map sharpness per window, failure and rejection rates."""
+    poses = np.asarray(poses, np.float64)
     centres = window_centres(len(poses), cfg.n_windows, cfg.half_window)
-    sharp = map_sharpness(scans, poses, centres, cfg.half_window, cfg.radius, cfg.min_neighbors,
-                          cfg.max_query_points, cfg.thickness_floor)
-    return {"centres": centres, **sharp, **_rates(rd, summary), "positions": np.asarray(poses, np.float64)[:, :3, 3],
-            "finite_poses": bool(np.all(np.isfinite(poses)))}
+    finite = bool(np.all(np.isfinite(poses)))
+    if finite:
+        sharp = map_sharpness(scans, poses, centres, cfg.half_window, cfg.radius, cfg.min_neighbors,
+                              cfg.max_query_points, cfg.thickness_floor)
+    else:  # no map to measure (a k-d tree refuses non-finite points); decide rejects the round for it
+        sharp = {"entropy": np.full(len(centres), np.nan), "plane_variance": np.full(len(centres), np.nan),
+                 "n_query": np.zeros(len(centres), np.int64)}
+    return {"centres": centres, **sharp, **_rates(rd, summary), "positions": poses[:, :3, 3], "finite_poses": finite}
 
 
 def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
@@ -276,11 +281,14 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
     ``long_baseline`` is :func:`long_baseline_comparison` of the two rounds (None: not measured).
     Returns the verdict: ``accepted``, the ``reasons`` for a rejection and the figures compared.
     """
+    if not np.array_equal(np.asarray(fig["centres"]), np.asarray(ref["centres"])):
+        raise ValueError("decide: the two rounds' windows are centred on different frames "
+                         f"({len(fig['centres'])} and {len(ref['centres'])} windows); compare runs of the same frames")
     d = np.asarray(fig["entropy"]) - np.asarray(ref["entropy"])
     dp = np.asarray(fig["plane_variance"]) - np.asarray(ref["plane_variance"])
     ok = np.isfinite(d)
-    mean_inc = float(np.mean(d[ok])) if ok.any() else float("inf")
-    window_inc = float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else float("inf")
+    mean_inc = float(np.mean(d[ok])) if ok.any() else None  # None: not measurable (rejected for it)
+    window_inc = float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else None
     flagged_inc = fig["registration_failure_rate"] - ref["registration_failure_rate"]
     creep = None
     if (fig.get("positions") is not None and ref.get("positions") is not None and fig["finite_poses"]
@@ -291,9 +299,12 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
     reasons = []
     if not fig["finite_poses"]:
         reasons.append("non-finite poses")
-    if mean_inc > cfg.max_mean_entropy_increase:
+    if not ok.any():
+        if fig["finite_poses"]:  # (non-finite poses have their own reason)
+            reasons.append("map sharpness not measurable: no window has enough neighbours in both rounds")
+    elif mean_inc > cfg.max_mean_entropy_increase:
         reasons.append(f"mean map entropy rose by {mean_inc:.4f} > {cfg.max_mean_entropy_increase} nats")
-    if window_inc > cfg.max_window_entropy_increase:
+    if ok.any() and window_inc > cfg.max_window_entropy_increase:
         reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
                        f"{cfg.max_window_entropy_increase} nats")
     if creep is not None and creep["worst_creep_per_frame"] > cfg.max_standstill_creep:
@@ -406,7 +417,8 @@ def guarded_round(accepted: Mapping[int, bool], last: int | None = None) -> tupl
     final = 0
     for k in range(1, top + 1):
         if k not in accepted:
-            return final, f"round {k} missing: the last round before it" if final else "no learning rounds"
+            return final, (f"round {k} missing: the last round before it" if final
+                           else f"round {k} missing: round 0")
         if not accepted[k]:
             return final, f"round {k} rejected: the last accepted round before it"
         final = k
@@ -417,11 +429,16 @@ def guarded_round(accepted: Mapping[int, bool], last: int | None = None) -> tupl
                    else "the last learning round; every learning round accepted")
 
 
+def _signed(value: float | None) -> str:
+    """``value`` as ``+0.0123``, or ``n/a`` when it was not measured."""
+    return "n/a" if value is None else f"{value:+.4f}"
+
+
 def _raw_scans(out: Path) -> list[np.ndarray]:
     from gr_graph.memory import load_memory
 
     mem = load_memory(Path(out) / "round_0" / "memory")
-    return [np.array(mem.scan(k), np.float64) for k in range(mem.n_scans)]
+    return [mem.scan(k) for k in range(mem.n_scans)]  # memory-mapped float32 views; float64 per window
 
 
 def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[str, Any]],
@@ -451,10 +468,10 @@ def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[
     verdict["settings"] = cfg.model_dump(mode="json")
     level = logging.INFO if verdict["accepted"] else logging.WARNING
     lb_inc = None if lb is None else lb["rotation_increase"]
-    log.log(level, "round %d %s against round %d: mean map entropy %+.4f nats (q%g window %+.4f), "
+    log.log(level, "round %d %s against round %d: mean map entropy %s nats (q%g window %s), "
             "long-baseline rotation %s, registration failures %.3f, loop rejections %.3f%s", r,
-            "accepted" if verdict["accepted"] else "REJECTED", reference, verdict["mean_entropy_increase"],
-            cfg.window_quantile, verdict["window_entropy_increase"],
+            "accepted" if verdict["accepted"] else "REJECTED", reference, _signed(verdict["mean_entropy_increase"]),
+            cfg.window_quantile, _signed(verdict["window_entropy_increase"]),
             "n/a" if lb_inc is None else f"{100 * lb_inc:+.1f} %", verdict["registration_failure_rate"],
             verdict["loop_rejection_rate"], "" if verdict["accepted"] else ": " + "; ".join(verdict["reasons"]))
     return verdict

@@ -172,6 +172,36 @@ def test_more_registration_failures_or_nonfinite_poses_reject():
     assert not decide({**ref, "finite_poses": False}, ref, CFG)["accepted"]
 
 
+def test_round_with_a_nonfinite_pose_is_rejected_not_a_crash(tmp_path):
+    from gr_graph.round_acceptance import round_figures
+
+    poses = moving_then_stopped(20, 0)
+    scans = street_scans(poses, seed=4)
+    broken = poses.copy()
+    broken[7, 0, 3] = np.nan  # a k-d tree of the map would refuse it
+    summary = {"n_odometry_edges": 19, "n_flagged_odometry_edges": 0}
+    fig = round_figures(scans, broken, tmp_path, summary, CFG)
+    ref = round_figures(scans, poses, tmp_path, summary, CFG)
+    assert not fig["finite_poses"] and ref["finite_poses"] and np.isfinite(ref["entropy"]).all()
+    v = decide(fig, ref, CFG)
+    assert not v["accepted"] and v["reasons"] == ["non-finite poses"]
+    assert v["mean_entropy_increase"] is None and v["n_windows"] == 0
+    json.dumps(v["mean_entropy_increase"], allow_nan=False)  # null in metrics.json, not Infinity
+
+
+def test_unmeasurable_map_or_other_windows_are_named():
+    poses = moving_then_stopped(20, 0)
+    scans = street_scans(poses, seed=4)
+    ref = sharpness(scans, poses)
+    blank = {**ref, "entropy": np.full(len(ref["centres"]), np.nan)}
+    v = decide(blank, ref, CFG)
+    assert not v["accepted"] and v["reasons"] == [
+        "map sharpness not measurable: no window has enough neighbours in both rounds"]
+    shorter = sharpness(scans[:15], poses[:15])
+    with pytest.raises(ValueError, match="windows are centred on different frames"):
+        decide(shorter, ref, CFG)
+
+
 def test_relative_pose_agreement_closed_form():
     """A trajectory whose every step is 2 cm longer than the reference's: the translation
     difference is 2 cm per pair; under isotropic edge information 1e4 (sigma 1 cm) on both,
@@ -272,6 +302,7 @@ def test_guarded_round_is_the_last_of_the_unbroken_accepted_rounds():
     assert guarded_round({}) == (0, "no learning rounds")
     assert guarded_round({0: True, 1: True, 2: False}, last=1) == (1, "round 1, the last considered; rounds 1-1 accepted")
     assert guarded_round({0: True, 1: True, 3: True}) == (1, "round 2 missing: the last round before it")
+    assert guarded_round({0: True, 2: True}) == (0, "round 1 missing: round 0")
     # the shared reading of the summaries: only an explicit false is a rejection
     flags = accepted_flags({"0": {}, "1": {"accepted": True}, "2": {"accepted": False}, "3": {"accepted": None}})
     assert flags == {0: True, 1: True, 2: False, 3: True}
