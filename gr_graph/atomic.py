@@ -8,6 +8,7 @@ is removed and the target is left as it was.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import tempfile
@@ -23,9 +24,36 @@ PathLike = str | os.PathLike[str]
 
 def default_mode(directory: bool = False) -> int:
     """The mode ``open()`` (or ``mkdir``) would give a new file (directory) under the umask."""
+    return (0o777 if directory else 0o666) & ~_umask()
+
+
+def _umask() -> int:
+    """The process's umask: read from ``/proc/self/status`` where Linux gives it, since setting it
+    to learn it (the only portable way) would briefly give files made by other threads mode 0666."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     umask = os.umask(0)
     os.umask(umask)
-    return (0o777 if directory else 0o666) & ~umask
+    return umask
+
+
+def fsync_directory(directory: PathLike) -> None:
+    """Flush ``directory``'s entries (files created, renamed or removed in it) to the disk.
+
+    File systems that cannot (``EINVAL``: some network and FUSE file systems) are skipped."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
 
 
 @contextmanager
@@ -50,6 +78,8 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
                 os.fsync(fh.fileno())
         os.chmod(tmp, default_mode())  # mkstemp makes 0600; results get the usual mode
         os.replace(tmp, target)
+        if fsync:
+            fsync_directory(target.parent)  # the rename itself survives a power loss
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -279,6 +279,14 @@ def densify_points(points: np.ndarray, predictor: Predictor, cfg: TrainingConfig
     return DensifiedPoints(dense, source.astype(np.int64), s, C, kept, None)
 
 
+def _source_times(raw: LidarFrame, points: np.ndarray) -> np.ndarray | None:
+    """The per-point time of the raw point nearest to each of ``points`` (None without times)."""
+    if raw.time is None or not len(raw.points):
+        return None
+    rows = nearest_raw_rows(raw.points, points)
+    return None if rows is None else np.asarray(raw.time, np.float64)[rows]
+
+
 def nearest_raw_rows(raw_points: np.ndarray, points: np.ndarray) -> np.ndarray | None:
     """Row of the raw point nearest to each of ``points`` (None when no raw point is finite).
 
@@ -342,7 +350,8 @@ class DensifiedSequence:
         self.n_recomputed = 0  # predictions recomputed for frames no longer kept (loop edges)
         self.recomputed_failures = 0
         self.keep_predictions = keep_predictions
-        self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        # index -> (preprocessed points, their covariances, their sweep fractions or None)
+        self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self.parent)
@@ -383,7 +392,25 @@ class DensifiedSequence:
         scan), if it is among the ``keep_predictions`` frames computed last and its covariances
         were finite; else None."""
         with self._lock:
-            return self._predicted.get(int(index))
+            kept = self._predicted.get(int(index))
+        return None if kept is None else (kept[0], kept[1])
+
+    def prediction_times(self, index: int) -> np.ndarray | None:
+        """Sweep fractions of the points of :meth:`prediction` for frame ``index``: the per-point time
+        of the raw point nearest to each (as densified points get theirs); None when the frame has no
+        per-point times or was never read through this view. The frame loop deskews the predictions
+        with them as it deskewed the frame (:class:`gr_graph.frame_loop.FrameDeskewer`)."""
+        with self._lock:
+            kept = self._predicted.get(int(index))
+            position = self._position.get(int(index))
+        if kept is not None:
+            return kept[2]
+        if position is None:
+            return None
+        with self._parent_lock:
+            raw = self.parent[position]
+        scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
+        return _source_times(raw, scan.points) if scan.usable else None
 
     def prediction(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Like :meth:`predicted`, but a frame that is no longer kept is predicted again.
@@ -429,9 +456,9 @@ class DensifiedSequence:
             return np.full((len(points), 3, 3), np.nan), "nonfinite_covariance"
         return C, covariance_problem(C) if C.shape == (len(points), 3, 3) else None
 
-    def _keep(self, index: int, points: np.ndarray, C: np.ndarray) -> None:
+    def _keep(self, index: int, points: np.ndarray, C: np.ndarray, times: np.ndarray | None) -> None:
         with self._lock:
-            self._predicted[index] = (points, C)
+            self._predicted[index] = (points, C, times)
             self._predicted.move_to_end(index)
             while len(self._predicted) > max(int(self.keep_predictions), 0):
                 self._predicted.popitem(last=False)
@@ -452,19 +479,23 @@ class DensifiedSequence:
         if res.fallback in COVARIANCE_FALLBACKS:
             self._record(idx, len(s), 0, len(raw.points), res.fallback)
             return raw
-        self._keep(idx, s, res.input_covariances)  # only covariances densify accepted (finite, positive definite)
+        # every output point takes the intensity and per-point time of the raw point nearest to its source
+        # point: learning rounds deskew with the sensor's times like round 0, not with azimuth-guessed ones
+        # (and the predictions with the same times, for the learned edge noise)
+        rows = nearest_raw_rows(raw.points, s) if raw.time is not None and len(raw.points) else None
+        source_time = None if rows is None else np.asarray(raw.time, np.float64)[rows]
+        # only covariances densify accepted (finite, positive definite)
+        self._keep(idx, s, res.input_covariances, source_time)
         horizontal = horizontal_surfaces(res.input_covariances)
         n_horizontal = (len(s), int(horizontal.sum()), int((horizontal & res.kept).sum()))
         if not cfg.densify:  # ablation (training.densify: false): raw scans, predictions kept for the edge noise
             self._record(idx, len(s), res.n_kept, len(raw.points), None, n_horizontal)
             return raw
         self._record(idx, len(s), res.n_kept, len(res.points), res.fallback, n_horizontal)
-        # every output point takes the intensity and per-point time of the raw point nearest to its source
-        # point: learning rounds deskew with the sensor's times like round 0, not with azimuth-guessed ones
-        wanted = raw.intensity is not None or raw.time is not None
-        rows = nearest_raw_rows(raw.points, s) if wanted and len(raw.points) else None
+        if rows is None and raw.intensity is not None and len(raw.points):
+            rows = nearest_raw_rows(raw.points, s)
         intensity = source_intensity(raw.points, raw.intensity, s, rows)[res.source]
-        time = None if raw.time is None or rows is None else np.asarray(raw.time, np.float64)[rows][res.source]
+        time = None if source_time is None else source_time[res.source]
         return LidarFrame(index=idx, timestamp=raw.timestamp, points=np.ascontiguousarray(res.points, np.float64),
                           intensity=intensity.astype(np.float32), ring=None, n_rings=raw.n_rings,
                           dropped_nonfinite=raw.dropped_nonfinite, time=time)

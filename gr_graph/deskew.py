@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factors.se3 import hat, log_se3
+from factors.se3 import exp_se3_batch, hat, log_se3
 
 __all__ = ["times_from_azimuth", "normalise_times", "resolve_time_reference", "TIME_REFERENCES", "deskew", "distort",
            "sweep_motion_from_velocity"]
@@ -269,6 +269,38 @@ def deskew(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
         ``(N, 3)`` float64 deskewed points.
     """
     return _move(points, times, sweep_motion, reference_time, sign=1.0)
+
+
+def deskew_covariances(covariances: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,
+                       reference_time: float = 0.5) -> np.ndarray:
+    """Covariances of points that :func:`deskew` moves, in their new frames: each ``C_i`` is turned
+    by the rotation of the point's motion, ``R_i C_i R_iᵀ`` with ``R_i = Exp((t_i − reference_time) ω)``
+    (``ω``: the rotation of ``Log(sweep_motion)``).
+
+    Parameters
+    ----------
+    covariances : (N, 3, 3) array
+    times : (N,) array
+        Sweep fractions, as for :func:`deskew`.
+    sweep_motion : (4, 4) array
+    reference_time : float
+
+    Returns
+    -------
+    np.ndarray
+        ``(N, 3, 3)`` float64.
+    """
+    C = np.asarray(covariances, np.float64)
+    t = np.asarray(times, np.float64)
+    if C.ndim != 3 or C.shape[1:] != (3, 3) or t.shape != (len(C),):
+        raise ValueError(f"covariances must be (N, 3, 3) and times (N,), got {C.shape} and {t.shape}")
+    w = log_se3(np.asarray(sweep_motion, np.float64))[:3]
+    if len(C) == 0 or not np.any(w):
+        return C.copy()
+    twists = np.zeros((len(C), 6))
+    twists[:, :3] = (t - reference_time)[:, None] * w
+    R = exp_se3_batch(twists)[:, :3, :3]
+    return R @ C @ np.swapaxes(R, 1, 2)
 
 
 def distort(points: np.ndarray, times: np.ndarray, sweep_motion: np.ndarray,

@@ -179,6 +179,9 @@ class LearnedEdgeNoise:
             kind: {"n_learned": 0, "n_floored": 0, "fallbacks": defaultdict(int)} for kind in ("odometry", "loop")}
         self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
         self.calibration: dict[str, Any] | None = None
+        #: set by a frame loop that deskews its frames: ``(frame_index, points, C) -> (points, C)`` moves a
+        #: frame's predictions (made on the scan as read) as the frame was moved, to match the edges' T̂
+        self.motion_correction: Callable[[int, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
     @property
     def loops(self) -> bool:
@@ -213,7 +216,7 @@ class LearnedEdgeNoise:
         if not edge.ok:
             reason = "registration_failed"
         else:
-            ps, pt = self.predictions(source_frame), self.predictions(target_frame)
+            ps, pt = self._prediction(source_frame), self._prediction(target_frame)
             if ps is None or pt is None:
                 reason = "no_covariances"
             else:
@@ -241,6 +244,13 @@ class LearnedEdgeNoise:
         edge.info["edge_noise"] = "learned"
         edge.info["learned_noise_correspondences"] = res.n_correspondences
         return edge
+
+    def _prediction(self, frame_index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``predictions(frame_index)``, moved by :attr:`motion_correction` when set."""
+        got = self.predictions(frame_index)
+        if got is None or self.motion_correction is None:
+            return got
+        return self.motion_correction(frame_index, *got)
 
     def summary(self) -> dict[str, Any]:
         """``{"mode": "learned", "n_learned", "n_floored", "n_fallback", "fallbacks"}`` of the

@@ -49,7 +49,7 @@ from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
 from gr_graph.sensors import SensorConfig, check_sequence_sensor
 from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, find_in_chain, is_motion_compensated
 from gr_graph.datasets.frame_fields import FieldConventions
-from gr_graph.deskew import deskew, sweep_motion_from_velocity, times_from_azimuth
+from gr_graph.deskew import deskew, deskew_covariances, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.loop_closure import LoopClosureSchedule, RowBuffer, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
@@ -269,6 +269,7 @@ class FrameDeskewer:
         self.n_deskewed = 0
         self.n_without_motion = 0
         self.time_sources: dict[str, int] = {"data": 0, "azimuth": 0}
+        self.applied: dict[int, tuple[np.ndarray, str]] = {}  # frame.index -> (sweep motion, time source)
 
     def sweep_motion(self, increment: np.ndarray, frame_period: float | None) -> np.ndarray:
         """The sensor's motion over one sweep predicted from the last frame-to-frame increment."""
@@ -288,7 +289,22 @@ class FrameDeskewer:
             times, source = times_from_azimuth(frame.points, self.clockwise, self.start_azimuth_deg), "azimuth"
         self.n_deskewed += 1
         self.time_sources[source] += 1
+        self.applied[int(frame.index)] = (motion, source)
         return replace(frame, points=deskew(frame.points, times, motion))
+
+    def move_prediction(self, frame_index: int, points: np.ndarray, covariances: np.ndarray,
+                        times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Points of frame ``frame_index`` taken before deskewing (the network's input, with their
+        covariances) moved as the frame was: to mid-sweep, each covariance turned with its point.
+        ``times``: the points' sweep fractions (None: from the azimuth, as for a frame without
+        times). A frame left as it is gives them back unchanged."""
+        applied = self.applied.get(int(frame_index))
+        if applied is None:
+            return points, covariances
+        motion, source = applied
+        if source == "azimuth" or times is None or len(times) != len(points):
+            times = times_from_azimuth(points, self.clockwise, self.start_azimuth_deg)
+        return deskew(points, times, motion), deskew_covariances(covariances, times, motion)
 
     def redo(self, frame: LidarFrame, increment: np.ndarray, frame_period: float | None) -> LidarFrame:
         """Deskew a frame that was first left as it is (no motion known then); moves it from
@@ -400,6 +416,16 @@ class _FrameLoop:
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
         if self.deskew_on:
             log.info("deskewing every frame to mid-sweep (%s)", self.deskew_reason)
+            if edge_noise is not None:  # H(C) pairs the network's points under T̂ between deskewed frames
+                edge_noise.motion_correction = self.deskewed_prediction
+
+    def deskewed_prediction(self, frame_index: int, points: np.ndarray,
+                            covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The network's points and covariances of a frame, deskewed as the frame was
+        (:meth:`FrameDeskewer.move_prediction`, with the per-point times of the densified view)."""
+        times_of = getattr(self.sequence, "prediction_times", None)
+        times = None if times_of is None else times_of(frame_index)
+        return self.deskewer.move_prediction(frame_index, points, covariances, times)
 
     @property
     def n_loops(self) -> int:

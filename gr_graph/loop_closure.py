@@ -97,7 +97,8 @@ def yaw_matrix(yaw: float) -> np.ndarray:
 
 @dataclass
 class LoopCandidate:
-    """A candidate pair: query i (source) and old scan j (target), with an initial guess T_ji."""
+    """A candidate pair: query i (source) and old scan j (target), with an initial guess T_ji
+    (maps points of scan i into the frame of scan j: the module's T̂_ij, named by its frames here)."""
 
     query: int
     match: int
@@ -156,7 +157,7 @@ class ScanContextDatabase:
             return None
         keys = self.keys.rows(last + 1)
         dk = np.linalg.norm(keys - self.keys.rows()[i][None, :], axis=1)
-        order = np.argsort(dk)[: self.cfg.sc_num_candidates]
+        order = np.argsort(dk, kind="stable")[: self.cfg.sc_num_candidates]  # ties (a stop): the same on any CPU
         best: tuple[float, int, int] | None = None
         for j in order:
             d, s = scan_context_distance(self.descs[i], self.descs[j])

@@ -71,7 +71,10 @@ def loop_precision_recall(
     dict with ``n_loops``, ``n_correct`` (pose error < max_t_err / max_r_err_deg),
     ``precision``, ``n_revisit_queries``, ``n_revisit_found``, ``recall`` (revisit queries
     with an accepted loop), ``n_revisit_segments``, ``segments_found`` (contiguous revisit
-    stretches with at least one loop) and ``segment_recall``; ``None`` where undefined.
+    stretches with at least one loop) and ``segment_recall``; ``None`` where undefined. The
+    segments are built from every true revisit, checked or not: a stretch shorter than the
+    checking interval, or inside a cooldown, counts even though no query fell in it (so
+    ``segment_recall`` is a lower bound of what the schedule allowed).
     """
     correct = []
     for i, j, T in loops:

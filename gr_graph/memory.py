@@ -16,17 +16,20 @@ SLAM writes one memory per round; the trainer reads it. A memory is a directory:
                                         indices local to each scan
     corr_offsets.npy   int64   (E+1,)   edge e owns corr[corr_offsets[e]:corr_offsets[e+1]]
 
-A memory is written into a temporary sibling directory and renamed into place, so a
-reader never sees a half-written memory and an interrupted write loses nothing that was
-there before.
+A memory is written into a temporary sibling directory, flushed to the disk and renamed into
+place, so a reader never sees a half-written memory and a failed write leaves the earlier
+memory in place (a process killed between the two renames leaves it as a hidden ``.old-*``
+sibling, kept).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -35,7 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.atomic import default_mode
+from gr_graph.atomic import default_mode, fsync_directory
+
+log = logging.getLogger(__name__)
 
 FORMAT_NAME = "gr_graph.memory"
 FORMAT_VERSION = 1
@@ -247,20 +252,52 @@ def _atomic_directory(directory: str | os.PathLike[str]) -> Iterator[Path]:
     existing directory is removed only after the new one is complete), on failure delete it."""
     target = Path(directory)
     target.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_siblings(target)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:
         tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
         yield tmp
+        for f in tmp.iterdir():  # on the disk before the rename: never a complete-looking memory of empty files
+            with open(f, "rb+") as fh:
+                os.fsync(fh.fileno())
+        fsync_directory(tmp)
         old = None
         if target.exists():  # a unique name: a folder left by a killed process may hold this pid's
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
             os.replace(target, old)
-        os.replace(tmp, target)
+        try:
+            os.replace(tmp, target)
+        except BaseException:
+            if old is not None:  # the earlier memory back in its place
+                os.replace(old, target)
+            raise
+        fsync_directory(target.parent)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+STALE_SIBLING_S = 3600.0
+"""Temporary siblings (``.<name>.tmp-*``, ``.<name>.old-*``) of a memory older than this [s] are
+left by a killed process (a memory is written in minutes at most) and removed at the next write."""
+
+
+def _remove_stale_siblings(target: Path) -> None:
+    """Delete the temporary siblings of ``target`` that a killed process left behind (up to a
+    memory's size each), logged; an ``.old-*`` one is kept while ``target`` is missing (the kill
+    came between the two renames: it holds the only copy)."""
+    now = time.time()
+    for kind in ("tmp", "old"):
+        for p in target.parent.glob(f".{target.name}.{kind}-*"):
+            try:
+                stale = p.is_dir() and now - p.stat().st_mtime > STALE_SIBLING_S
+            except FileNotFoundError:
+                continue
+            if stale and (kind == "tmp" or target.exists()):
+                log.warning("%s: left by an interrupted write of %s; removed", p, target)
+                shutil.rmtree(p, ignore_errors=True)
 
 
 def _write_meta(directory: Path, n_scans: int, n_edges: int, n_points: int, n_corr: int,
@@ -273,6 +310,9 @@ def _write_meta(directory: Path, n_scans: int, n_edges: int, n_points: int, n_co
 def _write_concatenated(path: Path, parts: Sequence[np.ndarray], dtype: Any, width: int) -> np.ndarray:
     """Write ``parts`` (each ``(n_i, width)``) one after another into the ``.npy`` file ``path``
     without concatenating them in RAM; return the offsets ``(len(parts) + 1,)`` int64."""
+    for k, p in enumerate(parts):
+        if np.ndim(p) != 2 or np.shape(p)[1] != width:
+            raise ValueError(f"{path.name}: part {k} has shape {np.shape(p)}, expected (n, {width})")
     sizes = [len(p) for p in parts]
     offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
     dt = np.dtype(dtype)
@@ -301,7 +341,7 @@ def save_memory_from_scans(
     """Write a memory from per-scan and per-edge lists, streaming, atomically; read it back.
 
     Same arguments and result as ``Memory.from_scans(...).save(directory)``, but the points and
-    correspondences go straight from the lists into memory-mapped ``.npy`` files: no
+    correspondences go straight from the lists into the ``.npy`` files (plain writes): no
     concatenated copy of them is ever held in RAM (for a full KITTI sequence at 64 channels
     that copy is about 1 GB). The written memory is validated before it is renamed into place
     and returned memory-mapped (:func:`load_memory`).
@@ -350,8 +390,8 @@ def load_memory(directory: str | os.PathLike[str], mmap: bool = True) -> Memory:
             raise MemoryFormatError(f"{d}: missing {path.name}")
         try:
             arrays[name] = np.load(path, mmap_mode="r" if mmap else None)
-        except ValueError as exc:
-            raise MemoryFormatError(f"{path}: unreadable ({exc})") from exc
+        except (ValueError, EOFError, OSError) as exc:  # EOFError: an empty file
+            raise MemoryFormatError(f"{path}: unreadable ({type(exc).__name__}: {exc})") from exc
     mem = Memory(**arrays, info=meta.get("info", {}))
     mem.validate()
     if mem.n_scans != meta.get("n_scans") or mem.n_edges != meta.get("n_edges"):

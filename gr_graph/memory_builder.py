@@ -5,7 +5,9 @@ with i the newer scan, in the run's order. For each edge
 
 - ``edge_T`` is T̂ = T_target⁻¹ T_source from the *optimised* trajectory;
 - ``edge_H`` is the registration Hessian (small_gicp, unscaled); a flagged edge (failed
-  registration, listed in ``info.flagged_edges``) stores its fallback information;
+  registration, listed in ``info.flagged_edges``) stores its fallback information, times the
+  round's variance factor when the learned edge noise was calibrated
+  (:func:`gr_graph.frame_loop.scale_learned_information` scales it in place before the memory is built);
 - ``corr`` are the nearest stored target points within ``odometry.corr_max_distance`` under
   that T̂ (:func:`gr_graph.correspondences.nearest_correspondences`).
 

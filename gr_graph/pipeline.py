@@ -48,6 +48,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -645,6 +646,10 @@ class SlamPipeline:
         rd = self.round_dir(r)
         rd.mkdir(parents=True, exist_ok=True)
         (rd / "round.json").unlink(missing_ok=True)
+        if (rd / "memory").exists():  # an earlier configuration's: never left for a later round to train on
+            shutil.rmtree(rd / "memory")
+            if r == 0:
+                self._raw_scans = None
         t0 = time.perf_counter()
         edge_noise = self.edge_noise(densified)
         try:

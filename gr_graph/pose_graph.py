@@ -153,7 +153,11 @@ class PoseGraph:
         """Add ``BetweenFactorPose3(X(l), X(k), T̂_kl)`` with the given information (robust if loop)."""
         if not (0 <= k < self.n_poses and 0 <= l < self.n_poses):
             raise IndexError(f"edge ({k}, {l}) references a pose outside 0..{self.n_poses - 1}")
-        T = gtsam.Pose3(np.asarray(T_kl, dtype=np.float64))
+        T_kl = np.asarray(T_kl, dtype=np.float64)
+        if T_kl.shape != (4, 4) or not np.all(np.isfinite(T_kl)):
+            raise ValueError(f"edge ({k}, {l}): the measured transform must be a finite 4x4 matrix "
+                             f"(shape {T_kl.shape}, {int(np.size(T_kl) - np.isfinite(T_kl).sum())} non-finite entries)")
+        T = gtsam.Pose3(T_kl)
         model = edge_noise_model(information, self.cfg, loop)
         self.graph.add(gtsam.BetweenFactorPose3(X(l), X(k), T, model))
         if loop:

@@ -141,6 +141,46 @@ def test_frame_loop_deskews_to_the_undistorted_points(time_source: str, scan_per
     assert loop.deskewer.time_sources[time_source] == 1
 
 
+@pytest.mark.parametrize("time_source", ["data", "azimuth"])
+def test_learned_noise_predictions_are_moved_as_their_frames_were(time_source: str) -> None:
+    """H(C) pairs the network's points (taken from the scan as read) under T̂ between deskewed frames:
+    the frame loop moves them, and turns their covariances, as it moved the frame."""
+    from gr_graph.edge_noise import LearnedEdgeNoise
+
+    rng = np.random.default_rng(2)
+    n = 500
+    measured = rng.uniform([-40, -40, -2], [40, 40, 5], (n, 3))
+    t = times_from_azimuth(measured) if time_source == "azimuth" else rng.uniform(0, 1, n)
+    undistorted = np.array([_apply(exp_se3((ti - 0.5) * XI_FRAME), p[None])[0] for p, ti in zip(measured, t)])
+    A = rng.normal(0, 0.1, (n, 3, 3))
+    C = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
+    frames = [_frame(k, measured, t if time_source == "data" else None) for k in range(3)]
+
+    class WithPredictions(ListSequence):  # the densified view's per-point times of its predictions
+        def prediction_times(self, index: int) -> np.ndarray | None:
+            return t if time_source == "data" else None
+
+    seq = WithPredictions(frames, _constant_velocity_poses(3), motion_compensated=False)
+    cfg = load_config(overrides={"odometry": {"deskew": "auto"}, "loops": {"enabled": False},
+                                 "graph": {"marginals": False}, "output": {"progress": False}})
+    en = LearnedEdgeNoise({2: (measured, C), 1: (measured, C)}.get, cfg)
+    loop = _FrameLoop(seq, cfg, en)
+    assert en.motion_correction is not None
+    loop.odometry._delta = exp_se3(XI_FRAME)
+    loop.deskew(2, frames[2])
+    points, moved_C = en._prediction(2)
+    np.testing.assert_allclose(points, undistorted, atol=1e-9)
+    R = np.stack([exp_se3(np.r_[(ti - 0.5) * XI_FRAME[:3], 0, 0, 0])[:3, :3] for ti in t])
+    np.testing.assert_allclose(moved_C, R @ C @ R.transpose(0, 2, 1), atol=1e-12)
+    assert np.abs(moved_C - C).max() > 1e-5  # the rotation turned them
+    same_points, same_C = en._prediction(1)  # a frame that was not deskewed: as predicted
+    assert same_points is measured and same_C is C
+    off = load_config(overrides={"odometry": {"deskew": "off"}, "output": {"progress": False}})
+    en_off = LearnedEdgeNoise({}.get, off)
+    _FrameLoop(seq, off, en_off)
+    assert en_off.motion_correction is None
+
+
 def test_frame_loop_off_leaves_frames_and_records_the_summary() -> None:
     """deskew off: frames untouched; on: every frame counted, startup frames redone."""
     rng = np.random.default_rng(2)

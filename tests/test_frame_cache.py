@@ -77,6 +77,27 @@ def test_another_key_empties_the_directory(tmp_path):
     assert json.loads((tmp_path / "frames" / "cache.json").read_text())["key"] == "k2"
 
 
+def test_a_folder_of_the_users_own_is_never_emptied(tmp_path, caplog):
+    from gr_graph.datasets.base import DatasetError
+
+    seq = CountingSequence()
+    own = tmp_path / "frames"
+    own.mkdir()
+    (own / "000000.pcd").write_text("the user's scan")
+    with pytest.raises(DatasetError, match=r"frames: the frame cache's folder holds 000000.pcd, not a cached frame"):
+        CachedFrames(seq, own, key="k")
+    assert (own / "000000.pcd").read_text() == "the user's scan"
+    cache = CachedFrames(seq, tmp_path / "cache", key="k")
+    cache[0]
+    (tmp_path / "cache" / "notes.txt").write_text("added later")
+    with caplog.at_level("WARNING"):
+        cache.remove()
+    assert (tmp_path / "cache" / "notes.txt").is_file() and "frame cache not removed" in caplog.text
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DatasetError, match="holds a file"):
+        CachedFrames(seq, tmp_path / "file", key="k")
+
+
 @pytest.mark.parametrize("damage", ["truncate", "other_position"])
 def test_unreadable_file_is_made_again_and_counted(tmp_path, damage):
     seq = CountingSequence()

@@ -70,9 +70,15 @@ def test_truncated_scan_names_file(kitti_copy: Path) -> None:
     f = kitti_copy / "sequences/00/velodyne/000002.bin"
     data = f.read_bytes()
     f.write_bytes(data[:-6])
-    seq = KittiSequence(kitti_copy, "00")
-    with pytest.raises(DatasetError, match=r"000002\.bin.*multiple of 16"):
-        seq[2]
+    with pytest.raises(DatasetError, match=r"000002\.bin.*multiple of 16.*\(1 of the 6 scans have such a size\)"):
+        KittiSequence(kitti_copy, "00")  # when the sequence opens, not when SLAM reaches the frame
+
+
+def test_times_must_increase(kitti_copy: Path) -> None:
+    times = kitti_copy / "sequences/00/times.txt"
+    times.write_text("0.0\n0.1\n0.1\n0.3\n0.2\n0.5\n")
+    with pytest.raises(DatasetError, match=r"times\.txt:3: timestamp 0.1 s is not after the one before"):
+        KittiSequence(kitti_copy, "00")
 
 
 def test_calib_without_tr(kitti_copy: Path) -> None:

@@ -319,6 +319,26 @@ def test_truncated_and_corrupt_files_are_still_errors(tmp_path: Path) -> None:
         read_npy(wrong)
 
 
+def test_malformed_headers_name_the_file_and_comments_may_hold_any_text(tmp_path: Path) -> None:
+    from gr_graph.datasets.point_files import read_point_file
+
+    good = write_pcd(tmp_path / "good.pcd", structured(scan(4, 100)))
+    text = good.read_bytes()
+    for what in (b"POINTS\n", b"POINTS 1.0\n"):
+        bad = tmp_path / "bad.pcd"
+        bad.write_bytes(re.sub(rb"POINTS \d+\n", what, text, count=1))
+        with pytest.raises(DatasetError, match=re.escape(f"{bad}: malformed PCD header or data")):
+            read_point_file(bad)
+    ply = tmp_path / "bad.ply"
+    ply.write_bytes(b"ply\nformat ascii 1.0\nelement vertex two\nproperty float x\nproperty float y\n"
+                    b"property float z\nend_header\n1 2 3\n")
+    with pytest.raises(DatasetError, match=re.escape(f"{ply}: malformed PLY header or data")):
+        read_point_file(ply)
+    commented = tmp_path / "commented.pcd"
+    commented.write_bytes(text.replace(b"VERSION", "# recorded at the caf\u00e9\nVERSION".encode("utf-8"), 1))
+    np.testing.assert_array_equal(read_point_file(commented).points, read_point_file(good).points)
+
+
 # ----------------------------------------------------------------------------- 6. non-finite intensity
 
 

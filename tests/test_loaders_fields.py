@@ -107,3 +107,28 @@ def test_times_become_sweep_fractions() -> None:
     no_time = _cloud(16, lowest_first=False)
     with pytest.raises(DatasetError, match="b.pcd: no per-point time field"):
         conv.frame(no_time, 1, 0.1, "b.pcd")
+
+
+def test_points_without_a_return_at_the_origin_are_dropped_before_rings_are_probed(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """An organized cloud (Ouster-style) marks a beam without a return as x = y = z = 0: kept, such
+    points pulled the sky rings' median elevation to 0 and the rings (in order) were renumbered."""
+    import logging
+
+    from gr_graph.datasets.pointcloud2 import decode_structured
+
+    ordered = _cloud(16, lowest_first=False)
+    rng = np.random.default_rng(0)
+    pts = ordered.points.copy()
+    no_return = (ordered.ring < 5) & (rng.random(len(pts)) < 0.7)  # the upper beams see the sky
+    pts[no_return] = 0.0
+    arr = np.zeros(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("ring", "u2")])
+    arr["x"], arr["y"], arr["z"], arr["ring"] = pts[:, 0], pts[:, 1], pts[:, 2], ordered.ring
+    cloud = decode_structured(arr.reshape(16, -1), "organized.pcd")
+    assert cloud.dropped_nonfinite == int(no_return.sum()) and len(cloud.points) == len(pts) - no_return.sum()
+    assert np.all(np.any(cloud.points != 0, axis=1))
+    with caplog.at_level(logging.WARNING):
+        conv = FieldConventions.probe(cloud, 0.1, "organized.pcd")
+    assert conv.ring_table is None and "not in elevation order" not in caplog.text
+    kept = DecodedCloud(np.where(no_return[:, None], 0.0, pts), None, None, None, ordered.ring, 0)
+    assert FieldConventions.probe(kept, 0.1, "src").ring_table is not None  # what the zeros did before

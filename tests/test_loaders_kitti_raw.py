@@ -95,14 +95,18 @@ def test_kitti_raw_without_oxts_and_broken(tmp_path: Path) -> None:
     drive, _, _, _ = _fake_drive(tmp_path, 3, with_oxts=False)
     assert KittiRawSequence(drive, recover_ring_index=False).gt_poses is None
     times = drive / "velodyne_points" / "timestamps.txt"
-    times.write_text(times.read_text().splitlines()[0] + "\n")
+    good_times = times.read_text()
+    times.write_text(good_times.splitlines()[0] + "\n")
     with pytest.raises(DatasetError, match=r"velodyne_points/timestamps.txt: 1 timestamps for 3 scans"):
         KittiRawSequence(drive)
     times.write_text("yesterday\n")
     with pytest.raises(DatasetError, match=r"timestamps.txt:1: not a 'YYYY-MM-DD HH:MM:SS.fff' date"):
         KittiRawSequence(drive)
+    (drive / "velodyne_points" / "data" / ".DS_Store").write_bytes(b"\0")  # hidden files are no scans
+    times.write_text(good_times)
+    assert len(KittiRawSequence(drive)) == 3
     (drive / "velodyne_points" / "data" / "notes.txt").write_text("x")
-    with pytest.raises(DatasetError, match=r"data: mixed file types \(.bin and .txt\)"):
+    with pytest.raises(DatasetError, match=r"data: mixed file types \(.bin and '.txt'\)"):
         KittiRawSequence(drive)
 
 

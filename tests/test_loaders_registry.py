@@ -38,6 +38,11 @@ def test_kitti_odometry_root_and_sequence_folder_as_path(kitti_root: Path) -> No
     seq2, source2 = open_sequence(path=kitti_root / "sequences" / "00", frames="0:2")
     assert "KITTI sequence 00" in source2
     np.testing.assert_array_equal(seq[1].points, seq2[1].points)
+    velodyne = kitti_root / "sequences" / "00" / "velodyne"  # the scans' folder: still the sequence, with its GT
+    assert guess_dataset(velodyne) == "kitti"
+    seq3, source3 = open_sequence(path=velodyne, frames="0:2")
+    assert "KITTI sequence 00" in source3 and seq3.gt_poses is not None
+    np.testing.assert_array_equal(seq[1].points, seq3[1].points)
 
 
 def test_config_and_cli_reach_the_loader(tmp_path: Path) -> None:

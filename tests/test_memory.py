@@ -175,3 +175,63 @@ def test_streaming_write_maps_no_file_and_survives_a_stale_old_folder(tmp_path: 
     assert back.n_scans == 4
     np.testing.assert_array_equal(back.scan(2), parts["scans"][2])
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m", stale.name])  # the stale one is not ours
+
+
+def test_streaming_write_refuses_scans_of_another_width(tmp_path: Path) -> None:
+    rng = np.random.default_rng(10)
+    parts = _memory_parts(rng, 2)
+    parts["scans"] = [np.arange(24, dtype=np.float32).reshape(6, 4), np.ones((3, 3), np.float32)]
+    with pytest.raises(ValueError, match=r"points.npy: part 0 has shape \(6, 4\), expected \(n, 3\)"):
+        save_memory_from_scans(tmp_path / "m", **parts)
+    assert list(tmp_path.iterdir()) == []  # nothing half-written left
+
+
+def test_empty_array_file_is_a_format_error(tmp_path: Path) -> None:
+    save_memory_from_scans(tmp_path / "m", **_memory_parts(np.random.default_rng(11), 3))
+    (tmp_path / "m" / "edge_T.npy").write_bytes(b"")  # e.g. a power loss before the data reached the disk
+    with pytest.raises(MemoryFormatError, match="edge_T.npy: unreadable"):
+        load_memory(tmp_path / "m")
+
+
+def test_stale_siblings_of_killed_writes_are_removed_but_never_the_only_copy(tmp_path: Path, caplog) -> None:
+    import os
+
+    from gr_graph.memory import STALE_SIBLING_S
+
+    rng = np.random.default_rng(12)
+    old_time = __import__("time").time() - 2 * STALE_SIBLING_S
+    left = {}
+    for name in (".m.tmp-abc", ".m.old-def", ".m.tmp-new"):
+        left[name] = tmp_path / name
+        left[name].mkdir()
+        (left[name] / "points.npy").write_bytes(b"x")
+        if name != ".m.tmp-new":
+            os.utime(left[name], (old_time, old_time))
+    save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 3))  # no memory yet: the old one is the only copy
+    assert not left[".m.tmp-abc"].exists() and left[".m.old-def"].is_dir() and left[".m.tmp-new"].is_dir()
+    with caplog.at_level("WARNING", logger="gr_graph.memory"):
+        save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 4))
+    assert not left[".m.old-def"].exists() and "left by an interrupted write" in caplog.text
+    assert left[".m.tmp-new"].is_dir()  # young: perhaps being written
+
+
+def test_failed_rename_puts_the_earlier_memory_back(tmp_path: Path, monkeypatch) -> None:
+    import os
+
+    rng = np.random.default_rng(13)
+    save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 3))
+    real = os.replace
+    calls = []
+
+    def second_fails(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:  # the new memory onto its place
+            raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", second_fails)
+    with pytest.raises(OSError, match="No space"):
+        save_memory_from_scans(tmp_path / "m", **_memory_parts(rng, 4))
+    monkeypatch.undo()
+    assert load_memory(tmp_path / "m").n_scans == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]

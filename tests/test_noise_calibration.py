@@ -484,6 +484,37 @@ def test_densified_view_predicts_an_evicted_frame_again():
     np.testing.assert_array_equal(C, kept[0][1])
     assert view.n_recomputed == 1 and len(calls) == 5
     assert view.prediction(12345) is None  # never read through the view
+    assert view.prediction_times(seq[0].index) is None  # frames without per-point times
+
+
+def test_densified_view_gives_its_predictions_per_point_times():
+    """The sweep fraction of each predicted point is that of the raw point nearest to it (the frame
+    loop deskews the predictions with them), the same whether kept or made again."""
+    from dataclasses import replace
+
+    from scipy.spatial import cKDTree
+    from test_learning_rounds import PlaneScenes, plane_predictor
+
+    from gr_graph.config import PreprocessConfig, TrainingConfig
+    from gr_graph.datasets.registry import SequenceView
+    from gr_graph.densify import densified_sequence
+
+    timed = SequenceView(PlaneScenes(n=3), transform=lambda f: replace(f, time=np.linspace(0.0, 1.0, len(f.points))))
+    view = densified_sequence(timed, plane_predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
+                              preprocess=PreprocessConfig(), keep_predictions=1)
+    kept = {}
+    for i in range(3):
+        view[i]
+        kept[i] = view.prediction_times(timed[i].index)
+    for i in range(3):
+        raw = timed[i]
+        times = view.prediction_times(raw.index)  # frames 0 and 1: made again
+        np.testing.assert_array_equal(times, kept[i])
+        pts, _ = view.prediction(raw.index)
+        assert times.shape == (len(pts),)
+        rows = np.rint(times * (len(raw.points) - 1)).astype(int)  # the times are unique: they name the raw rows
+        nearest, _ = cKDTree(raw.points).query(pts)
+        np.testing.assert_allclose(np.linalg.norm(raw.points[rows] - pts, axis=1), nearest, atol=1e-9)
 
 
 def test_flagged_edges_are_left_out_of_the_variance_factor():

@@ -366,6 +366,18 @@ def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tm
     assert SlamPipeline(pca).finished_round(0) is not None  # no training and no test: the memory is not read
 
 
+def test_a_recomputed_round_without_memory_leaves_no_memory_of_the_earlier_run(tmp_path):
+    """Run A writes round 0's memory; run B (another configuration, --no-memory) recomputes round 0;
+    run C with B's configuration and a learning round would have resumed round 0 with A's memory."""
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert main([str(folder), "--out", str(out), "--rounds", "0", "--no-progress", "--no-loops"]) == 0
+    assert (out / "round_0" / "memory" / "meta.json").is_file()
+    assert run_cli(folder, out, "--map-keyframe", "0.1", "1") == 0  # another round 0, without a memory
+    assert not (out / "round_0" / "memory").exists()
+
+
 def test_recomputing_a_round_drops_the_later_rounds_summaries(tmp_path):
     """A ``--no-resume`` rerun killed after round 0: the earlier run's round 1 (made from another
     round 0) must not be resumed by the next run."""

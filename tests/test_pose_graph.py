@@ -92,6 +92,11 @@ def test_bad_edges_are_clear_errors():
     g.add_pose(np.eye(4))
     with pytest.raises(ValueError, match="finite 6x6"):
         g.add_edge(1, 0, np.eye(4), np.full((6, 6), np.nan))
+    bad_T = np.eye(4)
+    bad_T[0, 3] = np.nan  # gtsam took it: optimize() returned the initial poses with a NaN error, no word
+    with pytest.raises(ValueError, match=r"edge \(1, 0\): the measured transform must be a finite 4x4 .* 1 non-finite"):
+        g.add_edge(1, 0, bad_T, np.eye(6))
+    assert g.graph.size() == 1  # the prior only: nothing added
 
 
 def test_between_factor_convention_matches_memory():

@@ -309,6 +309,10 @@ class FolderSequence:
         self.folder = Path(folder)
         self.point_format = point_format
         self.files = point_files(self.folder)
+        if self.files and self.files[0].suffix.lower() == ".bin":  # one type a folder
+            from gr_graph.datasets.point_layout import check_bin_sizes
+
+            check_bin_sizes(self.files, point_format)
         self.name = f"folder-{self.folder.name}"
         self.T_cam_velo = np.eye(4)
         n = len(self.files)
@@ -366,7 +370,8 @@ class FolderSequence:
         if cloud is None:
             cloud = read_point_file(path, self.point_format)
         if cloud.dropped_nonfinite:
-            log.warning("%s: dropped %d non-finite points", path, cloud.dropped_nonfinite)
+            log.warning("%s: dropped %d points without a return (non-finite, or exactly at the origin)", path,
+                        cloud.dropped_nonfinite)
         if len(cloud.points) == 0:
             return self._empty_frame(i, path, cloud)
         return self.conventions.frame(cloud, i, float(self.timestamps[i]), str(path))
@@ -376,7 +381,7 @@ class FolderSequence:
         if i not in self.empty_frames:
             self.empty_frames.add(i)
             what = ("a 0-byte file" if path.stat().st_size == 0 else
-                    f"all {cloud.dropped_nonfinite} points non-finite" if cloud.dropped_nonfinite else "no points")
+                    f"all {cloud.dropped_nonfinite} points without a return" if cloud.dropped_nonfinite else "no points")
             log.warning("%s: empty scan (%s): frame %d is empty (%d empty frame%s so far)", path, what, i,
                         len(self.empty_frames), "s" if len(self.empty_frames) > 1 else "")
         conv = self.conventions  # the fields the sequence's other frames have, empty

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 import threading
 import zipfile
@@ -37,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.atomic import atomic_path, atomic_write_json, read_json_or_none
-from gr_graph.datasets.base import LidarFrame, LidarSequence, check_index, find_in_chain, inherit_sweep_attributes
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index, find_in_chain, inherit_sweep_attributes
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,7 @@ class CachedFrames:
         meta = read_json_or_none(self.directory / META)
         expected = {"key": self.key, "n_frames": len(self.parent), "name": self.parent.name}
         if meta != expected and self.directory.exists():
+            _check_only_cache_files(self.directory)
             if meta is not None:
                 log.info("frame cache %s holds frames of another sequence or configuration: emptied", self.directory)
             shutil.rmtree(self.directory)
@@ -162,6 +164,35 @@ class CachedFrames:
                     "unreadable": self.unreadable, "write_errors": self.write_errors}
 
     def remove(self) -> None:
-        """Delete the cached frames (the view still works: frames are made again)."""
+        """Delete the cached frames (the view still works: frames are made again); a folder holding
+        anything else is left as it is (logged)."""
+        try:
+            _check_only_cache_files(self.directory)
+        except DatasetError as exc:
+            log.warning("frame cache not removed: %s", exc)
+            return
         shutil.rmtree(self.directory, ignore_errors=True)
         log.info("frame cache %s removed (%s)", self.directory, json.dumps(self.stats()))
+
+
+_CACHE_FILE = re.compile(r"(frame_\d+\.npz|cache\.json|\.(frame_\d+|cache)\..+\.(npz|json))")
+"""Names of a cache's files: its frames, its ``cache.json`` and their temporary names while written."""
+
+
+def _check_only_cache_files(directory: Path) -> None:
+    """Refuse to delete ``directory`` when it holds anything but a frame cache's files (e.g. a
+    ``frames`` folder of the user's own in ``--out``).
+
+    Raises
+    ------
+    DatasetError
+        Naming the folder and one file that is not the cache's.
+    """
+    if not directory.is_dir():
+        if directory.exists():
+            raise DatasetError(f"{directory}: the frame cache's place holds a file; move it or pick another --out")
+        return
+    other = next((p for p in directory.iterdir() if not (p.is_file() and _CACHE_FILE.fullmatch(p.name))), None)
+    if other is not None:
+        raise DatasetError(f"{directory}: the frame cache's folder holds {other.name}, not a cached frame; it is not "
+                           "deleted: move it or pick another --out (or set data.frame_cache: false)")

@@ -43,7 +43,13 @@ from gr_graph.datasets.base import (
     velo_to_cam_poses,
 )
 from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
-from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, float64_bin_problem, size_error
+from gr_graph.datasets.point_layout import (
+    POINT_FORMATS,
+    check_bin_sizes,
+    check_point_layout,
+    float64_bin_problem,
+    size_error,
+)
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +128,9 @@ def calib_T_cam_velo(calib: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def read_times(path: str | Path) -> np.ndarray:
-    """Read ``times.txt`` (one float per line) with errors naming the file and line."""
+    """Read ``times.txt`` (one float per line, strictly increasing) with errors naming the file and
+    line (a repeated or earlier time would stop the run only after SLAM, when the TUM trajectory is
+    written)."""
     path = Path(path)
     rows = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
@@ -134,6 +142,9 @@ def read_times(path: str | Path) -> np.ndarray:
             raise DatasetError(f"{path}:{lineno}: non-numeric timestamp {line[:40]!r}") from exc
         if not np.isfinite(value):
             raise DatasetError(f"{path}:{lineno}: non-finite timestamp")
+        if rows and value <= rows[-1]:
+            raise DatasetError(f"{path}:{lineno}: timestamp {value:.9g} s is not after the one before ({rows[-1]:.9g} "
+                               "s): the times must increase")
         rows.append(value)
     return np.asarray(rows, np.float64)
 
@@ -274,6 +285,7 @@ class KittiSequence:
         self.files = sorted(p for p in velo_dir.glob("*.bin") if not p.name.startswith("."))  # not macOS ._ files
         if not self.files:
             raise DatasetError(f"{velo_dir}: no .bin scans")
+        check_bin_sizes(self.files, point_format)
         expected = [f"{i:06d}.bin" for i in range(len(self.files))]
         if [f.name for f in self.files] != expected:
             first_bad = next(a.name for a, b in zip(self.files, expected) if a.name != b)

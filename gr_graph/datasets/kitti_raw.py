@@ -36,6 +36,7 @@ from gr_graph.datasets.channels import RingIndexer
 from gr_graph.datasets.folder import natural_key
 from gr_graph.datasets.frame_fields import frame_period
 from gr_graph.datasets.kitti import probe_points, read_velodyne_scan
+from gr_graph.datasets.point_layout import check_bin_sizes
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -167,11 +168,13 @@ class KittiRawSequence:
             raise DatasetError(f"{data}: no such folder (is {self.drive} a KITTI raw drive?)")
         self.files = sorted((p for p in data.glob("*.bin") if not p.name.startswith(".")),  # not macOS ._ files
                             key=lambda p: natural_key(p.name))
-        others = sorted({p.suffix for p in data.iterdir() if p.is_file() and p.suffix != ".bin"})
+        others = sorted({p.suffix for p in data.iterdir()  # hidden files (macOS .DS_Store, ._*) are not scans
+                         if p.is_file() and p.suffix != ".bin" and not p.name.startswith(".")})
         if others:
-            raise DatasetError(f"{data}: mixed file types (.bin and {', '.join(others)})")
+            raise DatasetError(f"{data}: mixed file types (.bin and {', '.join(map(repr, others))})")
         if not self.files:
             raise DatasetError(f"{data}: no .bin scans")
+        check_bin_sizes(self.files, point_format)
         self.point_format = point_format
         self.name = f"kitti-raw-{self.drive.name}"
         self.T_cam_velo = np.eye(4)

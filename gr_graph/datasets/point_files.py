@@ -23,7 +23,8 @@ an empty cloud, not an error: the sequence turns it into an empty frame, which t
 marks unusable (:class:`~gr_graph.datasets.folder.FolderSequence` logs it). A truncated or
 corrupt file (header cut off, fewer data bytes than the header promises) is still an error.
 
-**Non-finite intensity.** Points with a non-finite coordinate are dropped and counted, and a
+**Non-finite intensity.** Points with a non-finite coordinate or exactly at the origin (an organized
+cloud's beam without a return) are dropped and counted, and a
 non-finite intensity at a finite point is replaced by 0 with the count logged
 (:func:`gr_graph.datasets.pointcloud2.decode_structured`, as for bags); non-finite per-point
 times remain an error.
@@ -91,8 +92,13 @@ def read_point_file(path: str | Path, point_format: str = "xyzi") -> DecodedClou
             return read_ply(path)
         if suffix == ".npy":
             return read_npy(path)
+    except DatasetError:
+        raise
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: unreadable ({exc})") from exc
+    except (ValueError, IndexError, KeyError) as exc:  # e.g. a header line without its value, "POINTS 1.0"
+        raise DatasetError(f"{path}: malformed {suffix[1:].upper()} header or data ({type(exc).__name__}: "
+                           f"{exc})") from exc
     raise DatasetError(f"{path}: unknown point file type {suffix!r} (supported: {', '.join(POINT_FILE_SUFFIXES)})")
 
 
@@ -115,7 +121,9 @@ def _read_header(path: Path, first: bytes, end: tuple[bytes, ...]) -> tuple[list
             if not raw:
                 break
             offset += len(raw)
-            text = raw.decode("ascii", errors="strict").strip()
+            # comments may hold any text (a user's name, a place); the rest of a header is ASCII
+            comment = raw.lstrip().startswith((b"#", b"comment", b"obj_info"))
+            text = raw.decode("ascii", errors="replace" if comment else "strict").strip()
             lines.append(text)
             if any(text.encode().startswith(e) for e in end):
                 return lines, offset

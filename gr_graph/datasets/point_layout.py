@@ -28,6 +28,7 @@ which layout the data look like instead.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -234,6 +235,25 @@ def size_error(path: str | Path, size: int, point_format: str, values: np.ndarra
                     f"({ev.describe()})")
         return DatasetError(f"{msg}: {_HOW_TO_READ[other]}")
     return DatasetError(f"{msg}; the file is truncated or not a KITTI-style scan")
+
+
+def check_bin_sizes(files: Sequence[Path], point_format: str) -> None:
+    """Refuse, when a sequence opens, a ``.bin`` scan whose size is not a multiple of the point
+    size (a file cut short by a full disk or a copy that stopped): otherwise the run would stop at
+    that frame, after SLAM had spent its time on the frames before it.
+
+    Raises
+    ------
+    DatasetError
+        :func:`size_error` of the first such file, with how many of the files are affected.
+    """
+    stride_bytes = 4 * POINT_FORMATS[point_format]
+    bad = [(f, size) for f in files if (size := Path(f).stat().st_size) % stride_bytes]
+    if bad:
+        path, size = bad[0]
+        err = size_error(path, size, point_format, np.fromfile(path, np.float32) if size % 4 == 0 else None)
+        raise DatasetError(f"{err} ({len(bad)} of the {len(files)} scans have such a size"
+                           f"{'' if len(bad) == 1 else ', e.g. ' + ', '.join(Path(f).name for f, _ in bad[1:4])})")
 
 
 def float64_bin_problem(path: str | Path, values: np.ndarray | None = None) -> str | None:

@@ -51,7 +51,8 @@ class DecodedCloud:
         Which field ``time`` came from.
     ring : (N,) int64 or None
     dropped_nonfinite : int
-        Points removed because a coordinate was not finite.
+        Points removed because a coordinate was not finite or the point was exactly the origin
+        (no return).
     """
 
     points: np.ndarray
@@ -98,7 +99,8 @@ def empty_cloud() -> DecodedCloud:
 def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     """Read x, y, z (+ intensity, time, ring) from a structured array of points.
 
-    Points with a non-finite coordinate are dropped (counted in ``dropped``); a non-finite
+    Points with a non-finite coordinate, and points exactly at the origin (no return), are dropped
+    (counted in ``dropped``); a non-finite
     intensity at a finite point is replaced by 0 and the count logged (SLAM does not use
     intensity); non-finite per-point times and negative rings are errors naming ``source``.
 
@@ -119,7 +121,9 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
         if flat.dtype[c].shape:
             raise DatasetError(f"{source}: field {c!r} has count {flat.dtype[c].shape}, expected 1")
     xyz = np.stack([flat[c].astype(np.float64) for c in "xyz"], axis=1)
-    finite = np.all(np.isfinite(xyz), axis=1)
+    # a return: finite, and not exactly the origin (how organized clouds, e.g. Ouster's, mark a beam
+    # without a return; kept, they would pull a ring's elevation to 0 and its times into the sweep)
+    finite = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
     dropped = int(len(xyz) - finite.sum())
     if dropped:
         xyz = xyz[finite]

@@ -172,11 +172,19 @@ def find_kitti_root(seq: str, data_root: str | os.PathLike[str] | None = None) -
     return None
 
 
+def _is_kitti_velodyne_folder(p: Path) -> bool:
+    """Whether ``p`` is the ``velodyne`` folder of a KITTI odometry sequence (``sequences/XX/velodyne``,
+    beside its ``calib.txt``): read as that sequence, with its calibration and ground truth, not as a
+    plain folder of scans."""
+    return p.name == "velodyne" and p.parent.parent.name == "sequences" and (p.parent / "calib.txt").is_file()
+
+
 def guess_dataset(path: str | os.PathLike[str]) -> str:
     """The dataset kind of a path (one of :data:`DATASETS` but ``auto`` and ``synthetic``).
 
     A ``.bag``/``.mcap``/``.db3`` file or a folder with ``metadata.yaml``: ``rosbag``; a folder
-    with ``sequences/`` (or a ``sequences/XX`` folder with ``velodyne/``): ``kitti``; a folder
+    with ``sequences/`` (or a ``sequences/XX`` folder with ``velodyne/``, or that ``velodyne`` folder itself):
+    ``kitti``; a folder
     with ``velodyne_points/data`` (or ``velodyne_points`` itself): ``kitti_raw``; a folder of
     point files: ``folder`` (hidden files such as macOS ``._x.pcd`` do not count, as in
     :func:`gr_graph.datasets.folder.point_files`).
@@ -196,7 +204,8 @@ def guess_dataset(path: str | os.PathLike[str]) -> str:
     if is_bag(p):
         return "rosbag"
     if p.is_dir():
-        if (p / "sequences").is_dir() or ((p / "velodyne").is_dir() and p.parent.name == "sequences"):
+        if (p / "sequences").is_dir() or ((p / "velodyne").is_dir() and p.parent.name == "sequences") \
+                or _is_kitti_velodyne_folder(p):
             return "kitti"
         if is_kitti_raw_drive(p) or (p.name == "velodyne_points" and (p / "data").is_dir()):
             return "kitti_raw"
@@ -385,6 +394,8 @@ def open_sequence(
         if kind == "synthetic":
             raise DatasetError(f"the synthetic sequence takes no path (got {p}); drop it or pick another --dataset")
         if kind == "kitti":
+            if _is_kitti_velodyne_folder(p):  # sequences/XX/velodyne: its sequence folder
+                p = p.parent
             if (p / "velodyne").is_dir() and p.parent.name == "sequences":
                 p, seq = p.parent.parent, p.name
             data_root = p

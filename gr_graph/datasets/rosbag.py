@@ -206,7 +206,8 @@ class RosbagSequence:
         source = self._source(i)
         cloud = decode_pointcloud2(msg, source)
         if cloud.dropped_nonfinite:
-            log.debug("%s: dropped %d non-finite points", source, cloud.dropped_nonfinite)
+            log.debug("%s: dropped %d points without a return (non-finite, or exactly at the origin)", source,
+                      cloud.dropped_nonfinite)
         return self.conventions.frame(cloud, i, float(self.timestamps[i]), source, float(self.stamps_s[i]))
 
     @property
