@@ -149,7 +149,9 @@ def write_ply(path: PathLike, points: np.ndarray, intensity: np.ndarray | None =
 
 
 def read_ply_covariances(path: PathLike) -> np.ndarray:
-    """The ``(N, 3, 3)`` covariances stored as ``cov_*`` properties in a PLY file (open3d reads it)."""
+    """The ``(N, 3, 3)`` covariances stored as ``cov_*`` properties in a PLY file (open3d reads it),
+    one a point that :func:`read_cloud` returns: rows of points it drops (a non-finite coordinate, or
+    exactly the origin) are dropped here too, so the two stay row-aligned."""
     import open3d as o3d
 
     p = Path(path)
@@ -157,8 +159,9 @@ def read_ply_covariances(path: PathLike) -> np.ndarray:
     missing = [k for k in COVARIANCE_PROPERTIES if k not in cloud.point]
     if missing:
         raise DatasetError(f"{p}: no covariance properties {missing}")
-    n = len(cloud.point.positions)
-    C = np.empty((n, 3, 3), np.float64)
+    xyz = cloud.point.positions.numpy().astype(np.float64)
+    kept = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)  # as decode_structured keeps
+    C = np.empty((len(xyz), 3, 3), np.float64)
     for name, (i, j) in COVARIANCE_PROPERTIES.items():
         C[:, i, j] = C[:, j, i] = cloud.point[name].numpy().reshape(-1)
-    return C
+    return C[kept]

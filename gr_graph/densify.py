@@ -352,6 +352,7 @@ class DensifiedSequence:
         self.keep_predictions = keep_predictions
         # index -> (preprocessed points, their covariances, their sweep fractions or None)
         self._predicted: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = OrderedDict()
+        self._recomputed_times: tuple[int, np.ndarray | None] | None = None  # the last recomputed frame's
 
     def __len__(self) -> int:
         return len(self.parent)
@@ -403,8 +404,11 @@ class DensifiedSequence:
         with self._lock:
             kept = self._predicted.get(int(index))
             position = self._position.get(int(index))
+            recomputed = self._recomputed_times
         if kept is not None:
             return kept[2]
+        if recomputed is not None and recomputed[0] == int(index):  # made with :meth:`prediction` just before
+            return recomputed[1]
         if position is None:
             return None
         with self._parent_lock:
@@ -436,9 +440,11 @@ class DensifiedSequence:
         scan = preprocess_scan(raw.points, self.preprocess, index=int(raw.index))
         C, problem = self._predict(scan.points) if scan.usable else (None, "unusable_scan")
         failed = problem is not None or C.shape != (len(scan.points), 3, 3)
+        times = _source_times(raw, scan.points) if scan.usable and not failed else None
         with self._lock:
             self.n_recomputed += 1
             self.recomputed_failures += int(failed)
+            self._recomputed_times = (int(index), times)  # :meth:`prediction_times` asks next (deskewed frames)
         if not scan.usable:
             return None
         if failed:

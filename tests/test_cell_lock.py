@@ -107,3 +107,27 @@ def test_cell_finished_by_another_process_meanwhile_is_taken(tmp_path: Path, mon
 
     monkeypatch.setattr(rc, "read_cell_result", late)
     assert rc.run_cell(tmp_path, cell) == first and calls == [cell.key] and len(looks) == 2
+
+
+def test_a_file_system_without_locks_runs_the_cell_unlocked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    import errno
+
+    import gr_graph.experiments.cell_lock as cl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(cl.fcntl, "flock", no_locks)
+    with caplog.at_level("WARNING", logger="gr_graph.experiments.cell_lock"):
+        with cell_lock(tmp_path / "table1" / "c") as path:
+            assert json.loads(path.read_text())["pid"] == os.getpid()
+    assert "takes no locks" in caplog.text
+
+    def broken(fd, op):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(cl.fcntl, "flock", broken)
+    with pytest.raises(OSError, match="Input/output"):  # other errors are not hidden
+        with cell_lock(tmp_path / "table1" / "c"):
+            pass

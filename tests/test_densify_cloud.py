@@ -287,6 +287,12 @@ def test_write_cloud_round_trips(tmp_path: Path) -> None:
         np.testing.assert_array_equal(bi, i)
     assert not list(tmp_path.glob("*.NPY.npy")) and not list(tmp_path.glob(".*"))  # no stray file beside it
     np.testing.assert_array_equal(read_ply_covariances(tmp_path / "c.ply"), C)
+    x0 = x.copy()
+    x0[2] = 0.0  # a point exactly at the origin: read_cloud drops it (no return), the covariances follow
+    write_cloud(tmp_path / "origin.ply", x0, i, C)
+    back, _ = read_cloud(tmp_path / "origin.ply")
+    np.testing.assert_array_equal(back, np.delete(x0, 2, axis=0).astype(np.float32))
+    np.testing.assert_array_equal(read_ply_covariances(tmp_path / "origin.ply"), np.delete(C, 2, axis=0))
     with pytest.raises(ValueError, match="only"):
         write_cloud(tmp_path / "c.pcd", x, covariances=C)
     with pytest.raises(DatasetError, match="unknown point cloud format"):

@@ -70,8 +70,14 @@ def test_truncated_scan_names_file(kitti_copy: Path) -> None:
     f = kitti_copy / "sequences/00/velodyne/000002.bin"
     data = f.read_bytes()
     f.write_bytes(data[:-6])
-    with pytest.raises(DatasetError, match=r"000002\.bin.*multiple of 16.*\(1 of the 6 scans have such a size\)"):
-        KittiSequence(kitti_copy, "00")  # when the sequence opens, not when SLAM reaches the frame
+    seq = KittiSequence(kitti_copy, "00")
+    with pytest.raises(DatasetError, match=r"000002\.bin.*multiple of 16"):
+        seq[2]
+    from gr_graph.datasets.registry import open_sequence
+
+    with pytest.raises(DatasetError, match=r"000002\.bin.*multiple of 16.*\(1 of the 6 scans to read have such a size"):
+        open_sequence(path=kitti_copy)  # when the sequence opens, not when SLAM reaches the frame
+    assert len(open_sequence(path=kitti_copy, frames="3:6")[0]) == 3  # outside the frames asked for: not read
 
 
 def test_times_must_increase(kitti_copy: Path) -> None:

@@ -515,6 +515,12 @@ def test_densified_view_gives_its_predictions_per_point_times():
         rows = np.rint(times * (len(raw.points) - 1)).astype(int)  # the times are unique: they name the raw rows
         nearest, _ = cKDTree(raw.points).query(pts)
         np.testing.assert_allclose(np.linalg.norm(raw.points[rows] - pts, axis=1), nearest, atol=1e-9)
+    first = timed[0].index
+    view.prediction(first)  # made again (evicted); its times come with it, read next without a second pass
+    reads = []
+    view.parent = SequenceView(timed, transform=lambda f: reads.append(f.index) or f)
+    np.testing.assert_array_equal(view.prediction_times(first), kept[0])
+    assert reads == []
 
 
 def test_flagged_edges_are_left_out_of_the_variance_factor():

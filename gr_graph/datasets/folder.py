@@ -309,11 +309,8 @@ class FolderSequence:
         self.folder = Path(folder)
         self.point_format = point_format
         self.files = point_files(self.folder)
-        if self.files and self.files[0].suffix.lower() == ".bin":  # one type a folder
-            from gr_graph.datasets.point_layout import check_bin_sizes
-
-            check_bin_sizes(self.files, point_format)
         self.name = f"folder-{self.folder.name}"
+        self._said_dropped = False  # points without a return were logged once
         self.T_cam_velo = np.eye(4)
         n = len(self.files)
         pose_path = Path(poses) if poses is not None else find_side_file(self.folder, POSE_FILES, skip_run_outputs=True)
@@ -369,9 +366,12 @@ class FolderSequence:
         cloud = self._read_ahead.pop(i, None)
         if cloud is None:
             cloud = read_point_file(path, self.point_format)
-        if cloud.dropped_nonfinite:
-            log.warning("%s: dropped %d points without a return (non-finite, or exactly at the origin)", path,
-                        cloud.dropped_nonfinite)
+        if cloud.dropped_nonfinite:  # organized clouds have them in every frame: said once, then at debug level
+            log.log(logging.DEBUG if self._said_dropped else logging.WARNING,
+                    "%s: dropped %d points without a return (non-finite, or exactly at the origin)%s", path,
+                    cloud.dropped_nonfinite, "" if self._said_dropped else
+                    "; counted in each frame's dropped_nonfinite, not logged again")
+            self._said_dropped = True
         if len(cloud.points) == 0:
             return self._empty_frame(i, path, cloud)
         return self.conventions.frame(cloud, i, float(self.timestamps[i]), str(path))

@@ -43,13 +43,7 @@ from gr_graph.datasets.base import (
     velo_to_cam_poses,
 )
 from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
-from gr_graph.datasets.point_layout import (
-    POINT_FORMATS,
-    check_bin_sizes,
-    check_point_layout,
-    float64_bin_problem,
-    size_error,
-)
+from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, float64_bin_problem, size_error
 
 log = logging.getLogger(__name__)
 
@@ -285,7 +279,6 @@ class KittiSequence:
         self.files = sorted(p for p in velo_dir.glob("*.bin") if not p.name.startswith("."))  # not macOS ._ files
         if not self.files:
             raise DatasetError(f"{velo_dir}: no .bin scans")
-        check_bin_sizes(self.files, point_format)
         expected = [f"{i:06d}.bin" for i in range(len(self.files))]
         if [f.name for f in self.files] != expected:
             first_bad = next(a.name for a, b in zip(self.files, expected) if a.name != b)

@@ -36,7 +36,6 @@ from gr_graph.datasets.channels import RingIndexer
 from gr_graph.datasets.folder import natural_key
 from gr_graph.datasets.frame_fields import frame_period
 from gr_graph.datasets.kitti import probe_points, read_velodyne_scan
-from gr_graph.datasets.point_layout import check_bin_sizes
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -174,7 +173,6 @@ class KittiRawSequence:
             raise DatasetError(f"{data}: mixed file types (.bin and {', '.join(map(repr, others))})")
         if not self.files:
             raise DatasetError(f"{data}: no .bin scans")
-        check_bin_sizes(self.files, point_format)
         self.point_format = point_format
         self.name = f"kitti-raw-{self.drive.name}"
         self.T_cam_velo = np.eye(4)

@@ -252,7 +252,7 @@ def check_bin_sizes(files: Sequence[Path], point_format: str) -> None:
     if bad:
         path, size = bad[0]
         err = size_error(path, size, point_format, np.fromfile(path, np.float32) if size % 4 == 0 else None)
-        raise DatasetError(f"{err} ({len(bad)} of the {len(files)} scans have such a size"
+        raise DatasetError(f"{err} ({len(bad)} of the {len(files)} scans to read have such a size"
                            f"{'' if len(bad) == 1 else ', e.g. ' + ', '.join(Path(f).name for f, _ in bad[1:4])})")
 
 

@@ -25,7 +25,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, check_index, inherit_sweep_attributes
+from gr_graph.datasets.base import (
+    DatasetError,
+    LidarFrame,
+    LidarSequence,
+    check_index,
+    find_in_chain,
+    inherit_sweep_attributes,
+)
 from gr_graph.datasets.channels import SUPPORTED_CHANNELS, subsample_channels
 from gr_graph.sensors import CUSTOM, SensorConfig, SensorError, frame_sensor_problem
 
@@ -480,12 +487,26 @@ def _vertical_corrected(base: LidarSequence, source: str, angle_deg: float) -> t
     return view, source + f", vertical-angle correction {angle_deg:g} deg"
 
 
+def _check_bin_sizes(base: LidarSequence, start: int, stop: int) -> None:
+    """Refuse, when a sequence of ``.bin`` scans opens, one in frames ``start:stop`` whose size does
+    not fit its point format (:func:`~gr_graph.datasets.point_layout.check_bin_sizes`): the run would
+    otherwise stop only when SLAM reaches it. Files outside the range are not looked at (``--frames``
+    is how a drive with a scan cut short at its end is still run)."""
+    from gr_graph.datasets.point_layout import check_bin_sizes
+
+    owner = find_in_chain(base, "files", accept=lambda f: isinstance(f, list) and len(f) == len(base))
+    if owner is None or not owner.files or owner.files[0].suffix.lower() != ".bin":
+        return
+    check_bin_sizes(owner.files[start:stop], getattr(owner, "point_format", "xyzi"))
+
+
 def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int] | None,
           sensor: SensorConfig, n_rings: int) -> tuple[LidarSequence, str]:
     """The frame range and channel subsampling (to ``n_rings`` of ``sensor``'s beams) of ``base``
     as a :class:`SequenceView` whose ``sensor`` is ``sensor``; frames are checked against it."""
     start, stop = parse_frames(frames, len(base))
     name = base.name
+    _check_bin_sizes(base, start, stop)
 
     named = sensor.named_beams is not None
 

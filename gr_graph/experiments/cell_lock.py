@@ -5,14 +5,19 @@ whole table started twice on a shared ``--root``); two processes writing one cel
 mix their rounds. The lock is an exclusive ``flock`` on that file, held while the cell runs. The
 operating system releases it when its process ends in any way (finished, failed, killed, out of
 memory), so a dead run never leaves a stale lock behind; on NFS, Linux carries it as a POSIX
-lock to the server, so it holds across machines sharing the root. The file stays (a few bytes,
-hidden) and names its last owner: host, process id and start time, quoted when the cell is busy.
+lock to the server, so it holds across machines sharing the root (there, unlike on a local disk,
+two ``cell_lock`` of one process do not exclude each other; the harness runs a process's cells
+one after another). A file system that takes no locks at all gives a warning and the cell runs
+unlocked. The file stays (a few bytes, hidden) and names its last owner: host, process id and
+start time, quoted when the cell is busy.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
+import logging
 import os
 import socket
 from collections.abc import Iterator
@@ -21,6 +26,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 __all__ = ["CellBusyError", "cell_lock", "lock_path"]
+
+
+log = logging.getLogger(__name__)
+
+_NO_LOCKS = (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL)
+"""``flock`` errors of file systems without locks (NFS without lockd, Lustre mounted ``noflock``):
+the cell runs without one, with a warning, rather than every cell failing."""
 
 
 class CellBusyError(RuntimeError):
@@ -53,8 +65,8 @@ def cell_lock(cell_folder: str | Path) -> Iterator[Path]:
     Raises
     ------
     CellBusyError
-        Naming the cell, the lock file and its owner, when another process holds it (also another
-        ``cell_lock`` of this process: each takes its own open file).
+        Naming the cell, the lock file and its owner, when another process holds it (on a local
+        file system also another ``cell_lock`` of this process: each takes its own open file).
     """
     path = lock_path(cell_folder)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -65,6 +77,11 @@ def cell_lock(cell_folder: str | Path) -> Iterator[Path]:
         except (BlockingIOError, PermissionError):  # EWOULDBLOCK; EACCES from some NFS servers
             raise CellBusyError(f"{cell_folder} is being run by {_owner_text(fd)} (lock {path}); wait for it, "
                                 "or stop that run first") from None
+        except OSError as exc:
+            if exc.errno not in _NO_LOCKS:
+                raise
+            log.warning("%s: the file system takes no locks (%s); the cell runs unlocked: do not start it twice",
+                        path, exc.strerror)
         owner = {"host": socket.gethostname(), "pid": os.getpid(),
                  "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         os.ftruncate(fd, 0)
