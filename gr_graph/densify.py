@@ -149,8 +149,9 @@ def covariances_valid(C: np.ndarray) -> bool:
     return covariance_problem(C) is None
 
 
-def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
-    """A function ``points -> C`` from a path (or ``"pretrained"``), a CovarianceNet or a callable."""
+def _make_predictor(checkpoint: Any, device: str, seed: int, full_passes: bool = False) -> Predictor:
+    """A function ``points -> C`` from a path (or ``"pretrained"``), a CovarianceNet or a callable
+    (``full_passes``: :func:`training.predict.predict_covariances`' option, ``training.prediction_passes``)."""
     if isinstance(checkpoint, (str, os.PathLike)):
         from gr_graph.pretrained import resolve_weights
         from training.trainer import load_model
@@ -164,7 +165,7 @@ def _make_predictor(checkpoint: Any, device: str, seed: int) -> Predictor:
         model = checkpoint.eval()  # once: predict_covariances then never switches modes (reader threads share it)
 
         def predict(points: np.ndarray) -> np.ndarray:
-            return predict_covariances(model, points, device=device, seed=seed)
+            return predict_covariances(model, points, device=device, seed=seed, full_passes=full_passes)
 
         return predict
     if callable(checkpoint):
@@ -530,8 +531,8 @@ def densified_sequence(sequence: LidarSequence, checkpoint: Any, training_cfg: T
         (:meth:`DensifiedSequence.predicted`).
     """
     cfg = training_cfg or TrainingConfig()
-    return DensifiedSequence(sequence, _make_predictor(checkpoint, device, cfg.seed), cfg, preprocess,
-                             keep_predictions)
+    predictor = _make_predictor(checkpoint, device, cfg.seed, full_passes=cfg.prediction_passes == "training_size")
+    return DensifiedSequence(sequence, predictor, cfg, preprocess, keep_predictions)
 
 
 def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity: np.ndarray | None = None,

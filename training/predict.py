@@ -19,12 +19,18 @@ def predict_covariances(
     n_points: int | None = None,
     device: str = "cpu",
     seed: int = 0,
+    full_passes: bool = False,
 ) -> np.ndarray:
     """Covariances ``C = L L^T + eps I`` (m^2, frame of ``points``) of every point of a scan.
 
     The scan is split into ``ceil(N / n_points)`` random disjoint parts of (almost) equal size,
     each a uniform random subsample like the network's training input, and each part goes
-    through the network on its own (so memory stays bounded for any N).
+    through the network on its own (so memory stays bounded for any N). A part then holds
+    between ``n_points / 2`` and ``n_points`` points, sparser than the network's training input
+    (``n_points`` points) when N is not a multiple of it; the network's neighbourhoods, and so its
+    covariances, depend on that density. ``full_passes`` fills every part up to ``min(n_points,
+    N)`` points with other points of the scan (seeded) and keeps only the part's own rows: every
+    point is predicted at the training density (``training.prediction_passes: training_size``).
 
     Parameters
     ----------
@@ -38,6 +44,8 @@ def predict_covariances(
         ``"cpu"`` or ``"cuda"``.
     seed : int
         Seeds the split (deterministic output).
+    full_passes : bool
+        Fill each part up to ``min(n_points, N)`` points (see above); False: the parts alone.
 
     Returns
     -------
@@ -64,10 +72,14 @@ def predict_covariances(
     try:
         with torch.inference_mode():
             for part in np.array_split(perm, n_parts):
-                pts = x[part].astype(np.float32)
+                rows = part
+                if full_passes and len(part) < min(n_points, N):  # filled up to the training input's size
+                    others = np.setdiff1d(perm, part, assume_unique=True)
+                    rows = np.concatenate([part, rng.choice(others, min(n_points, N) - len(part), replace=False)])
+                pts = x[rows].astype(np.float32)
                 nb = neighborhoods_to_torch(cfg.neighborhoods(pts, start=int(rng.integers(len(pts)))), device)
                 _, C = model(torch.as_tensor(pts, device=device), nb)
-                out[part] = C.double().cpu().numpy()
+                out[part] = C[: len(part)].double().cpu().numpy()
     finally:
         model.train(was_training)
     if not np.isfinite(out).all():

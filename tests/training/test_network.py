@@ -83,6 +83,37 @@ def test_network_output_and_predict_wrapper():
         predict_covariances(net, np.full((4, 3), np.nan))
 
 
+def test_full_passes_predict_every_point_at_the_training_density():
+    """A scan one point over n_points was predicted in two parts of about n_points / 2: sparser
+    neighbourhoods than training's, and (shipped weights, a toy street) a median smallest
+    eigenvalue about 3x that of the same points predicted in one pass. Filled passes hold n_points
+    points, as in training: the same points get the covariances of one pass, up to the sampling."""
+    from gr_graph.config import PreprocessConfig
+    from gr_graph.pretrained import PRETRAINED_WEIGHTS
+    from gr_graph.preprocess import preprocess_scan
+    from training.toy_scenes import pose_xy_yaw, render_scan, street_scene
+    from training.trainer import load_model
+
+    model = load_model(PRETRAINED_WEIGHTS)
+    n = model.config.n_points
+    pts, _ = render_scan(street_scene(length=200), pose_xy_yaw(0, 0, 1.7, 0), np.random.default_rng(0),
+                         n_rings=64, n_azimuth=2000, max_range=80)
+    s = preprocess_scan(pts, PreprocessConfig()).points
+    base = s[np.random.default_rng(0).permutation(len(s))[: n + 1]]
+    assert len(base) == n + 1
+
+    def median_lmin(C: np.ndarray) -> float:
+        return float(np.median(np.linalg.eigvalsh(C[:n])[:, 0]))
+
+    one_pass = median_lmin(predict_covariances(model, base[:n], seed=0))
+    split = median_lmin(predict_covariances(model, base, seed=0))
+    filled = median_lmin(predict_covariances(model, base, seed=0, full_passes=True))
+    assert split > 2.0 * one_pass  # the density the network never saw in training
+    assert abs(np.log(filled / one_pass)) < np.log(1.25)
+    np.testing.assert_array_equal(predict_covariances(model, base[:n], seed=0, full_passes=True),
+                                  predict_covariances(model, base[:n], seed=0))  # one part: nothing to fill
+
+
 @pytest.mark.parametrize("head", ["geometric", "cholesky"])
 def test_both_heads_give_spd_covariances_and_gradients(head):
     rng = np.random.default_rng(2)
