@@ -481,7 +481,12 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config file not found: {p}")
-        text = p.read_text()
+        try:
+            text = p.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{p}: not a UTF-8 text file ({exc.reason} at byte {exc.start}): not a config file") from None
+        except OSError as exc:  # e.g. not readable
+            raise ValueError(f"{p}: cannot be read ({exc.strerror or exc})") from None
         written_since_given_keys = text.startswith(GIVEN_SENSOR_KEYS_MARK)
         try:
             loaded = yaml.safe_load(text) or {}

@@ -327,7 +327,7 @@ class SlamPipeline:
         if self.data_fingerprint["digest"] is not None:  # frames read from files: the files' identity too
             identity.append(self.data_fingerprint["digest"])
         key = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:16]
-        return CachedFrames(sequence, self.out / "frames", key)
+        return CachedFrames(sequence, self.out / "frames", key, open_now=False)  # opened by run(), after the checks
 
     def remove_frame_cache(self) -> None:
         """Delete ``<out>/frames`` (the end of :meth:`run`, unless ``keep_frame_cache``; the
@@ -356,6 +356,8 @@ class SlamPipeline:
             neither ``metrics.json`` nor the final poses are written).
         """
         self.check_resume()
+        if self.frame_cache is not None:
+            self.frame_cache.open()
         self.prepare()
         metrics: dict[str, Any] = {"source": self.source_description, "n_frames": len(self.sequence),
                                    "data_fingerprint": self.data_fingerprint,
@@ -402,6 +404,8 @@ class SlamPipeline:
             if len(metrics["rounds"]) > 1:
                 plot_metrics_rounds(self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, "
                                                              f"{len(self.sequence)} frames")
+            else:  # an earlier run's rounds are not this run's
+                (self.out / "rounds.png").unlink(missing_ok=True)
         return metrics
 
     # -------------------------------------------------------------- steps of run()
@@ -416,6 +420,8 @@ class SlamPipeline:
         log.log(logging.WARNING if is_synthetic else logging.INFO, "data: %s", self.source_description)
         if self.gt is not None:
             write_kitti_poses(self.out / "gt_poses_kitti.txt", velo_to_cam_poses(self.gt, self.sequence.T_cam_velo))
+        else:  # an earlier run's ground truth (e.g. --poses given then) must not score this run's poses
+            (self.out / "gt_poses_kitti.txt").unlink(missing_ok=True)
 
     def check_learning_config(self) -> None:
         """Fail fast (before round 0) when a learning round could not run (:func:`check_learning_config`)."""
@@ -484,11 +490,12 @@ class SlamPipeline:
 
     def memory_needed(self, r: int) -> bool:
         """Whether this run reads round ``r``'s memory: round r + 1 trains on it (:meth:`trains`)
-        unless it is finished with this configuration, and the acceptance test reads round 0's scans."""
+        unless it is finished with this configuration; the acceptance test reads round 0's scans, and
+        so does every learning round that writes its memory (it stores round 0's scans)."""
         rounds = self.cfg.training.rounds
         if r >= rounds:
             return False
-        if r == 0 and self.cfg.training.acceptance.enabled:
+        if r == 0 and (self.cfg.training.acceptance.enabled or self.cfg.output.write_memory):
             return True
         if not self.trains(r + 1):
             return False
@@ -651,6 +658,7 @@ class SlamPipeline:
             shutil.rmtree(rd / "memory")
             if r == 0:
                 self._raw_scans = None
+        map_path(rd).unlink(missing_ok=True)  # nor its map for --viz (written again when output.map is on)
         t0 = time.perf_counter()
         edge_noise = self.edge_noise(densified)
         try:

@@ -144,15 +144,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learning rounds: also reject a round whose trajectory agrees worse with direct "
                         "registrations of scans 25 m apart (median rotation discrepancy up by more than FRACTION; "
                         "0.05 when given alone); for a well-calibrated sensor (with KITTI: together with "
-                        "--kitti-vertical-correction): see the README's 'Learning rounds that never make things worse' "
-                        "(default: off)")
+                        "--kitti-vertical-correction): see the README's 'Learning rounds that never make things worse'; "
+                        "put PATH before it, or write --long-baseline-guard=FRACTION (default: off)")
     p.add_argument("--no-resume", action="store_true",
                    help="recompute rounds even if finished (also when the data changed since they were made)")
     p.add_argument("--no-memory", action="store_true", help="do not write the memory")
     p.add_argument("--dump-config", action="store_true",
                    help="print the resolved configuration (defaults, --config, options) as YAML and exit")
     p.add_argument("--viz", action="store_true",
-                   help="at the end, open an open3d window on the last round's map (needs a display)")
+                   help="at the end, open an open3d window on the map of the final trajectory's round (the last "
+                        "accepted one; needs a display)")
     add_no_progress(p, deprecated=("--quiet",))
     add_log_level(p)
     return p
@@ -190,9 +191,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         if args.rounds == 0:
             raise ValueError("--weights is for a learning round: it cannot go with --rounds 0")
         o["training"]["weights"] = args.weights
-    if args.densify:
-        if args.weights is None:
-            raise ValueError("--densify needs --weights pretrained|PATH")
+    if args.densify:  # the weights may come from --config (the configuration checks that there are some)
         o["training"]["fine_tune"] = False
         if args.rounds not in (None, 1):
             raise ValueError(f"--densify runs exactly one learning round (--rounds {args.rounds} given)")
@@ -274,6 +273,13 @@ def out_dir_problem(out: Path) -> str | None:
     return None
 
 
+def _is_training_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a :class:`training.trainer.TrainingError` (the trainer's module, which imports
+    torch, is only looked up: a run that raised one has imported it)."""
+    trainer = sys.modules.get("training.trainer")
+    return trainer is not None and isinstance(exc, trainer.TrainingError)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)
@@ -293,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         print(config_to_yaml(cfg), end="")
         return 0
     from gr_graph.datasets.base import DatasetError
+    from gr_graph.memory import MemoryFormatError
     from gr_graph.pipeline import ResumeDataError, SlamPipeline
 
     problem = out_dir_problem(Path(cfg.output.out_dir))
@@ -305,6 +312,11 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ResumeDataError) as exc:  # DatasetError: also too few usable scans
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # a damaged memory or checkpoint, a training that failed: one line, not a traceback
+        if not (isinstance(exc, MemoryFormatError) or _is_training_error(exc)):
+            raise
+        print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
     except OSError as exc:  # a full disk, a folder that became unwritable: the message names the path
         print(f"error: {exc}", file=sys.stderr)
         return 1

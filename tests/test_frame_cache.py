@@ -77,6 +77,19 @@ def test_another_key_empties_the_directory(tmp_path):
     assert json.loads((tmp_path / "frames" / "cache.json").read_text())["key"] == "k2"
 
 
+def test_a_cache_opened_later_touches_nothing_until_then(tmp_path):
+    seq = CountingSequence()
+    CachedFrames(seq, tmp_path / "frames", key="k1")[0]
+    later = CachedFrames(seq, tmp_path / "frames", key="k2", open_now=False)  # the pipeline's, before its checks
+    assert json.loads((tmp_path / "frames" / "cache.json").read_text())["key"] == "k1" and later.path(0).exists()
+    later[0]  # the first read opens it
+    assert json.loads((tmp_path / "frames" / "cache.json").read_text())["key"] == "k2"
+    fresh = CachedFrames(seq, tmp_path / "new", key="k", open_now=False)
+    assert not (tmp_path / "new").exists()
+    fresh.open()
+    assert (tmp_path / "new" / "cache.json").is_file()
+
+
 def test_a_folder_of_the_users_own_is_never_emptied(tmp_path, caplog):
     from gr_graph.datasets.base import DatasetError
 

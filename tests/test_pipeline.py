@@ -109,6 +109,27 @@ def test_bad_cli_input_is_a_clear_error(tmp_path, capsys):
     y.write_text("odometry:\n  max_iteratons: 5\n")
     assert main(["--config", str(y), "--out", str(tmp_path)]) == 2
     assert "max_iteratons" in capsys.readouterr().err
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes("# caf\xe9\nseed: 1\n".encode("latin-1"))
+    assert main(["--config", str(latin), "--out", str(tmp_path)]) == 2
+    assert f"{latin}: not a UTF-8 text file" in capsys.readouterr().err
+
+
+def test_a_damaged_memory_or_failed_training_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    from gr_graph.memory import MemoryFormatError
+    from gr_graph.pipeline import SlamPipeline
+    from training.trainer import TrainingError
+
+    for exc in (MemoryFormatError("/x/round_0/memory: missing points.npy"), TrainingError("3 of 4 pairs skipped")):
+        def fail(self, exc=exc):
+            raise exc
+
+        monkeypatch.setattr(SlamPipeline, "run", fail)
+        assert main(["--frames", "0:5", "--out", str(tmp_path / "o"), "--no-progress"]) == 1
+        assert capsys.readouterr().err.strip() == f"error: {type(exc).__name__}: {exc}"
+    monkeypatch.setattr(SlamPipeline, "run", lambda self: 1 / 0)
+    with pytest.raises(ZeroDivisionError):  # anything else is a bug: its traceback stays
+        main(["--frames", "0:5", "--out", str(tmp_path / "o"), "--no-progress"])
 
 
 @pytest.mark.slow

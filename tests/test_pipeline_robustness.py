@@ -361,9 +361,16 @@ def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tm
     (out / "round_0" / "memory" / "meta.json").write_text("{}")
     assert pipe.finished_round(0) is not None
     (out / "round_0" / "memory" / "meta.json").unlink()
-    pca = load_config(out / "config.yaml", {"output": {"write_memory": True}, "training": {
+    pca = load_config(out / "config.yaml", {"output": {"write_memory": False}, "training": {
         "rounds": 1, "covariances": "pca", "acceptance": {"enabled": False}}})
-    assert SlamPipeline(pca).finished_round(0) is not None  # no training and no test: the memory is not read
+    assert SlamPipeline(pca).finished_round(0) is not None  # no training, no test, no memory: it is not read
+    # round 1 writing its memory stores round 0's scans: read (a resumed round 0 without it lost round 1
+    # after its SLAM, at every rerun)
+    pca_memory = load_config(out / "config.yaml", {"output": {"write_memory": True}, "training": {
+        "rounds": 1, "covariances": "pca", "acceptance": {"enabled": False}}})
+    assert SlamPipeline(pca_memory).finished_round(0) is None
+    metrics = SlamPipeline(pca_memory).run()
+    assert metrics["final_round"] == 1 and (out / "round_1" / "memory" / "meta.json").is_file()
 
 
 def test_a_recomputed_round_without_memory_leaves_no_memory_of_the_earlier_run(tmp_path):
@@ -376,6 +383,25 @@ def test_a_recomputed_round_without_memory_leaves_no_memory_of_the_earlier_run(t
     assert (out / "round_0" / "memory" / "meta.json").is_file()
     assert run_cli(folder, out, "--map-keyframe", "0.1", "1") == 0  # another round 0, without a memory
     assert not (out / "round_0" / "memory").exists()
+
+
+def test_a_rerun_leaves_no_map_ground_truth_or_rounds_plot_of_the_earlier_run(tmp_path):
+    from gr_graph.pipeline import SlamPipeline
+    from gr_graph.trajectory import write_kitti_poses
+
+    scans, poses, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    write_kitti_poses(tmp_path / "gt.txt", poses)
+    out = tmp_path / "out"
+    assert main([str(folder), "--out", str(out), "--poses", str(tmp_path / "gt.txt"), "--no-progress",
+                 "--no-loops"]) == 0
+    assert (out / "gt_poses_kitti.txt").is_file() and (out / "round_0" / "map.ply").is_file()
+    (out / "rounds.png").write_bytes(b"an earlier run's plot")
+    cfg = load_config(out / "config.yaml", {"data": {"poses": None}, "output": {"map": {"enabled": False},
+                                                                               "resume": False}})
+    SlamPipeline(cfg).run()  # no ground truth, no map, one round
+    assert not (out / "gt_poses_kitti.txt").exists() and not (out / "round_0" / "map.ply").exists()
+    assert not (out / "rounds.png").exists()
 
 
 def test_recomputing_a_round_drops_the_later_rounds_summaries(tmp_path):

@@ -82,7 +82,7 @@ def test_weights_that_are_missing_or_broken_are_named(tmp_path: Path, capsys) ->
     assert slam_main(["--weights", str(junk), "--frames", "0:5", "--out", str(tmp_path / "run"), "--quiet"]) == 2
     assert "junk.pt" in capsys.readouterr().err
     assert slam_main(["--densify", "--frames", "0:5", "--out", str(tmp_path / "run")]) == 2
-    assert "--densify needs --weights" in capsys.readouterr().err
+    assert "(--densify) needs training.weights (--weights pretrained|PATH)" in capsys.readouterr().err
     assert slam_main(["--weights", str(junk), "--rounds", "0", "--out", str(tmp_path / "run")]) == 2
     assert "cannot go with --rounds 0" in capsys.readouterr().err
     assert slam_main(["--weights", str(junk), "--densify", "--rounds", "2", "--out", str(tmp_path / "run")]) == 2
@@ -90,6 +90,10 @@ def test_weights_that_are_missing_or_broken_are_named(tmp_path: Path, capsys) ->
     assert slam_main(["--weights", str(junk), "--densify", "--no-memory", "--out", str(tmp_path / "run")]) == 2
     assert "write_memory" in capsys.readouterr().err
     assert not (tmp_path / "run" / "metrics.json").exists()
+    given = tmp_path / "weights.yaml"  # the weights from --config: --densify takes them
+    given.write_text(f"training:\n  weights: {junk}\n")
+    assert slam_main(["--config", str(given), "--densify", "--frames", "0:5", "--out", str(tmp_path / "run")]) == 2
+    assert "junk.pt" in capsys.readouterr().err  # refused for what the file is, not for a missing --weights
 
 
 def test_densify_runs_one_round_and_fine_tuning_needs_the_same_network(tmp_path: Path) -> None:

@@ -21,6 +21,10 @@ def test_parse_frames() -> None:
         parse_frames("a:b", 10)
     with pytest.raises(DatasetError):
         parse_frames("1:2:3", 10)
+    assert parse_frames((np.int64(1), np.int64(3)), 10) == (1, 3)
+    for bad in ((1.5, 9), (True, 10), ("1", 3)):  # a YAML list [1.5, 9] was floored to (1, 9)
+        with pytest.raises(DatasetError, match="must be integers"):
+            parse_frames(bad, 10)
 
 
 def test_kitti_root_view(kitti_root: Path) -> None:

@@ -64,9 +64,11 @@ class CachedFrames:
         Where the frames go (created; emptied when it holds frames of another ``key``).
     key : str
         What the frames depend on; stored in ``directory/cache.json``.
+    open_now : bool
+        Open the folder now (:meth:`open`); False: at :meth:`open` or the first read.
     """
 
-    def __init__(self, parent: LidarSequence, directory: str | Path, key: str) -> None:
+    def __init__(self, parent: LidarSequence, directory: str | Path, key: str, open_now: bool = True) -> None:
         self.parent = parent
         self.directory = Path(directory)
         self.key = str(key)
@@ -80,7 +82,18 @@ class CachedFrames:
         self.unreadable = 0  # cached files that could not be read back (made again)
         self.write_errors = 0  # frames that could not be stored (e.g. a full disk; made again when read again)
         self._lock = threading.Lock()
-        self._open_directory()
+        self._opened = False
+        if open_now:
+            self.open()
+
+    def open(self) -> None:
+        """Create the folder (emptying one of another key) unless done already; the first read does it
+        too (``open_now=False`` leaves the folder untouched until then: the pipeline opens it once the
+        resume checks passed)."""
+        with self._lock:
+            if not self._opened:
+                self._open_directory()
+                self._opened = True
 
     def _open_directory(self) -> None:
         meta = read_json_or_none(self.directory / META)
@@ -106,6 +119,8 @@ class CachedFrames:
         return self.directory / f"frame_{i:06d}.npz"
 
     def __getitem__(self, index: int) -> LidarFrame:
+        if not self._opened:
+            self.open()
         i = check_index(index, len(self), self.name)
         p = self.path(i)
         if p.is_file():

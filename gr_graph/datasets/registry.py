@@ -146,6 +146,9 @@ def parse_frames(spec: str | slice | tuple[int, int] | None, n: int | None = Non
         start, stop = spec.start, spec.stop
     else:
         start, stop = spec
+    for side in (start, stop):  # int() would floor 1.5 and read true as 1
+        if side is not None and (isinstance(side, bool) or not isinstance(side, (int, np.integer))):
+            raise DatasetError(f"frames {spec!r}: A and B must be integers")
     start = 0 if start is None else int(start)
     if stop is None and n is None:
         raise DatasetError(f"frames {spec!r}: B is needed here (A:B, B exclusive)")
