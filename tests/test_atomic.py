@@ -35,12 +35,16 @@ def test_error_keeps_old_file_and_leaves_no_temporary(tmp_path: Path) -> None:
 
 
 def test_mode_follows_umask(tmp_path: Path) -> None:
-    old = os.umask(0o022)
-    try:
-        atomic_write_text(tmp_path / "r.txt", "x")
-    finally:
-        os.umask(old)
-    assert stat.S_IMODE((tmp_path / "r.txt").stat().st_mode) == 0o644
+    from gr_graph.atomic import _umask
+
+    for umask, mode in ((0o022, 0o644), (0o027, 0o640), (0o077, 0o600)):  # not one fixed mode
+        old = os.umask(umask)
+        try:
+            assert _umask() == umask  # read, not set
+            atomic_write_text(tmp_path / f"r{umask:o}.txt", "x")
+        finally:
+            os.umask(old)
+        assert stat.S_IMODE((tmp_path / f"r{umask:o}.txt").stat().st_mode) == mode
 
 
 def test_read_json_or_none_takes_a_broken_file_as_missing(tmp_path: Path) -> None:

@@ -127,6 +127,21 @@ def test_exporter_writes_the_preset_and_raw_times(tmp_path):
     ref = SyntheticSequence(seed=0, n_rings=16, preset="raw")[11]
     assert len(t) == len(pts) == len(ref)
     np.testing.assert_array_equal(t, ref.time.astype(np.float32))
+    # read back: raw sweeps with their times (deskewed by default), not taken as motion-compensated
+    from gr_graph.datasets.base import DatasetError
+    from gr_graph.datasets.kitti import KittiSequence
+    from gr_graph.datasets.registry import open_sequence
+
+    back = KittiSequence(tmp_path, "00", n_rings=64)
+    assert back.motion_compensated is False
+    np.testing.assert_array_equal(back[1].time, ref.time.astype(np.float32).astype(np.float64))
+    seq, _ = open_sequence(path=tmp_path)
+    assert seq.motion_compensated is False and seq[0].time is not None
+    (sdir / "times" / "000001.npy").unlink()  # times of some scans only: not used
+    assert KittiSequence(tmp_path, "00").motion_compensated is True
+    np.save(sdir / "times" / "000001.npy", t[:-3])  # not one a point: an error naming the file
+    with pytest.raises(DatasetError, match=r"times/000001.npy: \d+ per-point times for the \d+ points of 000001.bin"):
+        KittiSequence(tmp_path, "00")[1]
 
 
 def test_calibration_errors_move_ring_elevations_by_the_drawn_offsets():

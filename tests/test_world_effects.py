@@ -256,6 +256,15 @@ def test_scene_with_actors_keeps_the_nearer_hit(actors):
     assert on_actor.any() and (~on_actor).any()
     assert set(wrap.material[prim[on_actor]]) <= {MATERIAL["car"], MATERIAL["glass"]}
     assert (prim[~on_actor & np.isfinite(t_out)] < len(alb)).all()
+    # its rays' times are the renderer's: clockwise from behind, forward at mid-sweep (it cast forward
+    # rays 50 ms early); an independent reference from the azimuth of the sensor-frame directions
+    from gr_graph.deskew import times_from_azimuth
+
+    sensor_dirs = rays[:, 3:].astype(np.float64) @ T[:3, :3]
+    expected = t_frame + (times_from_azimuth(sensor_dirs) - 0.5) * 0.1
+    np.testing.assert_allclose(wrap.ray_times(rays[:, 3:]), expected, atol=1e-6)
+    forward = np.array([[np.cos(yaw[0]), np.sin(yaw[0]), 0.0]], np.float32)
+    assert wrap.ray_times(forward)[0] == pytest.approx(t_frame, abs=1e-6)
 
 
 def test_actors_avoid_obstacles():

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gr_graph.atomic import read_json_or_none
 from gr_graph.datasets.base import (
     DatasetError,
     LidarFrame,
@@ -297,6 +298,15 @@ class KittiSequence:
             log.warning("%s missing: assuming %.4f s between frames", times_path, KITTI_SCAN_PERIOD_S)
             self.timestamps = np.arange(len(self.files)) * KITTI_SCAN_PERIOD_S
 
+        exported = read_json_or_none(seq_dir / "synthetic.json")  # the synthetic exporter's record
+        if isinstance(exported, dict) and isinstance(exported.get("n_rings"), int) and exported["n_rings"] != n_rings:
+            log.warning("%s: exported with %d of the sensor's rings, read here as a %d-ring sensor: the rings are "
+                        "recovered approximately, and --channels would subsample them again (read it without)",
+                        seq_dir / "synthetic.json", exported["n_rings"], n_rings)
+        self.time_files = self._per_point_time_files(seq_dir / "times")
+        if self.time_files is not None:  # a raw sweep (e.g. the synthetic `raw` preset's export): deskewed with them
+            self.motion_compensated = False
+
         self.gt_poses: np.ndarray | None = None
         pose_path = self.root / "poses" / f"{self.seq}.txt"
         if pose_path.is_file():
@@ -313,6 +323,20 @@ class KittiSequence:
     def __len__(self) -> int:
         return len(self.files)
 
+    def _per_point_time_files(self, times_dir: Path) -> list[Path] | None:
+        """``sequences/XX/times/NNNNNN.npy``, one a scan (sweep fractions of its points, in its point
+        order: what the synthetic exporter writes for sweeps that are not motion-compensated), or None."""
+        if not times_dir.is_dir():
+            return None
+        files = [times_dir / f"{i:06d}.npy" for i in range(len(self.files))]
+        n_found = sum(p.is_file() for p in files)
+        if n_found < len(files):
+            log.warning("%s: per-point times of %d of the %d scans; ignored (scans read as motion-compensated)",
+                        times_dir, n_found, len(files))
+            return None
+        log.info("%s: per-point times of every scan: raw sweeps, deskewed with them", times_dir)
+        return files
+
     def _probe_points(self, k: int) -> np.ndarray | None:
         return probe_points(self.files, k, self.point_format)
 
@@ -326,6 +350,16 @@ class KittiSequence:
         points, intensity, ring, dropped = read_velodyne_scan(
             self.files[i], self.point_format, self.ring_indexer if self.recover_ring_index else None)
         points = correct_vertical_angle(points, self.vertical_correction_deg)
+        time = None
+        if self.time_files is not None:
+            try:
+                time = np.asarray(np.load(self.time_files[i], allow_pickle=False), np.float64).reshape(-1)
+            except (OSError, ValueError, EOFError) as exc:
+                raise DatasetError(f"{self.time_files[i]}: unreadable per-point times ({exc})") from None
+            if dropped or len(time) != len(points):
+                raise DatasetError(f"{self.time_files[i]}: {len(time)} per-point times for the {len(points) + dropped} "
+                                   f"points of {self.files[i].name}" + (f" ({dropped} of them non-finite)" if dropped
+                                                                        else ""))
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),
@@ -334,6 +368,7 @@ class KittiSequence:
             ring=ring,
             n_rings=self.n_rings,
             dropped_nonfinite=dropped,
+            time=time,
         )
 
     def __iter__(self) -> Iterator[LidarFrame]:

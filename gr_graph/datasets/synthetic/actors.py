@@ -556,15 +556,16 @@ class SceneWithActors:
     """A static ``RaycastingScene`` plus the actors, for one scan (duck-types ``cast_rays``).
 
     Lets :func:`sensor.render_scan` render the actors unchanged: each ray's time is taken from
-    its azimuth in the sensor frame (the sweep turns counter-clockwise from
-    ``sweep_start_azimuth`` over ``sweep_seconds``, centred on ``t_frame``), the nearer of
+    its azimuth in the sensor frame (the sweep turns clockwise from ``sweep_start_azimuth``, π:
+    backwards, over ``sweep_seconds``, centred on ``t_frame``: facing forward at mid-sweep, as
+    :func:`gr_graph.datasets.synthetic.effects.column_times` times the renderer's columns), the nearer of
     the static and the actor hit is kept, and actor hits get primitive ids past the static
     mesh's that index the tables :attr:`albedo` and :attr:`material` (static ones first).
     """
 
     def __init__(self, scene, static_albedo: np.ndarray, static_material: np.ndarray, actors: Actors,
                  T_w_s: np.ndarray, t_frame: float, sweep_seconds: float = 0.1,
-                 sweep_start_azimuth: float = 0.0):
+                 sweep_start_azimuth: float = np.pi):
         self.scene, self.actors, self.T_w_s = scene, actors, np.asarray(T_w_s, np.float64)
         self.t_frame, self.sweep_seconds, self.sweep_start = float(t_frame), sweep_seconds, sweep_start_azimuth
         self.n_static = len(static_albedo)
@@ -581,7 +582,7 @@ class SceneWithActors:
         dx, dy, dz = (np.ascontiguousarray(directions[:, k], dtype=np.float32) for k in range(3))
         x = dx * R[0, 0] + dy * R[1, 0] + dz * R[2, 0]
         y = dx * R[0, 1] + dy * R[1, 1] + dz * R[2, 1]
-        frac = np.arctan2(y, x) - np.float32(self.sweep_start)
+        frac = np.float32(self.sweep_start) - np.arctan2(y, x)  # clockwise from the start
         frac = (frac % np.float32(2 * np.pi)) / np.float32(2 * np.pi)
         return self.t_frame + (frac.astype(np.float64) - 0.5) * self.sweep_seconds
 
