@@ -544,8 +544,9 @@ def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity:
 
     The cloud is preprocessed as SLAM preprocesses a scan (range crop around the origin,
     voxel downsampling: the network's training input), the network predicts a covariance per
-    point, points with anisotropy above ``tau_ani`` are kept and each is replaced by
-    ``samples_per_point`` samples of ``N(s_i, C_i)``. Frame 0 of
+    point, and each point with anisotropy above ``tau_ani`` gains ``samples_per_point`` samples of
+    ``N(s_i, C_i)`` (with ``keep_original`` / ``keep_dropped`` false, the paper's Algorithm 2: the
+    samples replace the point, and the points under the threshold are dropped). Frame 0 of
     :func:`densified_sequence` with the same settings gives the same points.
 
     Example::

@@ -65,7 +65,8 @@ class NetConfig(_Strict):
     c1: int = Field(64, ge=1, description="feature width of level 1")
     c2: int = Field(128, ge=1, description="feature width of level 2")
     cov_scale: float = Field(0.1, gt=0.0, description="scale of the Cholesky factor at zero output: C ~ cov_scale^2 I [m]")
-    eps: float = Field(1e-6, ge=0.0, description="the paper's epsilon added to the diagonal of C [m^2]")
+    eps: float = Field(1e-6, gt=0.0, description="the paper's epsilon added to the diagonal of C [m^2] (> 0: with 0 "
+                       "the Cholesky head's C can be singular, a coplanar neighbourhood's PCA C too)")
     sampling: Literal["random", "fps"] = Field("random", description="centroid sampling of the set-abstraction levels")
     head: Literal["geometric", "cholesky"] = Field("geometric", description="output head (training.network docstring)")
     kw: int = Field(16, ge=1, description="wide neighbours (level-1 centroids) per point of the geometric head")

@@ -41,7 +41,7 @@ def predict_covariances(
     n_points : int, optional
         Points per network pass (default: the network's ``NetConfig.n_points``).
     device : str
-        ``"cpu"`` or ``"cuda"``.
+        ``"cpu"`` or ``"cuda"`` for a checkpoint; a network given as such runs on the device of its weights.
     seed : int
         Seeds the split (deterministic output).
     full_passes : bool
@@ -52,6 +52,8 @@ def predict_covariances(
     np.ndarray
         ``(N, 3, 3)`` float64 symmetric positive-definite covariances.
     """
+    if isinstance(checkpoint_or_model, CovarianceNet):  # a network runs where its weights are
+        device = str(next(checkpoint_or_model.parameters()).device)
     model = load_model(checkpoint_or_model, device)
     x = np.asarray(points, np.float64)
     if x.ndim != 2 or x.shape[1] != 3:

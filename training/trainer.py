@@ -147,6 +147,9 @@ def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str =
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"no model checkpoint at {path}")
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise TrainingError(f"{path}: device {device!r} asked for, but this torch has no CUDA device "
+                            "(use --device cpu)")
     try:
         state = torch.load(path, map_location=device, weights_only=True)  # tensors and plain data, no code
     except Exception as exc:  # torch raises pickle, zip and runtime errors for foreign files

@@ -83,6 +83,25 @@ def test_network_output_and_predict_wrapper():
         predict_covariances(net, np.full((4, 3), np.nan))
 
 
+def test_eps_must_be_positive_and_a_network_is_predicted_on_its_own_device(tmp_path):
+    import pydantic
+
+    from training.trainer import TrainingError, load_model
+
+    with pytest.raises(pydantic.ValidationError, match="greater than 0"):
+        NetConfig(eps=0.0)  # the paper's epsilon keeps C positive definite
+    cfg = NetConfig(n_points=64, k0=8, k1=8, k2=8, c0=8, c1=8, c2=8)
+    net = CovarianceNet(cfg)
+    x = np.random.default_rng(0).uniform(-5, 5, (50, 3))
+    np.testing.assert_array_equal(predict_covariances(net, x, device="meta"),  # its weights are on the CPU
+                                  predict_covariances(net, x))
+    if not torch.cuda.is_available():
+        ckpt = tmp_path / "m.pt"
+        ckpt.write_bytes(b"x")
+        with pytest.raises(TrainingError, match="no CUDA device"):
+            load_model(ckpt, "cuda")
+
+
 def test_full_passes_predict_every_point_at_the_training_density():
     """A scan one point over n_points was predicted in two parts of about n_points / 2: sparser
     neighbourhoods than training's, and (shipped weights, a toy street) a median smallest
