@@ -547,7 +547,8 @@ def densify_cloud(points: np.ndarray, weights: Any = "pretrained", *, intensity:
     point, and each point with anisotropy above ``tau_ani`` gains ``samples_per_point`` samples of
     ``N(s_i, C_i)`` (with ``keep_original`` / ``keep_dropped`` false, the paper's Algorithm 2: the
     samples replace the point, and the points under the threshold are dropped). Frame 0 of
-    :func:`densified_sequence` with the same settings gives the same points.
+    :func:`densified_sequence` with the same settings (and ``training.prediction_passes: split``,
+    the default) gives the same points.
 
     Example::
 

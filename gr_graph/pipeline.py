@@ -207,7 +207,8 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
         but for a synthetic world rendered along a given pose file: a hash of its timestamps and poses),
         a hash of the files' names and sizes, the first and last 64 KiB of the first, middle and
         last file (data swapped for another drive with files of the same sizes, e.g. organized
-        clouds, differ there), the sequence's timestamps, ground truth and ``T_cam_velo``.
+        clouds, differ there), the sequence's timestamps, ground truth and ``T_cam_velo``, and the names
+        and sizes of per-point time files read beside the scans (KITTI layout's ``times/``).
         Modification times are left out: data copied elsewhere (a cluster's scratch disk) is the
         same data. A file that cannot be read counts as size -1.
     """
@@ -232,6 +233,10 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
     for k in sorted({0, len(files) // 2, len(files) - 1} if files else set()):
         h.update(_file_sample(files[k], sizes[k]))
     _hash_arrays(h, sequence, ("timestamps", "gt_poses", "T_cam_velo"))
+    time_files = find_in_chain(sequence, "time_files", accept=lambda v: isinstance(v, list))
+    if time_files is not None:  # per-point times beside the scans (a KITTI-layout raw export): deskewed with them
+        for f in time_files.time_files:
+            h.update(f"time\0{f.name}\0{f.stat().st_size if f.is_file() else -1}\n".encode())
     return {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
 
 
@@ -495,12 +500,19 @@ class SlamPipeline:
         rounds = self.cfg.training.rounds
         if r >= rounds:
             return False
-        if r == 0 and (self.cfg.training.acceptance.enabled or self.cfg.output.write_memory):
+        if r == 0 and self.cfg.training.acceptance.enabled:
             return True
+        if r == 0 and self.cfg.output.write_memory and any(not self._finished_as_configured(k)
+                                                           for k in range(1, rounds + 1)):
+            return True  # a learning round to compute stores round 0's scans in its memory
         if not self.trains(r + 1):
             return False
-        later = read_round_summary(self.round_dir(r + 1))
-        return later is None or later.get("config_fingerprint") != round_fingerprint(self.cfg, r + 1)
+        return not self._finished_as_configured(r + 1)
+
+    def _finished_as_configured(self, r: int) -> bool:
+        """Whether round ``r`` has a summary made with the current configuration (resume)."""
+        summary = read_round_summary(self.round_dir(r))
+        return summary is not None and summary.get("config_fingerprint") == round_fingerprint(self.cfg, r)
 
     def trains(self, r: int) -> bool:
         """Whether learning round ``r`` trains a network (on round r − 1's memory): not with PCA

@@ -312,13 +312,13 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ResumeDataError) as exc:  # DatasetError: also too few usable scans
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk, a folder that became unwritable: the message names the path
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except Exception as exc:  # a damaged memory or checkpoint, a training that failed: one line, not a traceback
         if not (isinstance(exc, MemoryFormatError) or _is_training_error(exc)):
             raise
         print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:  # a full disk, a folder that became unwritable: the message names the path
-        print(f"error: {exc}", file=sys.stderr)
         return 1
     final_round = metrics["final_round"]
     final = metrics["rounds"][str(final_round)]

@@ -127,6 +127,12 @@ def test_a_damaged_memory_or_failed_training_is_one_line_not_a_traceback(tmp_pat
         monkeypatch.setattr(SlamPipeline, "run", fail)
         assert main(["--frames", "0:5", "--out", str(tmp_path / "o"), "--no-progress"]) == 1
         assert capsys.readouterr().err.strip() == f"error: {type(exc).__name__}: {exc}"
+    def full_disk(self):
+        raise OSError(28, "No space left on device", str(tmp_path / "o" / "round_0"))
+
+    monkeypatch.setattr(SlamPipeline, "run", full_disk)
+    assert main(["--frames", "0:5", "--out", str(tmp_path / "o"), "--no-progress"]) == 1
+    assert "No space left on device" in capsys.readouterr().err  # the OSError's own line, as before
     monkeypatch.setattr(SlamPipeline, "run", lambda self: 1 / 0)
     with pytest.raises(ZeroDivisionError):  # anything else is a bug: its traceback stays
         main(["--frames", "0:5", "--out", str(tmp_path / "o"), "--no-progress"])

@@ -371,6 +371,10 @@ def test_a_round_without_its_memory_is_recomputed_when_a_later_round_needs_it(tm
     assert SlamPipeline(pca_memory).finished_round(0) is None
     metrics = SlamPipeline(pca_memory).run()
     assert metrics["final_round"] == 1 and (out / "round_1" / "memory" / "meta.json").is_file()
+    import shutil
+
+    shutil.rmtree(out / "round_0" / "memory")  # pruned after every round finished: nothing to recompute
+    assert SlamPipeline(pca_memory).finished_round(0) is not None
 
 
 def test_a_recomputed_round_without_memory_leaves_no_memory_of_the_earlier_run(tmp_path):

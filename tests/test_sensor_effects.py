@@ -137,6 +137,13 @@ def test_exporter_writes_the_preset_and_raw_times(tmp_path):
     np.testing.assert_array_equal(back[1].time, ref.time.astype(np.float32).astype(np.float64))
     seq, _ = open_sequence(path=tmp_path)
     assert seq.motion_compensated is False and seq[0].time is not None
+    from gr_graph.pipeline import data_fingerprint
+    from gr_graph.sensors import SensorConfig
+
+    said_no_time, _ = open_sequence(path=tmp_path, sensor=SensorConfig(has_time=False))
+    assert said_no_time.motion_compensated is True and said_no_time[0].time is None  # sensor.has_time: false
+    with_times = data_fingerprint(seq)["digest"]
+    assert data_fingerprint(said_no_time)["digest"] != with_times  # the times are part of the data read
     (sdir / "times" / "000001.npy").unlink()  # times of some scans only: not used
     assert KittiSequence(tmp_path, "00").motion_compensated is True
     np.save(sdir / "times" / "000001.npy", t[:-3])  # not one a point: an error naming the file

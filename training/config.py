@@ -65,11 +65,17 @@ class NetConfig(_Strict):
     c1: int = Field(64, ge=1, description="feature width of level 1")
     c2: int = Field(128, ge=1, description="feature width of level 2")
     cov_scale: float = Field(0.1, gt=0.0, description="scale of the Cholesky factor at zero output: C ~ cov_scale^2 I [m]")
-    eps: float = Field(1e-6, gt=0.0, description="the paper's epsilon added to the diagonal of C [m^2] (> 0: with 0 "
-                       "the Cholesky head's C can be singular, a coplanar neighbourhood's PCA C too)")
+    eps: float = Field(1e-6, ge=0.0, description="the paper's epsilon added to the diagonal of C [m^2]; > 0 with the "
+                       "Cholesky head, whose C can be singular without it (the geometric head adds its own floor)")
     sampling: Literal["random", "fps"] = Field("random", description="centroid sampling of the set-abstraction levels")
     head: Literal["geometric", "cholesky"] = Field("geometric", description="output head (training.network docstring)")
     kw: int = Field(16, ge=1, description="wide neighbours (level-1 centroids) per point of the geometric head")
+
+    @model_validator(mode="after")
+    def _cholesky_needs_eps(self) -> "NetConfig":
+        if self.head == "cholesky" and self.eps <= 0.0:
+            raise ValueError("eps must be > 0 with the Cholesky head (its L Lᵀ can be singular)")
+        return self
 
     def neighborhoods(self, points: np.ndarray, start: int = 0) -> Neighborhoods:
         """Neighbour indices of ``points`` for this configuration (``start`` seeds the sampling)."""

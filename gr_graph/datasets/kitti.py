@@ -246,6 +246,10 @@ class KittiSequence:
         Raise every point's elevation by this angle (:func:`correct_vertical_angle`) after
         ring recovery; 0 (default, see the module docstring) reads the scans unchanged.
         KISS-ICP 1.3.0 uses 0.205 for KITTI (its ``_correct_kitti_scan``).
+    per_point_times : bool
+        Read ``sequences/XX/times/NNNNNN.npy`` when every scan has one (the synthetic exporter's raw
+        sweeps): frames get ``time`` and the sequence is not motion-compensated. False
+        (``sensor.has_time: false``) ignores them.
 
     Attributes
     ----------
@@ -258,7 +262,7 @@ class KittiSequence:
 
     def __init__(
         self, root: str | Path, seq: str = "00", recover_ring_index: bool = True, n_rings: int = 64,
-        point_format: str = "xyzi", vertical_correction_deg: float = 0.0,
+        point_format: str = "xyzi", vertical_correction_deg: float = 0.0, per_point_times: bool = True,
     ) -> None:
         if point_format not in POINT_FORMATS:
             raise ValueError(f"point_format must be one of {sorted(POINT_FORMATS)}, got {point_format!r}")
@@ -303,7 +307,7 @@ class KittiSequence:
             log.warning("%s: exported with %d of the sensor's rings, read here as a %d-ring sensor: the rings are "
                         "recovered approximately, and --channels would subsample them again (read it without)",
                         seq_dir / "synthetic.json", exported["n_rings"], n_rings)
-        self.time_files = self._per_point_time_files(seq_dir / "times")
+        self.time_files = self._per_point_time_files(seq_dir / "times") if per_point_times else None
         if self.time_files is not None:  # a raw sweep (e.g. the synthetic `raw` preset's export): deskewed with them
             self.motion_compensated = False
 

@@ -440,7 +440,7 @@ def open_sequence(
 
         base = KittiSequence(root, seq, point_format=point_format, n_rings=sensor.beams,
                              vertical_correction_deg=kitti_vertical_correction_deg,
-                             recover_ring_index=sensor.has_ring is not False)
+                             recover_ring_index=sensor.has_ring is not False, per_point_times=sensor.has_time is not False)
         source = f"KITTI sequence {seq} from {root}" + ("" if point_format == "xyzi" else f" ({point_format} points)")
         if kitti_vertical_correction_deg:
             source += f", vertical-angle correction {kitti_vertical_correction_deg:g} deg"

@@ -88,8 +88,9 @@ def test_eps_must_be_positive_and_a_network_is_predicted_on_its_own_device(tmp_p
 
     from training.trainer import TrainingError, load_model
 
-    with pytest.raises(pydantic.ValidationError, match="greater than 0"):
-        NetConfig(eps=0.0)  # the paper's epsilon keeps C positive definite
+    with pytest.raises(pydantic.ValidationError, match="eps must be > 0 with the Cholesky head"):
+        NetConfig(eps=0.0, head="cholesky")  # the paper's epsilon keeps its C positive definite
+    NetConfig(eps=0.0)  # the geometric head adds its own floor (and checkpoints stored with eps 0 still load)
     cfg = NetConfig(n_points=64, k0=8, k1=8, k2=8, c0=8, c1=8, c2=8)
     net = CovarianceNet(cfg)
     x = np.random.default_rng(0).uniform(-5, 5, (50, 3))
