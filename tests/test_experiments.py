@@ -741,7 +741,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                       "min_clusters"}, "odometry": keyframes, "loops": loop_options,
                                             "sensor": spin_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
-                                                         "weights", "fine_tune", "keep_dropped"}})
+                                                         "weights", "fine_tune", "keep_dropped", "prediction_passes"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")
     for key in ("corr_likelihood", "corr_dof"):  # the trainer's options added later, likewise
         d1["training"]["trainer"].pop(key)
@@ -751,6 +751,9 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     t5 = load_config(None, {"training": {"rounds": 2, **legacy,
                                          "trainer": {"corr_likelihood": "student_t", "corr_dof": 5.0}}})
     assert round_fingerprint(t5, 1) != round_fingerprint(t, 1)
+    # training.prediction_passes (2026-12-06) likewise: the learning rounds only, away from its default
+    pp = load_config(None, {"training": {"rounds": 2, **legacy, "prediction_passes": "training_size"}})
+    assert round_fingerprint(pp, 1) != round_fingerprint(a, 1) and round_fingerprint(pp, 0) == round_fingerprint(a, 0)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2, **legacy}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]
