@@ -42,6 +42,12 @@ def _umask() -> int:
     return umask
 
 
+def fsync_file(path: PathLike) -> None:
+    """Flush a written file's data to the disk."""
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
+
+
 def fsync_directory(directory: PathLike) -> None:
     """Flush ``directory``'s entries (files created, renamed or removed in it) to the disk.
 
@@ -74,8 +80,7 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
     try:
         yield tmp
         if fsync:
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
+            fsync_file(tmp)
         os.chmod(tmp, default_mode())  # mkstemp makes 0600; results get the usual mode
         os.replace(tmp, target)
         if fsync:

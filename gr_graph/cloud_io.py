@@ -24,6 +24,7 @@ import numpy as np
 
 from gr_graph.atomic import atomic_path
 from gr_graph.datasets.base import DatasetError
+from gr_graph.datasets.pointcloud2 import has_return
 
 __all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "check_suffix", "read_cloud", "write_cloud", "write_ply",
            "read_ply_covariances"]
@@ -160,7 +161,7 @@ def read_ply_covariances(path: PathLike) -> np.ndarray:
     if missing:
         raise DatasetError(f"{p}: no covariance properties {missing}")
     xyz = cloud.point.positions.numpy().astype(np.float64)
-    kept = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)  # as decode_structured keeps
+    kept = has_return(xyz)  # the rows read_cloud keeps
     C = np.empty((len(xyz), 3, 3), np.float64)
     for name, (i, j) in COVARIANCE_PROPERTIES.items():
         C[:, i, j] = C[:, j, i] = cloud.point[name].numpy().reshape(-1)

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from gr_graph.atomic import default_mode, fsync_directory
+from gr_graph.atomic import default_mode, fsync_directory, fsync_file
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +171,10 @@ class Memory:
         """Number of scan pairs E."""
         return len(self.edges)
 
+    def scans(self) -> list[np.ndarray]:
+        """Every scan's points, as :meth:`scan` gives them (views: memory-mapped when loaded so, no copy)."""
+        return [self.scan(k) for k in range(self.n_scans)]
+
     def scan(self, k: int) -> np.ndarray:
         """Points of scan ``k`` as a (memory-mapped) ``(N_k, 3)`` float32 view."""
         if not 0 <= k < self.n_scans:
@@ -258,8 +262,7 @@ def _atomic_directory(directory: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700
         yield tmp
         for f in tmp.iterdir():  # on the disk before the rename: never a complete-looking memory of empty files
-            with open(f, "rb+") as fh:
-                os.fsync(fh.fileno())
+            fsync_file(f)
         fsync_directory(tmp)
         old = None
         if target.exists():  # a unique name: a folder left by a killed process may hold this pid's

@@ -553,8 +553,7 @@ class SlamPipeline:
         from gr_graph.round_acceptance import evaluate_round
 
         if self._raw_scans is None:  # memory-mapped views of round 0's scans: read per window, not held in RAM
-            mem = load_memory(self.round_dir(0) / "memory")
-            self._raw_scans = [mem.scan(k) for k in range(mem.n_scans)]
+            self._raw_scans = load_memory(self.round_dir(0) / "memory").scans()
         verdict = json.loads(json.dumps(evaluate_round(self.out, r, reference, summaries, ac, scans=self._raw_scans)))
         stored = json.dumps([summary.get("accepted"), summary.get("acceptance")], sort_keys=True)
         if stored != json.dumps([verdict["accepted"], verdict], sort_keys=True):  # (NaN != NaN: compare text)
@@ -751,7 +750,7 @@ class SlamPipeline:
             raw = load_memory(self.round_dir(0) / "memory")
             if raw.n_scans != len(res.scans):
                 raise RuntimeError(f"round {r}: round 0 memory has {raw.n_scans} scans, this round {len(res.scans)}")
-            scans = [raw.scan(k) for k in range(raw.n_scans)]  # memory-mapped views, no copy in RAM
+            scans = raw.scans()  # memory-mapped views, no copy in RAM
             del raw
         info = {"round": r, "channels": self.cfg.channels, "sensor": self.cfg.sensor.model,
                 "source": self.source_description, "edge_H": EDGE_H_DESCRIPTION}

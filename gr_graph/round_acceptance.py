@@ -437,8 +437,7 @@ def _signed(value: float | None) -> str:
 def _raw_scans(out: Path) -> list[np.ndarray]:
     from gr_graph.memory import load_memory
 
-    mem = load_memory(Path(out) / "round_0" / "memory")
-    return [mem.scan(k) for k in range(mem.n_scans)]  # memory-mapped float32 views; float64 per window
+    return load_memory(Path(out) / "round_0" / "memory").scans()  # memory-mapped float32 views; float64 per window
 
 
 def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[str, Any]],

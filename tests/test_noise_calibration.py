@@ -459,11 +459,23 @@ def test_loop_edges_get_learned_information_unless_odometry_only():
     assert en2.summary()["loop"]["n_learned"] == 0
 
 
-def test_densified_view_predicts_an_evicted_frame_again():
-    from test_learning_rounds import PlaneScenes, plane_predictor
-
+def _read_keeping_one(seq, predictor, record: str):
+    """A densified view of ``seq`` that keeps the predictions of the last frame read only, after reading
+    every frame, and what its method ``record`` gave for each frame right after it was read."""
     from gr_graph.config import PreprocessConfig, TrainingConfig
     from gr_graph.densify import densified_sequence
+
+    view = densified_sequence(seq, predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
+                              preprocess=PreprocessConfig(), keep_predictions=1)
+    kept = {}
+    for i in range(len(seq)):
+        view[i]
+        kept[i] = getattr(view, record)(seq[i].index)
+    return view, kept
+
+
+def test_densified_view_predicts_an_evicted_frame_again():
+    from test_learning_rounds import PlaneScenes, plane_predictor
 
     seq = PlaneScenes(n=4)
     calls = []
@@ -472,12 +484,7 @@ def test_densified_view_predicts_an_evicted_frame_again():
         calls.append(len(points))
         return plane_predictor(points)
 
-    view = densified_sequence(seq, predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
-                              preprocess=PreprocessConfig(), keep_predictions=1)
-    kept = {}
-    for i in range(4):
-        view[i]
-        kept[i] = view.predicted(seq[i].index)
+    view, kept = _read_keeping_one(seq, predictor, "predicted")
     assert view.predicted(seq[0].index) is None  # evicted
     pts, C = view.prediction(seq[0].index)  # predicted again, identical
     np.testing.assert_array_equal(pts, kept[0][0])
@@ -495,17 +502,10 @@ def test_densified_view_gives_its_predictions_per_point_times():
     from scipy.spatial import cKDTree
     from test_learning_rounds import PlaneScenes, plane_predictor
 
-    from gr_graph.config import PreprocessConfig, TrainingConfig
     from gr_graph.datasets.registry import SequenceView
-    from gr_graph.densify import densified_sequence
 
     timed = SequenceView(PlaneScenes(n=3), transform=lambda f: replace(f, time=np.linspace(0.0, 1.0, len(f.points))))
-    view = densified_sequence(timed, plane_predictor, TrainingConfig(tau_ani=0.9, samples_per_point=2),
-                              preprocess=PreprocessConfig(), keep_predictions=1)
-    kept = {}
-    for i in range(3):
-        view[i]
-        kept[i] = view.prediction_times(timed[i].index)
+    view, kept = _read_keeping_one(timed, plane_predictor, "prediction_times")
     for i in range(3):
         raw = timed[i]
         times = view.prediction_times(raw.index)  # frames 0 and 1: made again

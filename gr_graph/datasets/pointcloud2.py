@@ -96,6 +96,13 @@ def empty_cloud() -> DecodedCloud:
     return DecodedCloud(np.zeros((0, 3)), None, None, None, None, 0)
 
 
+def has_return(xyz: np.ndarray) -> np.ndarray:
+    """Which rows of ``(N, 3)`` coordinates are returns: finite, and not exactly the origin (how organized
+    clouds, e.g. Ouster's, mark a beam without a return; kept, such points would pull a ring's elevation
+    to 0 and its times into the sweep)."""
+    return np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
+
+
 def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     """Read x, y, z (+ intensity, time, ring) from a structured array of points.
 
@@ -121,9 +128,7 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
         if flat.dtype[c].shape:
             raise DatasetError(f"{source}: field {c!r} has count {flat.dtype[c].shape}, expected 1")
     xyz = np.stack([flat[c].astype(np.float64) for c in "xyz"], axis=1)
-    # a return: finite, and not exactly the origin (how organized clouds, e.g. Ouster's, mark a beam
-    # without a return; kept, they would pull a ring's elevation to 0 and its times into the sweep)
-    finite = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
+    finite = has_return(xyz)
     dropped = int(len(xyz) - finite.sum())
     if dropped:
         xyz = xyz[finite]

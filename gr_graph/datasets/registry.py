@@ -243,23 +243,21 @@ OPTION_KINDS: dict[str, tuple[str, ...]] = {
 }
 """The kinds of data (:data:`DATASETS`) each ``data`` option concerns; the others ignore it, with
 a warning (:func:`ignored_options`). ``trajectory`` is missing: with other data it is an error."""
-_OPTION_DEFAULTS: dict[str, object] = {"seq": "00", "data_root": None, "topic": None, "timestamps": None,
-                                       "poses": None, "point_format": "xyzi", "route_seed": 0,
-                                       "synthetic_preset": None}
-
-
 def ignored_options(kind: str, **given: object) -> list[str]:
     """The options among ``given`` (``data`` keys of :data:`OPTION_KINDS` and their values) that
     were set to something other than their default but that data of ``kind`` ignores, as
     ``key=value`` strings in :data:`OPTION_KINDS`' order.
 
-    A value equal to the default cannot be told from one not given, and is never listed.
+    A value equal to its default (``gr_graph.config.DataConfig``'s) cannot be told from one not given,
+    and is never listed.
     """
+    from gr_graph.config import DataConfig  # (the configuration imports this module)
+
     unknown = set(given) - set(OPTION_KINDS)
     if unknown:
         raise KeyError(f"not data options of OPTION_KINDS: {sorted(unknown)}")
     return [f"{key}={given[key]}" for key, kinds in OPTION_KINDS.items()
-            if key in given and given[key] is not None and given[key] != _OPTION_DEFAULTS[key]
+            if key in given and given[key] is not None and given[key] != DataConfig.model_fields[key].default
             and kind not in kinds]
 
 
