@@ -101,6 +101,31 @@ def _log_level(text: str) -> str:
     return text.strip().upper()
 
 
+def at_least(minimum: float, kind: type = int) -> Any:
+    """An argparse ``type``: a number of ``kind`` not below ``minimum`` (the error names the bound)."""
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if not value >= minimum:
+            raise argparse.ArgumentTypeError(f"{text} is below {minimum}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse ``type``: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number > 0")
+    return value
+
+
 def add_log_level(p: argparse.ArgumentParser, default: str = "INFO") -> None:
     p.add_argument("--log-level", type=_log_level, choices=LOG_LEVELS, default=default,
                    metavar="{" + ",".join(LOG_LEVELS) + "}", help="logging threshold, any case")

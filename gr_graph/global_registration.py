@@ -42,10 +42,19 @@ from gr_graph.cli_common import (
     add_out,
     add_point_format,
     add_seed,
+    at_least,
     make_parser,
+    positive_float,
     setup_logging,
 )
-from gr_graph.global_solvers import DEFAULT_VOXEL, SOLVER_NAMES, available_solvers, kiss_matcher_available, register
+from gr_graph.global_solvers import (
+    DEFAULT_VOXEL,
+    SOLVER_NAMES,
+    RegistrationOutcome,
+    available_solvers,
+    kiss_matcher_available,
+    register,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -90,9 +99,11 @@ def sample_pairs(
     Raises
     ------
     ValueError
-        Fewer than ``n`` qualifying pairs exist.
+        Fewer than ``n`` qualifying pairs exist, or ``n`` or ``min_frame`` is negative.
     """
     P = check_poses(poses, "sample_pairs poses")[:, :3, 3]
+    if int(n) != n or n < 0 or int(min_frame) != min_frame or min_frame < 0:
+        raise ValueError(f"n and min_frame must be integers >= 0, got n={n}, min_frame={min_frame}")
     idx = np.arange(min_frame, len(P))
     cand = cKDTree(P[idx]).query_pairs(r=float(max_distance), output_type="ndarray")
     if len(cand):
@@ -135,9 +146,14 @@ def load_pairs(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, Any]
     if not isinstance(doc, dict) or "pairs" not in doc:
         raise ValueError(f"{path}: no 'pairs' entry")
     try:
-        pairs = np.asarray(doc.pop("pairs"), dtype=np.int64).reshape(-1, 2)
+        raw = np.asarray(doc.pop("pairs"), dtype=np.float64).reshape(-1, 2)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: 'pairs' must be rows of two frame numbers ({exc})") from None
+    fractional = np.flatnonzero(((raw != np.round(raw)) | ~np.isfinite(raw)).any(axis=1))
+    if len(fractional):  # a frame number 3.7 is no frame (int64 would floor it to 3)
+        raise ValueError(f"{path}: pair row {int(fractional[0])} {raw[fractional[0]].tolist()} is not two whole frame "
+                         f"numbers ({len(fractional)} such rows)")
+    pairs = raw.astype(np.int64)
     bad = np.flatnonzero((pairs[:, 0] == pairs[:, 1]) | (pairs < 0).any(axis=1))
     if len(bad):
         raise ValueError(f"{path}: pair row {int(bad[0])} {pairs[bad[0]].tolist()} is not two different frames "
@@ -210,7 +226,8 @@ def evaluate_pairs(
     -------
     dict
         JSON-serialisable: ``settings``, ``summary`` (per solver: success_rate, n_success,
-        n_pairs, n_invalid (no solution: a failure), success_rate_nontrivial over the
+        n_pairs, n_invalid (no solution: a failure), n_errors (the solver raised on the pair, e.g. a
+        scan with too few points: a failure, its row names the error), success_rate_nontrivial over the
         n_nontrivial pairs the identity does not solve, median errors and time), ``identity``
         (the identity's success: the share of pairs solved by doing nothing, e.g. scans of a
         stopped vehicle) and ``pairs`` (one row per pair and solver).
@@ -235,7 +252,13 @@ def evaluate_pairs(
         T_ref = relative_transform(P, src_i, tgt_i)
         trivial.append(is_success(np.eye(4), T_ref, max_rot_deg, max_trans_m))
         for s in wanted:
-            out = register(s, src, tgt, voxel=voxel, seed=seed)
+            try:
+                out = register(s, src, tgt, voxel=voxel, seed=seed)
+                error = None
+            except (ValueError, RuntimeError) as exc:  # e.g. a scan left with too few points: this pair fails
+                error = f"{type(exc).__name__}: {exc}"
+                logger.warning("global registration, pair (%d, %d), %s: %s; counted as a failure", src_i, tgt_i, s, error)
+                out = RegistrationOutcome(s, np.eye(4), 0, 0.0, valid=False)
             re, te = rotation_error_deg(out.T, T_ref), translation_error_m(out.T, T_ref)
             rows.append(
                 {
@@ -252,6 +275,7 @@ def evaluate_pairs(
                     "n_inliers": out.n_inliers,
                     "seconds": out.seconds,
                     "T_est": out.T.tolist(),
+                    **({} if error is None else {"error": error}),
                 }
             )
     summary: dict[str, Any] = {}
@@ -264,6 +288,7 @@ def evaluate_pairs(
             "n_success": int(sum(ok)),
             "success_rate": float(np.mean(ok)) if r else None,
             "n_invalid": int(sum(not x["valid"] for x in r)),
+            "n_errors": int(sum("error" in x for x in r)),
             "n_nontrivial": len(hard),
             "success_rate_nontrivial": float(np.mean(hard)) if hard else None,
             "median_rot_err_deg": float(np.median([x["rot_err_deg"] for x in r])) if r else None,
@@ -306,12 +331,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_root(ap)
     add_point_format(ap)
     add_channels(ap)
-    ap.add_argument("--n-pairs", type=int, default=100, metavar="N", help="scan pairs sampled")
-    ap.add_argument("--max-distance", type=float, default=10.0, metavar="M",
+    ap.add_argument("--n-pairs", type=at_least(1), default=100, metavar="N", help="scan pairs sampled")
+    ap.add_argument("--max-distance", type=positive_float, default=10.0, metavar="M",
                     help="largest ground-truth distance between the scans of a pair [m]")
     add_seed(ap, "seed of the pair sampling and of RANSAC")
-    ap.add_argument("--voxel", type=float, default=DEFAULT_VOXEL, metavar="M", help="voxel size of the FPFH scans [m]")
-    ap.add_argument("--min-frame", type=int, default=None, metavar="K",
+    ap.add_argument("--voxel", type=positive_float, default=DEFAULT_VOXEL, metavar="M",
+                    help="voxel size of the FPFH scans [m]")
+    ap.add_argument("--min-frame", type=at_least(0), default=None, metavar="K",
                     help="first frame sampled "
                          "(default: 14 for seq 00, whose GT of frames 0-13 is extrapolated; else 0)")
     ap.add_argument("--pairs", default=None, metavar="FILE", help="reuse a pairs.json instead of sampling")
@@ -351,7 +377,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     else:
         min_frame = args.min_frame if args.min_frame is not None else (14 if args.seq in ("00", "0") else 0)
-        pairs = sample_pairs(poses, args.n_pairs, args.max_distance, args.seed, min_frame=min_frame)
+        try:
+            pairs = sample_pairs(poses, args.n_pairs, args.max_distance, args.seed, min_frame=min_frame)
+        except ValueError as exc:
+            print(f"error: {desc}: {exc}: lower --n-pairs or --min-frame, or raise --max-distance", file=sys.stderr)
+            return 2
         meta = {
             "sequence": desc,
             "n_pairs": args.n_pairs,
@@ -360,6 +390,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "min_frame": min_frame,
             "convention": "rows are (source, target); T_target_source = inv(T_w_target) @ T_w_source",
         }
+    (out / "results.json").unlink(missing_ok=True)  # an earlier run's, made on other pairs
     save_pairs(out / "pairs.json", pairs, meta)
     try:
         res = evaluate_pairs(seq, poses, pairs, args.solvers, voxel=args.voxel, seed=args.seed,

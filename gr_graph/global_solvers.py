@@ -4,7 +4,8 @@ Both start from FPFH features of voxel-downsampled scans:
 
 - ``"kiss_matcher"``: KISS-Matcher (faster-PFH + ROBIN max-clique pruning + GNC, a
   TEASER-class certifiable-style solver). Optional dependency ``kiss-matcher``; when it is
-  missing the solver is skipped with a log line.
+  missing the solver is skipped with a log line. Run in a worker process bound to one CPU, so
+  that its answers do not depend on thread scheduling (:func:`register_kiss_matcher`).
 - ``"fpfh_ransac"``: open3d's FPFH + RANSAC
   (``registration_ransac_based_on_feature_matching``), seeded and deterministic.
 
@@ -16,6 +17,8 @@ Scans are ``(N, 3)`` points in their own sensor frame; a solver returns
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -131,7 +134,13 @@ def kiss_matcher_available() -> bool:
 def register_kiss_matcher(
     source: np.ndarray, target: np.ndarray, voxel: float = DEFAULT_VOXEL
 ) -> RegistrationOutcome:
-    """Global registration with KISS-Matcher (``pip install kiss-matcher``).
+    """Global registration with KISS-Matcher (``pip install kiss-matcher``), deterministic.
+
+    KISS-Matcher runs its loops on TBB threads, and its answer depends on how they are
+    scheduled: on 2 cores the same pair gave another transform and inlier count on every call.
+    It therefore runs in a worker process bound to one CPU (TBB sizes its thread pool from that),
+    where the same pair gives the same answer in every call and process. Where a process cannot be
+    bound (no ``os.sched_setaffinity``: macOS, Windows) it runs here, not deterministic (warned once).
 
     Returns
     -------
@@ -144,23 +153,62 @@ def register_kiss_matcher(
     ImportError
         ``kiss_matcher`` is not installed.
     """
-    try:
-        import kiss_matcher
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError("KISS-Matcher is not installed: pip install kiss-matcher") from exc
+    if not kiss_matcher_available():  # pragma: no cover - depends on the environment
+        raise ImportError("KISS-Matcher is not installed: pip install kiss-matcher")
     src = _check_cloud(source, "source")
     tgt = _check_cloud(target, "target")
     t0 = time.perf_counter()
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(float(voxel)))
+    worker = _one_cpu_worker()
+    if worker is None:
+        valid, T, n_in = _kiss_matcher_estimate(src, tgt, float(voxel))
+    else:
+        valid, T, n_in = worker.submit(_kiss_matcher_estimate, src, tgt, float(voxel)).result()
+    if not valid:
+        logger.debug("KISS-Matcher returned no valid solution")
+    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0, valid=valid)
+
+
+def _kiss_matcher_estimate(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[bool, np.ndarray, int]:
+    """One KISS-Matcher solve: (valid, T_target_source, final inliers); identity and 0 when not valid."""
+    import kiss_matcher
+
+    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
     sol = matcher.estimate(src, tgt)
     T = np.eye(4)
-    if sol.valid:
-        T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64)
-        T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).ravel()
-    else:
-        logger.debug("KISS-Matcher returned no valid solution")
-    n_in = int(matcher.get_num_final_inliers()) if sol.valid else 0
-    return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0, valid=bool(sol.valid))
+    if not sol.valid:
+        return False, T, 0
+    T[:3, :3] = np.asarray(sol.rotation, dtype=np.float64)
+    T[:3, 3] = np.asarray(sol.translation, dtype=np.float64).ravel()
+    return True, T, int(matcher.get_num_final_inliers())
+
+
+_WORKER: Any = None
+_WORKER_LOCK = threading.Lock()
+
+
+def _bind_to_one_cpu() -> None:
+    """Worker initialiser: this process on its lowest allowed CPU, before KISS-Matcher starts TBB."""
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
+def _one_cpu_worker() -> Any:
+    """The process pool of one worker bound to one CPU (started on first use, 'spawn': no state of
+    this process, in particular no TBB pool, is inherited), or None where processes cannot be bound."""
+    global _WORKER
+    if not hasattr(os, "sched_setaffinity"):
+        if _WORKER is None:
+            logger.warning("KISS-Matcher: this system cannot bind a process to one CPU; its results vary from "
+                           "run to run (TBB thread scheduling)")
+            _WORKER = False
+        return None
+    with _WORKER_LOCK:
+        if not _WORKER:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            _WORKER = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                          initializer=_bind_to_one_cpu)
+        return _WORKER
 
 
 def available_solvers() -> tuple[str, ...]:

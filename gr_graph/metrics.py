@@ -205,12 +205,44 @@ def _aligned_paths(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, a
                 ref_path, correct_scale=correct_scale, correct_only_scale=correct_scale and not align
             )
         except GeometryException as exc:
-            raise DegenerateAlignmentError(
-                f"Umeyama alignment is not possible ({exc}); the reference positions are "
-                "collinear or coincident"
-            ) from exc
+            if correct_scale:  # the scale is undetermined as well: no fallback
+                raise DegenerateAlignmentError(
+                    f"Umeyama alignment is not possible ({exc}); the {_degenerate_side(e, r)} positions are "
+                    "collinear or coincident"
+                ) from exc
+            # a straight or stationary path (e.g. a run that failed): the best rigid fit is not unique,
+            # but its error is; evo refuses the rank-deficient case, so it is solved here
+            est_path.transform(_rigid_fit(est_path.positions_xyz, ref_path.positions_xyz))
+            s = 1.0
         scale = float(s)
     return ref_path, est_path, scale
+
+
+def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The 4x4 rigid transform T minimising sum |T src_i - dst_i|^2 (Kabsch/Umeyama without scale).
+
+    Valid also when the cross-covariance has rank < 2 (one of the point sets collinear or
+    coincident): the rotation is then one of several minimisers, all with the same residuals.
+    """
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    S[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
+    T = np.eye(4)
+    T[:3, :3] = U @ S @ Vt
+    T[:3, 3] = mu_d - T[:3, :3] @ mu_s
+    return T
+
+
+def _degenerate_side(est: np.ndarray, ref: np.ndarray) -> str:
+    """Which positions make an alignment degenerate: 'estimated', 'reference' or 'estimated and reference'."""
+    def flat(P: np.ndarray) -> bool:
+        x = P[:, :3, 3] - P[:, :3, 3].mean(axis=0)
+        sv = np.linalg.svd(x, compute_uv=False)
+        return bool(sv[1] <= 1e-9 * max(sv[0], 1e-300))
+    sides = [name for name, P in (("estimated", est), ("reference", ref)) if flat(P)]
+    return " and ".join(sides) or "estimated and reference"
 
 
 def ate(
@@ -242,7 +274,9 @@ def ate(
     InsufficientTrajectoryError
         Alignment requested with fewer than 3 poses.
     DegenerateAlignmentError
-        Alignment requested but undetermined (collinear reference positions).
+        A scale asked for but undetermined (collinear or coincident positions). Without a scale a
+        straight or stationary path is aligned by the best rigid fit (its rotation about the line
+        is not unique, its error is).
     """
     from evo.core import metrics as evo_metrics
 
@@ -274,8 +308,11 @@ def ate_by_axis(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, vert
         Mismatched lengths, invalid poses, or ``vertical_axis`` not 0, 1 or 2.
     InsufficientTrajectoryError
         Fewer than 3 poses.
-    DegenerateAlignmentError
-        Collinear or coincident reference positions.
+
+    Notes
+    -----
+    With collinear or coincident positions the aligning rotation about the line is not unique:
+    ``rmse`` is, the split between height and plane is that of one best fit.
     """
     if vertical_axis not in (0, 1, 2):
         raise ValueError(f"vertical_axis must be 0, 1 or 2, got {vertical_axis}")
@@ -437,11 +474,15 @@ def trajectory_metrics(
     try:
         a = ate(e, r, align=True, correct_scale=False)
         out.update(ate_rmse=a.rmse, ate_mean=a.mean, ate_median=a.median, ate_max=a.max)
+    except InsufficientTrajectoryError as exc:
+        logger.warning("ATE: %s; reporting None", exc)
+        out.update(ate_rmse=None, ate_mean=None, ate_median=None, ate_max=None)
+    try:  # a straight or stationary path has an SE(3) ATE but no scale
         a7 = ate(e, r, align=True, correct_scale=True)
         out.update(ate_sim3_rmse=a7.rmse, ate_sim3_scale=a7.scale)
     except InsufficientTrajectoryError as exc:
-        logger.warning("ATE: %s; reporting None", exc)
-        out.update(ate_rmse=None, ate_mean=None, ate_median=None, ate_max=None, ate_sim3_rmse=None, ate_sim3_scale=None)
+        logger.warning("ATE with scale (Sim(3)): %s; reporting None", exc)
+        out.update(ate_sim3_rmse=None, ate_sim3_scale=None)
     seg = kitti_devkit_segments(e, r)
     if seg.first.size:
         out["kitti_t_err_percent"] = float(np.mean(seg.t_err) * 100.0)

@@ -95,11 +95,26 @@ def plot_trajectory(
         ``position_cov_world``), drawn as 3-sigma x-y ellipses magnified by
         :func:`ellipse_scale` (said in the legend), optional
     """
-    from matplotlib.patches import Ellipse
-
+    poses = np.asarray(poses)
+    if poses.ndim != 3 or len(poses) == 0:
+        raise ValueError(f"{path}: no poses to plot (got an array of shape {poses.shape})")
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 7))
-    p = poses[:, :3, 3]
+    try:
+        _draw_trajectory(ax, poses[:, :3, 3], gt, loops, odometry, position_cov)
+    except BaseException:
+        plt.close(fig)
+        raise
+    if title:
+        ax.set_title(title, fontsize=10)
+    return save_figure(fig, path, dpi=120)
+
+
+def _draw_trajectory(ax: Any, p: np.ndarray, gt: np.ndarray | None, loops: np.ndarray | None,
+                     odometry: np.ndarray | None, position_cov: np.ndarray | None) -> None:
+    """:func:`plot_trajectory`'s drawing on ``ax``; ``p``: (K, 3) estimated positions."""
+    from matplotlib.patches import Ellipse
+
     if gt is not None:
         g = gt[:, :3, 3]
         ax.plot(g[:, 0], g[:, 1], "k--", lw=1.2, label="ground truth")
@@ -114,30 +129,31 @@ def plot_trajectory(
         ax.plot([], [], color="tab:red", lw=0.6, label=f"loop closures ({len(loops)})")
     if position_cov is not None and len(position_cov):
         width, height, angle = ellipse_axes(np.asarray(position_cov)[:, :2, :2])
-        extent = float(np.ptp(p[:, :2], axis=0).max()) if len(p) > 1 else 0.0
-        scale = ellipse_scale(width, max(extent, 1.0))
-        step = max(1, int(np.ceil(len(p) / MAX_ELLIPSES)))
-        for k in range(0, len(p), step):
-            ax.add_patch(Ellipse(tuple(p[k, :2]), scale * width[k], scale * height[k], angle=angle[k],
-                                 fill=False, color="tab:purple", lw=0.8))
-        size = "true size" if scale == 1.0 else f"magnified x{scale:g}"
-        ax.plot([], [], color="tab:purple", lw=0.8,
-                label=f"{ELLIPSE_SIGMA:g}σ position ellipses, {size} (median major axis "
-                      f"{np.median(width):.3g} m; one every {step} poses)")
+        drawn = np.isfinite(width) & np.isfinite(height) & np.isfinite(angle)  # failed marginals: none
+        if drawn.any():
+            extent = float(np.ptp(p[:, :2], axis=0).max()) if len(p) > 1 else 0.0
+            scale = ellipse_scale(width[drawn], max(extent, 1.0))
+            step = max(1, int(np.ceil(len(p) / MAX_ELLIPSES)))
+            for k in range(0, len(p), step):
+                if drawn[k]:
+                    ax.add_patch(Ellipse(tuple(p[k, :2]), scale * width[k], scale * height[k], angle=angle[k],
+                                         fill=False, color="tab:purple", lw=0.8))
+            size = "true size" if scale == 1.0 else f"magnified x{scale:g}"
+            missing = "" if drawn.all() else f"; {int((~drawn).sum())} poses without a finite covariance"
+            ax.plot([], [], color="tab:purple", lw=0.8,
+                    label=f"{ELLIPSE_SIGMA:g}σ position ellipses, {size} (median major axis "
+                          f"{np.median(width[drawn]):.3g} m; one every {step} poses{missing})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    if title:
-        ax.set_title(title, fontsize=10)
-    return save_figure(fig, path, dpi=120)
 
 
 def _round_values(metrics: dict[str, Any], part: str, key: str) -> tuple[list[int], list[float]]:
     rounds, values = [], []
     for r in sorted(metrics["rounds"], key=int):
-        v = metrics["rounds"][r].get(part, {}).get(key)
+        v = (metrics["rounds"][r].get(part) or {}).get(key)
         if v is not None:
             rounds.append(int(r))
             values.append(float(v))

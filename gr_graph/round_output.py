@@ -7,7 +7,8 @@ Output directory (``--out``)::
     metrics.json             per round: trajectory metrics, loops, runtimes, acceptance (rewritten per round)
     poses_kitti.txt          the final trajectory (metrics.json "final_round": the last round of the
                              unbroken run of accepted rounds)
-    poses_tum.txt            the same in TUM form
+    poses_tum.txt            the same poses in TUM form, in the LiDAR frame (T_w_velo; the KITTI
+                             file is in the camera frame, as KITTI's ground truth)
     trajectory.png           the final round against ground truth (top-down, LiDAR frame), with the
                              3-sigma position ellipses (magnified, the legend says by how much)
     rounds.png               with learning rounds: RPE and ATE per round (ground truth needed)

@@ -254,3 +254,26 @@ def test_every_published_record_matches_its_cell_and_the_cells_pin_the_training_
     # a pin that differs from the pinned value changes the fingerprint
     changed = dataclasses.replace(default, overrides={**default.overrides, "training": {**tr, "keep_dropped": True}})
     assert changed.fingerprint() != default.fingerprint()
+
+
+def test_table2_raw_cells_refuse_a_table1_run_of_other_scans(tmp_path, monkeypatch):
+    """A raw-scan Table II cell has no source fingerprint (no model): it renders the scans the Table I
+    run in the root was configured with, so those must be its own frames, channels and seed."""
+    from gr_graph.config import SlamConfig, dump_config
+    from gr_graph.datasets import registry
+
+    def never(*a, **k):
+        raise AssertionError("the sequence must not be opened")
+
+    monkeypatch.setattr(registry, "open_configured_sequence", never)
+    smoke = next(c for c in cells_for("table2", "smoke") if c.key.endswith("-r0"))
+    root = tmp_path / "root"
+    src = root / str(smoke.source)
+    (src / "slam").mkdir(parents=True)
+    (src / rc.CELL_JSON).write_text(json.dumps({"fingerprint": "another budget's"}))
+    other = SlamConfig.model_validate({"seed": smoke.seed, "data": {"frames": [400, 1900], "channels": smoke.channels}})
+    dump_config(other, src / "slam" / "config.yaml")
+    with pytest.raises(rc.CellDependencyError, match=r"frames \(400, 1900\) \(the cell: \(\d+, \d+\)\)"):
+        rc._run_registration_cell(root, rc.cell_dir(root, smoke), smoke, "cpu")
+    assert rc._scans_mismatch(smoke, SlamConfig.model_validate(
+        {"seed": smoke.seed, "data": {"frames": list(smoke.frames), "channels": smoke.channels}})) is None

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
+import sys
 import statistics
 
 import numpy as np
@@ -62,6 +64,13 @@ def test_runtime_table_lists_each_slam_cell_stage_in_minutes():
     assert rows[0] == f"| {abl[None].key} | 600 | 10.0 | 2.0 | 10.0, 11.0 | 5.0, 5.5 |  |  |"
     assert f"| {abl['round0'].key} | 600 | 10.0 | reused | 10.0, 11.0 |" in rows[1]
     assert f"| {abl['round1_training'].key} | 600 | 10.0 | reused | reused, 11.0 |" in rows[2]
+    # what the cell recorded it took counts: a source not ready, or its checkpoint pruned
+    recorded = {abl["round0"].key: {"reuse": {"what": None, "copied": []}},
+                abl["round1_training"].key: {"reuse": {"what": "round1_training", "copied": ["round_0"]}}}
+    rows = [ln for ln in report._runtime_md([abl["round0"], abl["round1_training"]], {
+        k: {"wall_s": 600.0, "rounds": rounds, **v} for k, v in recorded.items()}) if ln.startswith("| ")][1:]
+    assert rows[0].startswith(f"| {abl['round0'].key} | 600 | 10.0 | 2.0 | 10.0, 11.0 |")
+    assert rows[1].startswith(f"| {abl['round1_training'].key} | 600 | 10.0 | reused | 10.0, 11.0 |")
 
 
 @pytest.mark.parametrize("budget", sorted(BUDGETS))
@@ -263,7 +272,12 @@ def test_unfinished_cell_with_another_definition_is_cleared(tmp_path, monkeypatc
     rc.run_cell(tmp_path, changed)
     assert not (d / "partial.txt").exists()
 
-    # budgets in one root (keys repeat between them): a finished cell of another budget is never deleted
+    # budgets in one root (keys repeat between them): a finished cell of another budget is never deleted,
+    # nor one whose budget is unknown (a library call without one) when this run has one
+    with pytest.raises(rc.CellConflictError, match="whose budget is not recorded"):
+        rc.run_cell(tmp_path, cell, budget="smoke")
+    assert json.loads((d / "cell.json").read_text())["fingerprint"] == changed.fingerprint()
+    shutil.rmtree(d)  # what the error says to do
     rc.run_cell(tmp_path, cell, budget="smoke")
     finished = (d / "cell.json").read_text()
     assert json.loads(finished)["budget"] == "smoke"
@@ -272,6 +286,24 @@ def test_unfinished_cell_with_another_definition_is_cleared(tmp_path, monkeypatc
     assert (d / "cell.json").read_text() == finished
     rc.run_cell(tmp_path, changed, budget="smoke")  # the same budget's changed definition: recomputed
     assert json.loads((d / "cell.json").read_text())["fingerprint"] == changed.fingerprint()
+
+    # a finished cell whose budget is not recorded (made before cell.json named it) is kept too
+    legacy = json.loads((d / "cell.json").read_text())
+    legacy.pop("budget")
+    (d / "cell.json").write_text(json.dumps(legacy))
+    with pytest.raises(rc.CellConflictError, match="whose budget is not recorded"):
+        rc.run_cell(tmp_path, cell, budget="smoke")
+    assert json.loads((d / "cell.json").read_text()) == legacy
+    # an unfinished cell of another budget is kept; one of the same budget is cleared
+    (d / "cell.json").unlink()
+    (d / "definition.json").write_text(json.dumps({"fingerprint": "0" * 16, "budget": "paper"}))
+    (d / "partial.txt").write_text("the paper budget's half-done work")
+    with pytest.raises(rc.CellConflictError, match="holds the unfinished cell .* of budget 'paper'"):
+        rc.run_cell(tmp_path, cell, budget="smoke")
+    assert (d / "partial.txt").exists()
+    rc.run_cell(tmp_path, cell, budget="paper")
+    assert not (d / "partial.txt").exists()
+    assert json.loads((d / "definition.json").read_text())["budget"] == "paper"
 
 
 def test_pruning_keeps_models_and_poses_and_waits_for_reusing_cells(tmp_path, monkeypatch):
@@ -314,6 +346,25 @@ def test_reuse_copies_round0_and_round1_training_from_a_finished_source(tmp_path
     dst2 = rc.cell_dir(tmp_path, cells["pca"])
     assert rc._reuse(tmp_path, dst2, cells["pca"])["copied"] == ["round_0"]
     assert not (dst2 / "slam" / "round_1").exists()
+    # a resumed call reports what the first one did: here, round 0 computed by the cell itself
+    dst3 = rc.cell_dir(tmp_path, cells["untrained"])
+    (tmp_path / "table_moved").mkdir()
+    src_cell = rc.cell_dir(tmp_path, cells["default"])
+    (src_cell / "cell.json").rename(tmp_path / "table_moved" / "cell.json")  # the source not finished yet
+    first = rc._reuse(tmp_path, dst3, cells["untrained"])
+    assert first["what"] is None and first["copied"] == []
+    (dst3 / "slam" / "round_0").mkdir(parents=True)
+    (dst3 / "slam" / "round_0" / "round.json").write_text("{}")  # its own round 0 finished, then a kill
+    (tmp_path / "table_moved" / "cell.json").rename(src_cell / "cell.json")  # the source finished meanwhile
+    assert rc._reuse(tmp_path, dst3, cells["untrained"]) == first
+    assert rc.reused_from_source(first) == set()
+    # an interrupted copy leaves only a hidden sibling, which the next copy replaces
+    shutil.rmtree(dst / "slam")
+    half = dst / "slam" / "round_1" / ".copying-training"
+    half.mkdir(parents=True)
+    (half / "partial").write_text("x")
+    assert rc._reuse(tmp_path, dst, cells["edge-noise-off"])["copied"] == ["round_0", "round_1/training"]
+    assert not half.exists() and (dst / "slam" / "round_1" / "training" / "checkpoint.pt").is_file()
 
 
 def test_registration_cell_needs_its_table1_cell(tmp_path):
@@ -836,3 +887,14 @@ def test_work_copied_from_a_source_cell_is_not_counted_again():
     assert rc.resumed_work(metrics, [0, 1], None, {"round_0"})["wall_s"] == 430.0
     done = rc.resumed_work(metrics, [0, 1, 2], {"wall_s": 5.0}, both)
     assert done["wall_s"] == 30.0 + 20.0 + 300.0 + 5.0 and done["not_counted"] == ["round_0", "round_1/training"]
+
+
+def test_cell_cpu_time_counts_the_render_process():
+    """Cells of 500 frames or more render in a child process: its CPU time counts in ``cpu_s``."""
+    import subprocess
+    import time
+
+    before, own = rc.cpu_seconds(), time.process_time()
+    subprocess.run([sys.executable, "-c", "t = __import__('time'); e = t.process_time() + 0.3\n"
+                    "while t.process_time() < e: pass"], check=True)
+    assert rc.cpu_seconds() - before >= 0.25 and time.process_time() - own < 0.2

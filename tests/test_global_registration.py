@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,8 @@ from gr_graph.global_registration import (
     write_results,
 )
 from gr_graph.global_solvers import kiss_matcher_available, register_fpfh_ransac, register_kiss_matcher
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def make_T(rotvec: list[float], t: list[float]) -> np.ndarray:
@@ -187,6 +191,7 @@ def test_pair_files_are_checked(tmp_path: Path) -> None:
     for doc, message in [({"pairs": [[3, 3]]}, r"pair row 0 \[3, 3\] is not two different frames"),
                          ({"pairs": [[5, 1], [2, -1]]}, r"pair row 1 \[2, -1\]"),
                          ({"pairs": [[1, 2, 3]]}, "rows of two frame numbers"),
+                         ({"pairs": [[3.7, 1.2]]}, r"pair row 0 \[3.7, 1.2\] is not two whole frame numbers"),
                          ({"seed": 0}, "no 'pairs' entry")]:
         path.write_text(json.dumps(doc))
         with pytest.raises(ValueError, match=message):
@@ -194,3 +199,82 @@ def test_pair_files_are_checked(tmp_path: Path) -> None:
     path.write_bytes(b"\x89PNG\r\n")
     with pytest.raises(ValueError, match="pairs.json: not a pair file"):
         load_pairs(path)
+
+
+def _hard_pair() -> tuple[np.ndarray, np.ndarray]:
+    """A street corner seen from two poses 4.5 m and 40 deg apart, with 15 cm noise and half of each
+    scan cut away: a pair on which KISS-Matcher's answer depended on thread scheduling."""
+    rng = np.random.default_rng(1)
+    ground = np.c_[rng.uniform(-30, 30, (20000, 2)), np.full(20000, -1.7) + rng.normal(0, 0.01, 20000)]
+    walls = [np.c_[np.full(5000, x0), rng.uniform(-30, 30, 5000), rng.uniform(-1.7, 4, 5000)] for x0 in (-15, 12)]
+    walls += [np.c_[rng.uniform(-15, 12, 5000), np.full(5000, y0), rng.uniform(-1.7, 4, 5000)] for y0 in (-20, 18)]
+    boxes = [np.c_[rng.uniform(a, a + 2, (1500, 2)), rng.uniform(-1.7, b, 1500)]
+             for a, b in zip(rng.uniform(-10, 10, 8), rng.uniform(0, 3, 8))]
+    world = np.vstack([ground, *walls, *boxes])
+    T = make_T([0.0, 0.0, 0.7], [4.0, -2.0, 0.1])
+    src = (world - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.15, world.shape)
+    tgt = world + rng.normal(0, 0.15, world.shape)
+    return src[src[:, 0] > -3], tgt[tgt[:, 1] < 5]
+
+
+@pytest.mark.skipif(not kiss_matcher_available(), reason="kiss-matcher not installed")
+def test_kiss_matcher_gives_the_same_answer_in_every_call_and_process(tmp_path: Path) -> None:
+    src, tgt = _hard_pair()
+    outs = [register_kiss_matcher(src, tgt, voxel=0.5) for _ in range(3)]
+    for o in outs[1:]:
+        np.testing.assert_array_equal(o.T, outs[0].T)
+        assert (o.n_inliers, o.valid) == (outs[0].n_inliers, outs[0].valid)
+    np.save(tmp_path / "src.npy", src)
+    np.save(tmp_path / "tgt.npy", tgt)
+    code = ("import sys, numpy as np\n"
+            "from gr_graph.global_solvers import register_kiss_matcher\n"
+            "if __name__ == '__main__':\n"
+            f"    o = register_kiss_matcher(np.load(r'{tmp_path / 'src.npy'}'), np.load(r'{tmp_path / 'tgt.npy'}'), voxel=0.5)\n"
+            f"    np.save(r'{tmp_path / 'T.npy'}', o.T)\n")
+    (tmp_path / "other.py").write_text(code)
+    subprocess.run([sys.executable, str(tmp_path / "other.py")], check=True, cwd=REPO, timeout=300)
+    np.testing.assert_array_equal(np.load(tmp_path / "T.npy"), outs[0].T)
+
+
+def test_a_pair_the_solver_cannot_take_is_a_failure_not_a_lost_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scan with too few points (e.g. densified into nothing) fails its pairs; the others are kept."""
+    import gr_graph.global_registration as gr
+    from gr_graph.global_solvers import RegistrationOutcome
+
+    poses = np.stack([np.eye(4), make_T([0, 0, 0.1], [3.0, 0, 0]), make_T([0, 0, 0.2], [6.0, 0, 0])])
+    scans = [np.random.default_rng(0).uniform(-5, 5, (50, 3)), np.zeros((5, 3)), np.ones((50, 3))]
+    real = gr.register
+
+    def register(solver, src, tgt, voxel, seed):
+        if len(src) < 10:
+            return real(solver, src, tgt, voxel=voxel, seed=seed)  # the solver's own check raises
+        return RegistrationOutcome(solver, relative_transform(poses, 2, 0), 30, 0.0)
+
+    monkeypatch.setattr(gr, "register", register)
+    res = evaluate_pairs(scans, poses, np.array([[1, 0], [2, 0]]), solvers=["fpfh_ransac"], progress=False)
+    bad, good = res["pairs"]
+    assert "ValueError" in bad["error"] and not bad["valid"] and not bad["success"]
+    assert good["success"] and "error" not in good
+    s = res["summary"]["fpfh_ransac"]
+    assert (s["n_pairs"], s["n_success"], s["n_errors"], s["n_invalid"]) == (2, 1, 1, 1)
+
+
+def test_pair_sampling_options_are_checked(kitti_root: Path, tmp_path: Path, capsys) -> None:
+    from gr_graph.global_registration import main
+
+    poses = np.tile(np.eye(4), (30, 1, 1))
+    poses[:, 0, 3] = np.arange(30.0)
+    with pytest.raises(ValueError, match="min_frame must be integers >= 0"):
+        sample_pairs(poses, 10, 10.0, min_frame=-3)  # used to wrap around to the last frames
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "o"), "--min-frame", "-3"])
+    assert "--min-frame: -3 is below 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "o"), "--n-pairs", "0"])
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "results.json").write_text("{}")  # an earlier run's
+    code = main(["--out", str(out), "--data-root", str(kitti_root), "--n-pairs", "100", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "only 0 scan pairs" in err and "lower --n-pairs or --min-frame" in err
+    assert (out / "results.json").is_file()  # nothing was run: the earlier results stay

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from gr_graph.metrics import (
     KITTI_LENGTHS,
+    DegenerateAlignmentError,
     InsufficientTrajectoryError,
     ate,
     ate_by_axis,
@@ -322,7 +323,9 @@ def test_trajectory_metrics_short_and_mismatched(caplog: pytest.LogCaptureFixtur
         m = trajectory_metrics(est, ref, delta=300)
     assert m["rpe300_consecutive_mean"] is None and m["rpe300_all_pairs_rmse"] is None
     assert m["kitti_t_err_percent"] is None and m["kitti_n_segments"] == 0
-    assert m["ate_rmse"] is None  # a straight line leaves the alignment undetermined
+    # a straight line leaves the rotation about it undetermined, not the error: the shift aligns away;
+    # the scale is undetermined
+    assert m["ate_rmse"] == pytest.approx(0.0, abs=1e-9) and m["ate_sim3_rmse"] is None
     assert "needs at least 301 poses, got 60" in caplog.text
     assert "shorter than 100 m" in caplog.text
     assert "collinear" in caplog.text
@@ -358,3 +361,30 @@ def test_timed_trajectories_are_paired_only_where_their_times_agree() -> None:
     with pytest.raises(ValueError, match="timestamps differ"):
         trajectory_metrics(shifted, ref, delta=10)
     assert ate(shifted.poses, ref.poses).rmse == pytest.approx(0.0, abs=1e-9)  # arrays: the caller paired them
+
+
+@pytest.mark.parametrize("which", ["straight estimate", "stationary estimate", "straight reference"])
+def test_ate_of_a_straight_or_stationary_path_is_the_best_rigid_fit(which: str) -> None:
+    """evo refuses rank-deficient alignments; a failed run (no motion, or constant velocity) still has an
+    ATE: the minimum over rigid transforms, checked against a brute-force search."""
+    from scipy.optimize import minimize
+
+    K = 40
+    t = np.arange(K, dtype=float)
+    curved = np.tile(np.eye(4), (K, 1, 1))
+    curved[:, :3, 3] = np.c_[t, 0.02 * t**2, 0.3 * np.sin(t / 4)]
+    flat = np.tile(np.eye(4), (K, 1, 1))
+    flat[:, :3, 3] = np.c_[1.05 * t, 0 * t, 0 * t] if which != "stationary estimate" else 3.0
+    est, ref = (curved, flat) if which == "straight reference" else (flat, curved)
+
+    def rmse(x: np.ndarray) -> float:
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        d = est[:, :3, 3] @ R.T + x[3:] - ref[:, :3, 3]
+        return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+    best = min(minimize(rmse, np.r_[np.random.default_rng(i).normal(size=3), 0, 0, 0], method="Powell",
+                        options={"xtol": 1e-10, "ftol": 1e-13, "maxfev": 40000}).fun for i in range(6))
+    assert ate(est, ref).rmse == pytest.approx(best, rel=1e-6)
+    assert ate_by_axis(est, ref)["rmse"] == pytest.approx(best, rel=1e-6)
+    with pytest.raises(DegenerateAlignmentError, match="positions are collinear or coincident"):
+        ate(est, ref, correct_scale=True)

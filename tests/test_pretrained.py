@@ -265,3 +265,40 @@ def test_pretrain_summary_is_mean_and_spread_over_seeds() -> None:
     np.testing.assert_allclose(ate["round0"], [7 / 3, np.std([1.0, 2.0, 4.0])])
     np.testing.assert_allclose(ate["relative_change"], [np.mean([-0.5, 0.5, -0.5]), np.std([-0.5, 0.5, -0.5])])
     assert ate["better_in"] == 2
+
+
+def test_pretrain_trains_with_the_shipped_weights_likelihood(tmp_path: Path, monkeypatch) -> None:
+    """The shipped weights were trained with the Gaussian likelihood (the default until 2026-12-05):
+    ``training.pretrain`` rebuilds them with it, and the card says which."""
+    import training.pretrain as pretrain
+    import training.train as train_mod
+
+    seen = {}
+
+    def fake_train(mems, out, cfg, **kw):
+        seen["cfg"] = cfg
+        return out / "model.pt"
+
+    monkeypatch.setattr(train_mod, "train_from_memory", fake_train)
+    for w in pretrain.TRAIN_WINDOWS:
+        pretrain._memory_dir(tmp_path, w).mkdir(parents=True)
+    pretrain.train(tmp_path, epochs=1)
+    assert seen["cfg"].corr_likelihood == "gaussian" and TrainConfig().corr_likelihood == "student_t"
+
+
+def test_pretrain_install_ships_nothing_when_the_card_cannot_be_made(tmp_path: Path, monkeypatch) -> None:
+    import gr_graph.pretrained as pretrained
+    import training.pretrain as pretrain
+
+    weights, card_path = tmp_path / "ship" / "pretrained.pt", tmp_path / "ship" / "pretrained.json"
+    weights.parent.mkdir()
+    weights.write_bytes(b"the weights that ship now")
+    monkeypatch.setattr(pretrained, "PRETRAINED_WEIGHTS", weights)
+    monkeypatch.setattr(pretrained, "PRETRAINED_CARD", card_path)
+    root = tmp_path / "root"
+    (root / "training").mkdir(parents=True)
+    save_atomic({"format_version": CHECKPOINT_FORMAT, "model_state": CovarianceNet(NetConfig(**SMALL_NET)).state_dict(),
+                 "net_config": NetConfig(**SMALL_NET).to_dict()}, root / "training" / "model.pt")
+    with pytest.raises(FileNotFoundError, match="summary.json"):  # killed before the summary was written
+        pretrain.install(root)
+    assert weights.read_bytes() == b"the weights that ship now" and not card_path.exists()

@@ -115,6 +115,40 @@ def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, mo
     assert any("magnified x50" in t and "3σ" in t for t in captured["labels"])
 
 
+def test_trajectory_plot_leaves_out_poses_without_a_covariance_and_refuses_no_poses(tmp_path: Path,
+                                                                                      monkeypatch) -> None:
+    import matplotlib.patches
+    import matplotlib.pyplot as plt
+
+    from gr_graph import plots
+
+    captured = {}
+
+    def grab(fig, path, **kw):
+        ax = fig.axes[0]
+        captured["ellipses"] = [p for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
+        captured["labels"] = [t.get_text() for t in ax.get_legend().get_texts()]
+        Path(path).write_bytes(b"png")
+        return Path(path)
+
+    monkeypatch.setattr(plots, "atomic_savefig", grab)
+    K = 10
+    poses = np.tile(np.eye(4), (K, 1, 1))
+    poses[:, 0, 3] = np.arange(K)
+    cov = np.tile(np.diag([0.02**2, 0.01**2, 1e-4]), (K, 1, 1))
+    cov[::2] = np.nan  # marginals that failed for half the poses
+    plot_trajectory(tmp_path / "t.png", poses, position_cov=cov)
+    assert len(captured["ellipses"]) == 5 and all(np.isfinite(e.width) for e in captured["ellipses"])
+    label = next(t for t in captured["labels"] if "ellipses" in t)
+    assert "median major axis 0.12 m" in label and "5 poses without a finite covariance" in label
+    plot_trajectory(tmp_path / "none.png", poses, position_cov=np.full((K, 3, 3), np.nan))
+    assert not captured["ellipses"] and not any("ellipses" in t for t in captured["labels"])
+    open_before = plt.get_fignums()
+    with pytest.raises(ValueError, match="empty.png: no poses to plot"):
+        plot_trajectory(tmp_path / "empty.png", np.zeros((0, 4, 4)))
+    assert plt.get_fignums() == open_before
+
+
 def test_rounds_figure_from_metrics(tmp_path: Path) -> None:
     metrics = {"rounds": {"0": {"slam": {"rpe300_consecutive_mean": 1.2, "ate_rmse": 3.0},
                                 "odometry": {"rpe300_consecutive_mean": 2.0, "ate_rmse": 5.0}},
@@ -123,6 +157,8 @@ def test_rounds_figure_from_metrics(tmp_path: Path) -> None:
     png = plot_rounds(tmp_path / "rounds.png", metrics, title="t")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     plot_rounds(tmp_path / "empty.png", {"rounds": {"0": {}, "1": {}}})  # no ground truth: no crash
+    plot_rounds(tmp_path / "none.png", {"rounds": {"0": {"slam": None, "odometry": None}}})  # another tool's file
+    assert (tmp_path / "none.png").is_file()
     assert (tmp_path / "empty.png").is_file()
 
 

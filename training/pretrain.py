@@ -73,6 +73,9 @@ TRAIN_WINDOWS = (
 EVAL_WINDOWS = tuple(Window(f"s{s}_hdl64e_{c}", s, s, "hdl64e", c, "0:400") for s in (11, 12, 13) for c in (64, 16))
 EPOCHS = 2
 TRAIN_SEED = 0
+#: trainer options of the shipped weights where the trainer's defaults have changed since they were
+#: trained (2026-12-01, the Gaussian likelihood; the Student t became the default on 2026-12-05)
+SHIPPED_TRAINER: dict[str, Any] = {"corr_likelihood": "gaussian"}
 METRICS = ("rpe300_all_pairs_mean", "rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")
 
 
@@ -102,7 +105,8 @@ def memories(root: Path, jobs: int = 1, windows: tuple[Window, ...] = TRAIN_WIND
 
 
 def _train_on(root: Path, windows: tuple[Window, ...], out: Path, epochs: int, seed: int = TRAIN_SEED) -> Path:
-    """One network (the trainer's defaults) on the round-0 memories of ``windows``; ``out/model.pt``."""
+    """One network (the trainer's defaults but :data:`SHIPPED_TRAINER`) on the round-0 memories of
+    ``windows``; ``out/model.pt``."""
     from gr_graph.config import TrainingConfig
     from training.train import train_from_memory
 
@@ -110,7 +114,7 @@ def _train_on(root: Path, windows: tuple[Window, ...], out: Path, epochs: int, s
     missing = [str(m) for m in mems if not m.is_dir()]
     if missing:
         raise FileNotFoundError(f"run `python -m training.pretrain memories --root {root}` first: missing {missing}")
-    cfg = TrainingConfig(epochs=epochs, seed=seed).trainer_config("cpu", progress=True)
+    cfg = TrainingConfig(epochs=epochs, seed=seed, trainer=SHIPPED_TRAINER).trainer_config("cpu", progress=True)
     return train_from_memory(mems, out, cfg)
 
 
@@ -223,7 +227,8 @@ def card(root: Path) -> dict[str, Any]:
                           "memories": "round 0 (SLAM on raw scans) of each window: odometry and loop edges",
                           "edges": tsum["dataset"]},
         "epochs": tsum["epochs_done"], "training_seed": tsum["config"]["seed"],
-        "net": tsum["config"]["net"], "skip_counts": tsum["skip_counts"],
+        "net": tsum["config"]["net"], "corr_likelihood": tsum["config"].get("corr_likelihood", "gaussian"),
+        "skip_counts": tsum["skip_counts"],
         "training_runtime_s": tsum["runtime_s"]["total"], "provenance": tsum["provenance"],
         "one_model_for_all_channel_counts": read_json_or_none(root / "per_count_16.json"),
         "evaluation": None if ev is None else {
@@ -279,11 +284,11 @@ def install(root: Path) -> Path:
 
     model = root / "training" / "model.pt"
     load_model(model)  # refuse to ship a file that does not load
+    doc = card(root)  # before the weights are replaced: a card that cannot be made ships nothing
     PRETRAINED_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
     tmp = PRETRAINED_WEIGHTS.with_suffix(".tmp")
     shutil.copyfile(model, tmp)
     tmp.replace(PRETRAINED_WEIGHTS)
-    doc = card(root)
     atomic_write_json(PRETRAINED_CARD, doc)
     write_markdown(root, doc)
     return PRETRAINED_WEIGHTS

@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_train_config(args.config, overrides)
         path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)
-    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+    except (ValueError, RuntimeError, OSError) as exc:  # OSError: a full disk, a file where a folder goes
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(path)

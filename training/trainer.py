@@ -233,6 +233,8 @@ class Trainer:
         self.skip_counts: Counter[str] = Counter()
         self.epoch_skipped = 0  # pairs of the current epoch skipped so far (checked against max_skip_fraction)
         self.step_seconds: list[float] = []  # wall time of each step run by this process
+        self.threads_used: set[int] = set()  # torch thread counts of every process that trained these weights
+        self._resumed = False  # fit() continued a checkpoint
         self._dummy: tuple[torch.Tensor, dict[str, torch.Tensor]] | None = None
 
     # ------------------------------------------------------------------ losses of one pair
@@ -302,6 +304,7 @@ class Trainer:
             "skip_counts": dict(self.skip_counts),
             "epoch_skipped": epoch_skipped,
             "torch_rng": torch.get_rng_state(),
+            "threads_used": sorted(self.threads_used),
         }
 
     def save_checkpoint(self) -> Path:
@@ -362,6 +365,11 @@ class Trainer:
         # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
         self.epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
         torch.set_rng_state(st["torch_rng"].cpu())
+        before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
+        if before and before != {torch.get_num_threads()}:
+            log.warning("%s: resumed with %d torch thread(s), the steps before ran with %s: the weights may differ "
+                        "in the last bits from an uninterrupted run", path, torch.get_num_threads(), sorted(before))
+        self.threads_used |= before
         log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
         self._truncate_log()
         return True
@@ -425,11 +433,13 @@ class Trainer:
         cfg = self.config
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
+        self.threads_used = {torch.get_num_threads()}
         log.info("training with %d torch thread(s), deterministic algorithms", torch.get_num_threads())
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if len(self.dataset) == 0:
             raise TrainingError("the memory has no edges to train on")
-        if not (resume and self.try_resume()):
+        self._resumed = resume and self.try_resume()
+        if not self._resumed:
             # from scratch: no checkpoint, nor the log lines of a run killed before its first one
             if self.rank == 0:
                 (self.out_dir / CHECKPOINT_NAME).unlink(missing_ok=True)
@@ -511,6 +521,11 @@ class Trainer:
 
     def _finish(self) -> Path:
         path = self.out_dir / MODEL_NAME
+        summary_path = self.out_dir / SUMMARY_NAME
+        if self._resumed and not self.step_seconds and path.is_file() and summary_path.is_file():
+            # a finished training run again: its summary (runtime, provenance) stays the one that trained
+            log.info("%s: training already finished, model.pt and summary.json kept", self.out_dir)
+            return path
         if self.rank == 0:
             save_atomic(
                 {"format_version": CHECKPOINT_FORMAT, "model_state": self.model.state_dict(),
@@ -518,7 +533,7 @@ class Trainer:
                  "train_config": self.config.to_dict(), "epochs_done": self.epoch},
                 path,
             )
-            atomic_write_text(self.out_dir / SUMMARY_NAME, json.dumps(self.summary(path), indent=2))
+            atomic_write_text(summary_path, json.dumps(self.summary(path), indent=2))
         return path
 
     def summary(self, model_path: Path) -> dict[str, Any]:
@@ -526,7 +541,9 @@ class Trainer:
 
         ``runtime_s`` covers the steps run by this process (a resumed run: only the rest);
         ``provenance`` (:func:`gr_graph.provenance.provenance`) holds the commit, package
-        versions, seed, device and the torch thread count the weights were computed with.
+        versions, seed, device and the torch thread count of this process; ``threads_used``
+        every thread count the weights were computed with (more than one after a resume with
+        another count; empty for checkpoints written before it was kept).
         """
         steps = np.asarray(self.step_seconds, np.float64)
         return {
@@ -536,6 +553,7 @@ class Trainer:
             "config": self.config.to_dict(),
             "model": str(model_path),
             "world_size": self.world_size,
+            "threads_used": sorted(self.threads_used),
             "runtime_s": {"steps": len(steps), "total": float(steps.sum()),
                           "step_median": float(np.median(steps)) if len(steps) else None},
             "provenance": provenance(seeds={"training": self.config.seed}, device=str(self.device),

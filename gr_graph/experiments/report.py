@@ -20,7 +20,8 @@ from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
 from gr_graph.experiments.records import RecordSet, read_records, write_records
 from gr_graph.provenance import machine_line
 from gr_graph.experiments.run_cell import (METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS, cell_dir, cell_wall_s,
-                                          read_cell_result, with_noise_consistency, with_short_range_rpe)
+                                          read_cell_result, reused_from_source, with_noise_consistency,
+                                          with_short_range_rpe)
 
 __all__ = ["write_report", "published_name", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
@@ -120,9 +121,10 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
 
         kiss = (d.get("kiss_icp") or {}).get("wall_s")
         peak = d.get("peak_rss_mb")
-        reuse = c.params.get("reuse")  # ablations: work taken from the seed's default cell, timed there
-        round0 = "reused" if reuse else minutes(0, "total")
-        training = ["reused" if r == 1 and reuse == "round1_training" else minutes(r, "training") for r in learning]
+        # ablations: work taken from the seed's default cell, timed there (what the cell recorded it took)
+        reused = reused_from_source(d["reuse"] if "reuse" in d else {"what": c.params.get("reuse")})
+        round0 = "reused" if "round_0" in reused else minutes(0, "total")
+        training = ["reused" if r == 1 and "round_1/training" in reused else minutes(r, "training") for r in learning]
         rows.append(f"| {c.key} | {c.frames[1] - c.frames[0]} | {cell_wall_s(d) / 60:.1f} | "
                     f"{round0} | {', '.join(training)} | "
                     f"{', '.join(minutes(r, 'total') for r in learning)} | {'' if kiss is None else f'{kiss / 60:.1f}'} | "

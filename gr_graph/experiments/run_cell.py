@@ -3,6 +3,7 @@
 Layout of a cell's folder::
 
     definition.json   the cell's definition and fingerprint, written when the cell starts
+    reuse.json        ablation cells: what was taken from the source cell (kept for a resume)
     slam/             SLAM cells: the pipeline's --out (rounds resume on their own)
     kiss_icp.json     Table I cells: the KISS-ICP baseline on the same scans (resumed when present)
     pairs.json        Table II cells: the sampled scan pairs
@@ -12,7 +13,7 @@ Layout of a cell's folder::
 Resume: a cell whose ``cell.json`` holds the current fingerprint is skipped. A cell whose stored
 definition (``definition.json`` or ``cell.json``) has another fingerprint is deleted and
 recomputed from scratch (its memories may be pruned, so the pipeline's own round resume could
-not be trusted). An unfinished cell with the same definition continues where it stopped (the
+not be trusted), unless it may be another budget's (:func:`_start`: the cell stops instead). An unfinished cell with the same definition continues where it stopped (the
 pipeline skips its finished rounds, training resumes from its checkpoint).
 
 Pruning: once a SLAM cell is done and every cell reusing it is done, its ``round_*/memory``
@@ -61,6 +62,7 @@ SHORT_RANGE_DELTAS = (1, 10)
 SHORT_RANGE_KEYS = tuple(f"rpe{d}_all_pairs_mean" for d in SHORT_RANGE_DELTAS)
 CELL_JSON = "cell.json"
 DEFINITION_JSON = "definition.json"
+REUSE_JSON = "reuse.json"
 
 
 class CellDependencyError(RuntimeError):
@@ -96,24 +98,42 @@ def is_done(root: str | Path, cell: Cell) -> bool:
 
 
 def _start(root: Path, cell: Cell, budget: str | None = None) -> Path:
-    """Create the cell's folder; delete it first if it holds another definition of the cell, but never
-    a finished cell of another budget (:class:`CellConflictError`)."""
+    """Create the cell's folder; delete it first if it holds another definition of the cell made by the
+    same budget (:class:`CellConflictError` otherwise).
+
+    Keys repeat between budgets, so a folder holding another definition may be another budget's
+    cell in a shared root. A finished cell is deleted only when its ``cell.json`` names this very
+    budget (or neither names one: library calls without budgets); one of another budget, or whose
+    budget is not recorded (made before ``cell.json`` named it) while this run has one, is kept and
+    the cell stops. An unfinished cell is cleared unless its ``definition.json`` names another budget.
+    """
     d = cell_dir(root, cell)
     fp = cell.fingerprint()
-    stored = [read_json_or_none(d / n) for n in (DEFINITION_JSON, CELL_JSON)]
-    finished = stored[1]
-    other_budget = None if finished is None or budget is None else finished.get("budget")
-    if finished is not None and finished.get("fingerprint") != fp and other_budget not in (None, budget):
-        raise CellConflictError(  # keys repeat between budgets: two budgets sharing a root
-            f"{d} holds the finished cell {cell.table}/{cell.key} of budget {other_budget!r} (another definition "
-            f"than {budget!r}'s); its results are kept: use another --root for {budget!r}, or delete that "
-            "folder to recompute it")
-    if any(s is not None and s.get("fingerprint") != fp for s in stored):
+    started, finished = (read_json_or_none(d / n) for n in (DEFINITION_JSON, CELL_JSON))
+    hint = (f"its results are kept: use another --root for {budget!r}, or delete that folder to recompute "
+            "the cell")
+    if finished is not None and finished.get("fingerprint") != fp:
+        theirs = finished.get("budget")
+        if theirs != budget:
+            whose = (f"of budget {theirs!r}" if theirs is not None else
+                     "whose budget is not recorded (made before cell.json named it)")
+            raise CellConflictError(  # keys repeat between budgets: two budgets sharing a root
+                f"{d} holds the finished cell {cell.table}/{cell.key} {whose}, another definition than "
+                f"{budget!r}'s; {hint}")
+    elif started is not None and started.get("fingerprint") != fp:
+        theirs = started.get("budget")
+        if theirs is not None and budget is not None and theirs != budget:
+            raise CellConflictError(f"{d} holds the unfinished cell {cell.table}/{cell.key} of budget {theirs!r}, "
+                                    f"another definition than {budget!r}'s; {hint}")
+    if any(s is not None and s.get("fingerprint") != fp for s in (started, finished)):
         log.warning("%s/%s: the stored results were made with another definition; recomputing from scratch",
                     cell.table, cell.key)
         shutil.rmtree(d)
     d.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(d / DEFINITION_JSON, {"fingerprint": fp, "definition": cell.definition()})
+    started_doc: dict[str, Any] = {"fingerprint": fp, "definition": cell.definition()}
+    if budget is not None:
+        started_doc["budget"] = budget
+    atomic_write_json(d / DEFINITION_JSON, started_doc)
     return d
 
 
@@ -222,28 +242,48 @@ def _require_synthetic(cfg: Any, cell: Cell) -> None:
                            "the pipeline would read instead: unset or move it for the experiments")
 
 
+def _copy_tree_atomic(src: Path, dst: Path) -> None:
+    """Copy the folder ``src`` to ``dst`` whole or not at all: into a hidden sibling, then renamed (an
+    interrupted copy leaves only the sibling, replaced by the next copy)."""
+    tmp = dst.parent / f".copying-{dst.name}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(src, tmp)
+    shutil.rmtree(dst, ignore_errors=True)
+    tmp.rename(dst)
+
+
 def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
-    """Copy round 0 (and round 1's training) from the source cell when possible (module docstring)."""
+    """Copy round 0 (and round 1's training) from the source cell when possible (module docstring).
+
+    The verdict (``source``, ``what`` was taken, ``copied``) is kept in the cell's ``reuse.json``, so
+    a resumed call reports what the first one did: a cell that computed round 0 itself because its
+    source was not ready says so after a resume too."""
     what = cell.params.get("reuse")
     if what is None or cell.source is None:
         return None
     slam = d / "slam"
+    verdict_path = d / REUSE_JSON
     if (slam / "round_0" / "round.json").is_file():
+        verdict = read_json_or_none(verdict_path)
+        if verdict is not None:
+            return verdict
+        # a cell started before the verdict was kept: its round 0 taken as reused, as then
         return {"source": cell.source, "what": what, "note": "already in place"}
     src = Path(root) / cell.source / "slam"
     if read_json_or_none(Path(root) / cell.source / CELL_JSON) is None or not (src / "round_0" / "memory").is_dir():
         log.info("%s: source %s not finished (or pruned): computing round 0 itself", cell.key, cell.source)
-        return {"source": cell.source, "what": None, "note": "source not available: everything computed here"}
-    slam.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(slam / "round_0", ignore_errors=True)
-    shutil.copytree(src / "round_0", slam / "round_0")
-    copied = ["round_0"]
-    if what == "round1_training" and (src / "round_1" / "training" / "checkpoint.pt").is_file():
-        dst = slam / "round_1" / "training"
-        shutil.rmtree(dst, ignore_errors=True)
-        shutil.copytree(src / "round_1" / "training", dst)
-        copied.append("round_1/training")
-    return {"source": cell.source, "what": what, "copied": copied}
+        verdict = {"source": cell.source, "what": None, "copied": [],
+                   "note": "source not available: everything computed here"}
+    else:
+        _copy_tree_atomic(src / "round_0", slam / "round_0")
+        copied = ["round_0"]
+        if what == "round1_training" and (src / "round_1" / "training" / "checkpoint.pt").is_file():
+            _copy_tree_atomic(src / "round_1" / "training", slam / "round_1" / "training")
+            copied.append("round_1/training")
+        verdict = {"source": cell.source, "what": what, "copied": copied}
+    atomic_write_json(verdict_path, verdict)
+    return verdict
 
 
 def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
@@ -280,7 +320,9 @@ def _run_slam_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, An
 def reused_from_source(reuse: dict[str, Any] | None) -> set[str]:
     """What a cell takes from its source cell (:func:`_reuse`) and the source's time holds:
     ``"round_0"``, ``"round_1/training"``; empty when it computed them itself."""
-    what = (reuse or {}).get("what")
+    if reuse is not None and "copied" in reuse:  # what was actually copied (a pruned checkpoint is not)
+        return set(reuse["copied"])
+    what = (reuse or {}).get("what")  # results made before the verdict was kept whole
     return set() if what is None else {"round_0"} | ({"round_1/training"} if what == "round1_training" else set())
 
 
@@ -326,6 +368,16 @@ def _source_round(src_slam: Path, r: int) -> tuple[int, str | None]:
     return earlier[-1], f"round {r} was not run (converged or stopped after round {earlier[-1]}): its scans used"
 
 
+def _scans_mismatch(cell: Cell, cfg: Any) -> str | None:
+    """How the source run's configuration ``cfg`` (a :class:`gr_graph.config.SlamConfig`) reads other
+    scans than the registration ``cell`` is defined on (frames, channels, world seed), or None."""
+    frames = None if cfg.data.frames is None else tuple(int(f) for f in cfg.data.frames)
+    diffs = [f"{name} {have} (the cell: {want})" for name, have, want in (
+        ("frames", frames, tuple(cell.frames)), ("channels", cfg.data.channels, cell.channels),
+        ("seed", cfg.seed, cell.seed)) if have != want]
+    return ", ".join(diffs) or None
+
+
 def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
     from gr_graph.config import load_config
     from gr_graph.datasets.registry import open_configured_sequence
@@ -346,6 +398,11 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
                                   f"({source_doc.get('fingerprint')}, another budget or an older one): run "
                                   f"`python -m gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
     cfg = load_config(src / "slam" / "config.yaml", {"device": device})
+    why = _scans_mismatch(cell, cfg)
+    if why is not None:  # raw-scan cells have no source fingerprint: the scans themselves are checked
+        raise CellDependencyError(f"{cell.table}/{cell.key} renders the scans of {cell.source}, whose run in this root "
+                                  f"has {why}: another budget's or an older definition; run `python -m "
+                                  f"gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
     seq, desc = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
     gt = np.asarray(seq.gt_poses, np.float64)[: len(seq)]
     pairs = sample_pairs(gt, cell.params["n_pairs"], cell.params["max_distance"], seed=cell.seed)
@@ -365,6 +422,19 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
     res["settings"].update(sequence=desc, channels=cell.channels, round_used=r, note=note)
     write_results(d / "registration.json", res)
     return {"summary": res["summary"], "round_used": r, "note": note, "densify": stats, "source": desc}
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process and of its finished child processes (the synthetic world's render
+    process) [s]: ``time.process_time`` plus the children's user and system time where
+    ``getrusage`` exists."""
+    total = time.process_time()
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return total
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return total + children.ru_utime + children.ru_stime
 
 
 def peak_rss_mb() -> float | None:
@@ -406,7 +476,7 @@ def _run_locked(root: Path, cell: Cell, device: str, command: str, budget: str |
     """:func:`run_cell`'s work once the cell's lock is held."""
     d = _start(root, cell, budget)
     log.info("%s/%s: %s", cell.table, cell.key, cell.what)
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     if cell.kind == "slam":
         result = _run_slam_cell(root, d, cell, device)
     else:
@@ -414,7 +484,7 @@ def _run_locked(root: Path, cell: Cell, device: str, command: str, budget: str |
     doc = {"table": cell.table, "key": cell.key, "what": cell.what, "fingerprint": cell.fingerprint(),
            "definition": cell.definition(), "device": device, "command": command,
            "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+           "wall_s": time.perf_counter() - t0, "cpu_s": cpu_seconds() - c0,
            "est_minutes": cell.est_minutes, "peak_rss_mb": peak_rss_mb(), "git": git_state(),
            "machine": machine_line(), **result}
     if cell.source_fingerprint is not None:

@@ -118,6 +118,57 @@ def test_resume_after_kill_equals_uninterrupted_run(memory_dir, tmp_path):
         Trainer(mem, tmp_path / "b", _cfg(epochs=3, lr=1e-2)).fit(resume=True)
 
 
+def test_a_finished_training_run_again_keeps_the_summary_of_the_run_that_trained(memory_dir, tmp_path, caplog):
+    mem = load_memory(memory_dir)
+    cfg = _cfg(epochs=1, num_threads=1)
+    out = tmp_path / "t"
+    Trainer(mem, out, cfg).fit(resume=False)
+    first = json.loads((out / "summary.json").read_text())
+    assert first["runtime_s"]["steps"] == 5 and first["threads_used"] == [1]
+    model_bytes = (out / "model.pt").read_bytes()
+    try:  # the same finished run again, with another thread count: nothing to train, nothing rewritten
+        Trainer(mem, out, _cfg(epochs=1, num_threads=2)).fit(resume=True)
+    finally:
+        torch.set_num_threads(1)
+    again = json.loads((out / "summary.json").read_text())
+    assert again == first and (out / "model.pt").read_bytes() == model_bytes
+    # from scratch (no resume) the summary is rewritten with this run's steps
+    Trainer(mem, out, cfg).fit(resume=False)
+    assert json.loads((out / "summary.json").read_text())["runtime_s"]["steps"] == 5
+
+
+def test_a_resume_with_another_thread_count_says_so_and_records_both(memory_dir, tmp_path, caplog):
+    mem = load_memory(memory_dir)
+
+    class Kill(Exception):
+        pass
+
+    def killer(rec):
+        if rec["step"] == 2:
+            raise Kill()
+
+    out = tmp_path / "t"
+    with pytest.raises(Kill):
+        Trainer(mem, out, _cfg(epochs=1, num_threads=1)).fit(resume=False, callback=killer)
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["threads_used"] == [1]
+    try:
+        with caplog.at_level("WARNING", logger="training.trainer"):
+            Trainer(mem, out, _cfg(epochs=1, num_threads=2)).fit(resume=True)
+    finally:
+        torch.set_num_threads(1)
+    assert "resumed with 2 torch thread(s), the steps before ran with [1]" in caplog.text
+    assert json.loads((out / "summary.json").read_text())["threads_used"] == [1, 2]
+
+
+def test_train_cli_names_a_path_that_cannot_be_a_folder(memory_dir, tmp_path, capsys):
+    blocker = tmp_path / "afile"
+    blocker.write_text("not a folder")
+    code = train_main(["--memory", str(memory_dir), "--out", str(blocker / "sub"), "--epochs", "1", "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and "afile" in err
+
+
 @pytest.mark.slow
 def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     cfg = {"epochs": 1, "progress": False, "max_corr": 200, "net": SMALL_NET}
