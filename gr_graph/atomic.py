@@ -73,8 +73,11 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
     file may be empty, never half-replaced by another).
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
+    except OSError as exc:  # the temporary name means nothing to the user: name the file asked for
+        raise type(exc)(exc.errno, f"cannot write {target}: {exc.strerror}") from exc
     os.close(fd)
     tmp = Path(tmp_name)
     try:

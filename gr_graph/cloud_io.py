@@ -156,6 +156,10 @@ def read_ply_covariances(path: PathLike) -> np.ndarray:
     import open3d as o3d
 
     p = Path(path)
+    if not p.is_file():
+        raise DatasetError(f"{p}: point file not found")
+    if p.suffix.lower() != ".ply":
+        raise DatasetError(f"{p}: not a PLY file (covariances are stored as PLY properties)")
     cloud = o3d.t.io.read_point_cloud(str(p))
     missing = [k for k in COVARIANCE_PROPERTIES if k not in cloud.point]
     if missing:

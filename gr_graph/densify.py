@@ -77,8 +77,8 @@ __all__ = ["DensifiedSequence", "densified_sequence", "FALLBACK_REASONS", "Densi
            "densify_cloud", "covariance_problem", "covariances_valid", "COVARIANCE_FALLBACKS"]
 
 FALLBACK_REASONS = {
-    "nonfinite_covariance": "network output non-finite: raw frame used",
-    "non_pd_covariance": "network output not positive definite: raw frame used",
+    "nonfinite_covariance": "covariances (network or PCA) non-finite: raw frame used",
+    "non_pd_covariance": "covariances (network or PCA) not positive definite: raw frame used",
     "few_kept": "too few points passed the anisotropy filter: unfiltered preprocessed points used",
     "unusable_scan": "too few points after preprocessing: raw frame used",
 }
@@ -324,9 +324,9 @@ class DensifiedSequence:
     """Lazy view of ``parent`` whose frames are the densified scans S+_k (module docstring).
 
     Frames may be read from several threads at once (``concurrent_reads``; the SLAM reader's
-    ``data.read_threads``): the parent is read under a lock, each frame's split and sampling
-    are seeded by its index alone, and the counters are locked, so a frame is the same
-    whatever thread reads it and in whatever order.
+    ``data.read_threads``): the parent is read under a lock, the network's input split is seeded
+    by ``training.seed`` and each frame's sampling by ``(training.seed, frame index)``, and the
+    counters are locked, so a frame is the same whatever thread reads it and in whatever order.
     """
 
     concurrent_reads = True

@@ -7,7 +7,7 @@ scans of the learning rounds (``data.read_threads``; :func:`prefetch_frames`), a
    is moved to the sensor frame at mid-sweep, assuming the sensor keeps the velocity of the
    last frame-to-frame motion (the odometry's constant-velocity increment, as KISS-ICP
    does); per-point times come from the frame (``LidarFrame.time``) or else the azimuth
-   (densified frames of the learning rounds carry no times: azimuth);
+   (densified frames of the learning rounds carry their source points' times);
 1. preprocesses it (:func:`gr_graph.preprocess.preprocess_scan`); only the downsampled
    scan is kept;
 2. registers it onto the past (:class:`gr_graph.odometry.VgicpOdometry`, its constant-velocity
@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict, deque
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field, replace
@@ -58,6 +58,7 @@ from gr_graph.noise_calibration import (
     LoopVarianceFactor,
     loop_axis_variance_factors,
     loop_variance_factor,
+    outlying_loop,
     variance_factor,
 )
 from gr_graph.pose_graph import GraphResult, PoseGraph
@@ -576,12 +577,36 @@ class _FrameLoop:
         scale does not move that optimum, so one estimate is exact for it. The robust graph
         with the scaled information is then solved from there. The scale is recorded in
         :attr:`LearnedEdgeNoise.calibration`; without loops there is no redundancy and nothing
-        changes (scale 1, logged).
+        changes (scale 1, logged). Loops failing the deletion test of
+        :func:`gr_graph.noise_calibration.outlying_loop` are left out of the estimate, worst
+        first, the Gaussian graph solved again without each, at most a tenth of the loops (one
+        with fewer than 20; recorded under ``loops_left_out``).
         """
         assert self.edge_noise is not None
-        gaussian = self._graph_of(poses, self.cfg.graph.model_copy(update={"loop_kernel": "none"}))
-        vf = variance_factor(gaussian.optimize(marginals=False).poses, self.edges)
-        self.edge_noise.calibration = vf.summary()
+        gaussian_cfg = self.cfg.graph.model_copy(update={"loop_kernel": "none"})
+        gaussian = self._graph_of(poses, gaussian_cfg)
+        optimum = gaussian.optimize(marginals=False).poses
+        left_out: list[int] = []
+        tests: list[dict[str, Any]] = []
+        alpha = self.cfg.training.learned_noise_outlier_alpha
+        n_loops = sum(e.kind == "loop" and e.ok for e in self.edges)
+        # a few wrong loops, not a systematic disagreement of every loop with the odometry (e.g. a
+        # miscalibrated sensor): that is the variance factor's to absorb, so at most a tenth are left out
+        most = max(1, n_loops // 10)
+        while len(left_out) < most and (found := self._outlying_loop(gaussian, left_out, alpha)) is not None:
+            e = self.edges[found[0]]
+            left_out.append(found[0])
+            tests.append({"loop": [int(e.source), int(e.target)], "f_statistic": found[1], "threshold": found[2]})
+            log.warning("edge noise calibration: loop (%d, %d) left out of the variance factor: F = %.3g against the "
+                        "other edges (threshold %.3g at alpha %g); it stays in the robust graph",
+                        e.source, e.target, found[1], found[2], alpha)
+            gaussian = self._graph_of(optimum, gaussian_cfg, skip=left_out)
+            optimum = gaussian.optimize(marginals=False).poses
+        if len(left_out) == most and n_loops > 1 and self._outlying_loop(gaussian, left_out, alpha) is not None:
+            log.warning("edge noise calibration: more loops fail the test than the %d left out (a tenth of %d); the "
+                        "others count", most, n_loops)
+        vf = variance_factor(optimum, [e for i, e in enumerate(self.edges) if i not in left_out])
+        self.edge_noise.calibration = {**vf.summary(), "loops_left_out": tests, "loops_left_out_max": most}
         if vf.sigma0_sq is None:
             log.info("edge noise calibration: no redundancy (no loops), information left as it is")
         else:
@@ -594,6 +619,19 @@ class _FrameLoop:
         self.edge_noise.calibration["n_edges_not_scaled"] = kept
         self.graph = self._graph_of(gaussian.current_poses(), self.cfg.graph)
         return self.graph.optimize(marginals=False)
+
+    def _outlying_loop(self, gaussian: PoseGraph, left_out: list[int], alpha: float) -> tuple[int, float, float] | None:
+        """:func:`~gr_graph.noise_calibration.outlying_loop` on the Gaussian graph of every edge but
+        ``left_out`` (at its optimum); the loop's index into :attr:`edges`. None when the test
+        cannot be made (e.g. a singular normal matrix; logged: nothing more is left out), so that a
+        solved round is never lost to it."""
+        kept = [i for i in range(len(self.edges)) if i not in left_out]
+        try:
+            found = outlying_loop(gaussian.graph, gaussian.values, [self.edges[i] for i in kept], alpha)
+        except Exception as exc:  # e.g. splu on a pose no factor constrains, or no memory: the round is solved
+            log.warning("edge noise calibration: no loop tested (%s: %s); every loop counts", type(exc).__name__, exc)
+            return None
+        return None if found is None else (kept[found[0]], found[1], found[2])
 
     def _scale_loops(self, factors: LoopVarianceFactor | LoopAxisVarianceFactors) -> None:
         """Apply ``factors`` to every loop edge's information."""
@@ -656,15 +694,17 @@ class _FrameLoop:
         return self.graph.optimize(marginals=False)
 
     def _graph_of(self, poses: np.ndarray, graph_cfg: GraphConfig,
-                  informations: list[np.ndarray] | None = None) -> PoseGraph:
+                  informations: list[np.ndarray] | None = None, skip: Collection[int] = ()) -> PoseGraph:
         """A new pose graph with ``poses`` as estimate and every edge of the run (with
-        ``informations`` in edge order instead of the edges' own, if given)."""
+        ``informations`` in edge order instead of the edges' own, if given), but the edges at
+        the positions ``skip``."""
         graph = PoseGraph(graph_cfg)
         for T in poses:
             graph.add_pose(T)
         infos = informations if informations is not None else [e.information for e in self.edges]
-        for e, H in zip(self.edges, infos, strict=True):
-            graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
+        for i, (e, H) in enumerate(zip(self.edges, infos, strict=True)):
+            if i not in skip:
+                graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
         return graph
 
     def finish(self) -> SlamResult:

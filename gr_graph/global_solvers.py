@@ -5,7 +5,8 @@ Both start from FPFH features of voxel-downsampled scans:
 - ``"kiss_matcher"``: KISS-Matcher (faster-PFH + ROBIN max-clique pruning + GNC, a
   TEASER-class certifiable-style solver). Optional dependency ``kiss-matcher``; when it is
   missing the solver is skipped with a log line. Run in a worker process bound to one CPU, so
-  that its answers do not depend on thread scheduling (:func:`register_kiss_matcher`).
+  that its answers do not depend on thread scheduling (:func:`register_kiss_matcher`,
+  :mod:`gr_graph.kiss_matcher_worker`).
 - ``"fpfh_ransac"``: open3d's FPFH + RANSAC
   (``registration_ransac_based_on_feature_matching``), seeded and deterministic.
 
@@ -16,11 +17,15 @@ Scans are ``(N, 3)`` points in their own sensor frame; a solver returns
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -138,9 +143,11 @@ def register_kiss_matcher(
 
     KISS-Matcher runs its loops on TBB threads, and its answer depends on how they are
     scheduled: on 2 cores the same pair gave another transform and inlier count on every call.
-    It therefore runs in a worker process bound to one CPU (TBB sizes its thread pool from that),
-    where the same pair gives the same answer in every call and process. Where a process cannot be
-    bound (no ``os.sched_setaffinity``: macOS, Windows) it runs here, not deterministic (warned once).
+    It therefore runs in a process bound to one CPU (:mod:`gr_graph.kiss_matcher_worker`, started
+    on first use), where the same pair gives the same answer in every call and process. Where a
+    process cannot be bound (no ``os.sched_setaffinity``: macOS, Windows) it runs here, not
+    deterministic (warned once). A worker that dies is started again for the pair once; a second
+    death raises :class:`SolverCrashError`.
 
     Returns
     -------
@@ -152,24 +159,33 @@ def register_kiss_matcher(
     ------
     ImportError
         ``kiss_matcher`` is not installed.
+    RuntimeError
+        KISS-Matcher raised on the pair (in the worker).
+    SolverCrashError
+        The worker process died twice on the pair.
     """
     if not kiss_matcher_available():  # pragma: no cover - depends on the environment
         raise ImportError("KISS-Matcher is not installed: pip install kiss-matcher")
     src = _check_cloud(source, "source")
     tgt = _check_cloud(target, "target")
     t0 = time.perf_counter()
-    worker = _one_cpu_worker()
-    if worker is None:
-        valid, T, n_in = _kiss_matcher_estimate(src, tgt, float(voxel))
+    if not hasattr(os, "sched_setaffinity"):
+        global _UNBOUND_WARNED
+        if not _UNBOUND_WARNED:
+            logger.warning("KISS-Matcher: this system cannot bind a process to one CPU; its results vary from "
+                           "run to run (TBB thread scheduling)")
+            _UNBOUND_WARNED = True
+        valid, T, n_in = kiss_matcher_estimate(src, tgt, float(voxel))
     else:
-        valid, T, n_in = worker.submit(_kiss_matcher_estimate, src, tgt, float(voxel)).result()
+        valid, T, n_in = _WORKER.solve(src, tgt, float(voxel))
     if not valid:
         logger.debug("KISS-Matcher returned no valid solution")
     return RegistrationOutcome("kiss_matcher", T, n_in, time.perf_counter() - t0, valid=valid)
 
 
-def _kiss_matcher_estimate(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[bool, np.ndarray, int]:
-    """One KISS-Matcher solve: (valid, T_target_source, final inliers); identity and 0 when not valid."""
+def kiss_matcher_estimate(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[bool, np.ndarray, int]:
+    """One KISS-Matcher solve in this process: (valid, T_target_source, final inliers); identity and 0
+    when not valid. Not deterministic on several CPUs: :func:`register_kiss_matcher` runs it bound."""
     import kiss_matcher
 
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel))
@@ -182,33 +198,81 @@ def _kiss_matcher_estimate(src: np.ndarray, tgt: np.ndarray, voxel: float) -> tu
     return True, T, int(matcher.get_num_final_inliers())
 
 
-_WORKER: Any = None
-_WORKER_LOCK = threading.Lock()
+class SolverCrashError(Exception):
+    """A solver's worker process died twice on one pair (e.g. a crash in the native library, or the
+    out-of-memory killer): not one failed pair, so the evaluation stops."""
 
 
-def _bind_to_one_cpu() -> None:
-    """Worker initialiser: this process on its lowest allowed CPU, before KISS-Matcher starts TBB."""
-    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+class _BoundWorker:
+    """The :mod:`gr_graph.kiss_matcher_worker` process (one, started on first use, ended at exit)."""
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._lock = threading.Lock()
+        self.cpu_seconds = 0.0  # CPU time of the solves in the worker processes so far
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        import gr_graph
+
+        env = dict(os.environ)  # the worker imports this very gr_graph, installed or not
+        root = str(Path(gr_graph.__file__).resolve().parents[1])
+        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+        return subprocess.Popen([sys.executable, "-m", "gr_graph.kiss_matcher_worker"], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, env=env)
+
+    def solve(self, src: np.ndarray, tgt: np.ndarray, voxel: float) -> tuple[bool, np.ndarray, int]:
+        from gr_graph.kiss_matcher_worker import read_message, write_message
+
+        with self._lock:
+            for attempt in (1, 2):
+                if self._proc is None:
+                    self._proc = self._start()
+                assert self._proc.stdin is not None and self._proc.stdout is not None
+                try:
+                    write_message(self._proc.stdin, (src, tgt, voxel))
+                    status, answer, cpu_s = read_message(self._proc.stdout)
+                except (EOFError, OSError) as exc:  # BrokenPipeError is an OSError
+                    try:
+                        code = self._proc.wait(timeout=10)
+                    except subprocess.TimeoutExpired:  # alive but not answering: ended
+                        code = None
+                    self.close_locked()
+                    if attempt == 2:
+                        raise SolverCrashError(f"KISS-Matcher's worker process died twice on one pair (exit code "
+                                               f"{code}; {type(exc).__name__})") from exc
+                    logger.warning("KISS-Matcher's worker process died (exit code %s): started again", code)
+                    continue
+                self.cpu_seconds += float(cpu_s)
+                if status != "ok":
+                    raise RuntimeError(f"KISS-Matcher: {answer}")
+                return answer
+        raise AssertionError("unreachable")
+
+    def close_locked(self) -> None:
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            for stream in (proc.stdin, proc.stdout):
+                if stream is not None:
+                    stream.close()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    def close(self) -> None:
+        with self._lock:
+            self.close_locked()
 
 
-def _one_cpu_worker() -> Any:
-    """The process pool of one worker bound to one CPU (started on first use, 'spawn': no state of
-    this process, in particular no TBB pool, is inherited), or None where processes cannot be bound."""
-    global _WORKER
-    if not hasattr(os, "sched_setaffinity"):
-        if _WORKER is None:
-            logger.warning("KISS-Matcher: this system cannot bind a process to one CPU; its results vary from "
-                           "run to run (TBB thread scheduling)")
-            _WORKER = False
-        return None
-    with _WORKER_LOCK:
-        if not _WORKER:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
+_WORKER = _BoundWorker()
+_UNBOUND_WARNED = False
+atexit.register(_WORKER.close)
 
-            _WORKER = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                          initializer=_bind_to_one_cpu)
-        return _WORKER
+
+def worker_cpu_seconds() -> float:
+    """CPU time spent in the KISS-Matcher worker processes of this process so far [s] (their solves)."""
+    return _WORKER.cpu_seconds
 
 
 def available_solvers() -> tuple[str, ...]:

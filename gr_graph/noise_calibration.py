@@ -25,6 +25,13 @@ dominate the sum. They are left out of the sum and of the redundancy, which beco
 Their information is scaled with the rest, so that it stays as weak relative to the others
 as it was (and the least-squares optimum does not move).
 
+A wrong loop that passed verification would inflate ``sigma0^2`` (its residual at full weight in
+the Gaussian graph), weaken every edge and, through the weakened whitening, slip past the loops'
+robust kernel. Loops failing a deletion F test (what each adds to the chi-square against the
+variance factor of the rest: :func:`outlying_loop`, ``training.learned_noise_outlier_alpha``) are
+therefore left out of the estimate one at a time, worst first, the Gaussian graph solved again
+without each; they stay in the robust graph, where the kernel weighs them.
+
 Loop edges alone (:func:`loop_variance_factor`, ``graph.loop_variance: estimated``): a second
 variance component, for the loops only, with the odometry edges' information held fixed
 (Förstner's variance component estimation with one group estimated)::
@@ -138,6 +145,85 @@ def variance_factor(poses: np.ndarray, edges: Sequence[RegistrationEdge]) -> Var
         return VarianceFactor(None, 1.0, max(redundancy, 0), chi2, n, len(edges) - len(ok))
     s2 = total / redundancy
     return VarianceFactor(s2, 1.0 / s2, redundancy, chi2, n, len(edges) - len(ok))
+
+
+#: memory for the dense right-hand sides of one solve in :func:`outlying_loop` [bytes]
+SOLVE_CHUNK_BYTES = 2e8
+
+
+def outlying_loop(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, edges: Sequence[RegistrationEdge],
+                  alpha: float) -> tuple[int, float, float] | None:
+    """The loop edge least consistent with the rest of the graph, if it fails a deletion F test.
+
+    A loop's own residual in the adjusted graph says little: the odometry edges between its two
+    frames absorb most of a wrong loop's error. The test statistic is instead what the loop adds
+    to the graph's chi-square, ``T_i = w_i^T R_i^+ w_i`` (``w_i`` the loop's whitened residual,
+    ``R_i = I - J_i N^-1 J_i^T`` its block of the redundancy matrix: exact for the linearised
+    graph; ``rank R_i`` is the loop's redundancy), set against the variance factor of the rest,
+    ``s2 = (sum chi2 - T_i) / (redundancy - rank R_i)``. Under the model (every edge's information
+    right up to one common factor) ``(T_i / rank R_i) / s2`` is F(rank R_i, redundancy - rank R_i)
+    distributed. A loop failing it at level ``alpha`` (a wrong loop that passed verification)
+    would inflate :func:`variance_factor`, weaken every edge and, through the weakened whitening,
+    slip past the robust kernel of the loops.
+
+    Parameters
+    ----------
+    graph, values : gtsam graph and its optimum
+        The Gaussian pose graph (loops without a robust kernel) of ``edges``: a prior first, then
+        one factor per edge in order.
+    edges : sequence of RegistrationEdge
+        The graph's edges (flagged ones are left out of the sum and the redundancy, as in
+        :func:`variance_factor`).
+    alpha : float
+        False-alarm probability of the test per loop; 0: never a loop.
+
+    Returns
+    -------
+    tuple or None
+        ``(index into edges, F statistic, threshold)`` of the loop with the smallest p-value when it
+        is below ``alpha``; None when no loop fails, without loops, or with no redundancy left
+        without it. RuntimeError (from the factorisation) for a singular normal matrix.
+    """
+    loops = [i for i, e in enumerate(edges) if e.ok and e.kind == "loop"]
+    if alpha <= 0.0 or not loops:
+        return None
+    from scipy.stats import f as f_dist
+
+    K = int(values.size())
+    ok = [e for e in edges if e.ok]
+    redundancy = 6 * (len(ok) - K + _components(K, ok))
+    total = sum(2.0 * graph.at(1 + i).error(values) for i, e in enumerate(edges) if e.ok)
+    J, lu = _whitened_jacobian(graph, values)
+    # the 6x6 blocks J_i N^-1 J_i^T, a few loops at a time: the dense right-hand sides of the solve are
+    # unknowns x 6 loops, ~90 MB for 69 loops over 4,541 poses; at most ~200 MB a chunk
+    chunk = max(1, int(SOLVE_CHUNK_BYTES // (8 * 6 * J.shape[1])))
+    blocks: list[np.ndarray] = []
+    for c in range(0, len(loops), chunk):
+        Jc = J[_factor_rows([1 + i for i in loops[c:c + chunk]])].toarray()
+        G = Jc @ lu.solve(np.ascontiguousarray(Jc.T))
+        blocks += [G[6 * k:6 * k + 6, 6 * k:6 * k + 6] for k in range(len(loops[c:c + chunk]))]
+    best: tuple[float, int, float, float] | None = None
+    for i, Gi in zip(loops, blocks):
+        R = np.eye(6) - 0.5 * (Gi + Gi.T)
+        w = np.asarray(graph.at(1 + i).whitenedError(values), np.float64)
+        vals, vecs = np.linalg.eigh(R)
+        keep = vals > 1e-6
+        rank = int(keep.sum())
+        rest = redundancy - rank
+        if rank == 0 or rest <= 0:
+            continue
+        proj = vecs[:, keep].T @ w
+        T = float(np.sum(proj**2 / vals[keep]))
+        s2 = (total - T) / rest
+        if not (np.isfinite(T) and s2 > 0.0):
+            continue
+        stat = (T / rank) / s2
+        p_value = float(f_dist.sf(stat, rank, rest))
+        if best is None or p_value < best[0]:
+            best = (p_value, i, stat, float(f_dist.isf(alpha, rank, rest)))
+    if best is None or not best[0] < alpha:
+        return None
+    return best[1], best[2], best[3]
 
 
 def _components(n_nodes: int, edges: Sequence[RegistrationEdge]) -> int:

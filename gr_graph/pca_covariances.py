@@ -30,7 +30,8 @@ def pca_covariances(points: np.ndarray, k: int, eps: float = 0.0) -> np.ndarray:
     k : int
         Neighbours per point, the point itself included (at most ``N`` are used).
     eps : float
-        Added to the diagonal [m^2].
+        Added to the diagonal [m^2]; 0: 1e-9 x the neighbourhood's trace instead (1e-12 m^2 when every
+        neighbour is at one place), so that planar or straight neighbourhoods stay positive definite.
 
     Returns
     -------
@@ -51,7 +52,14 @@ def pca_covariances(points: np.ndarray, k: int, eps: float = 0.0) -> np.ndarray:
     nb = P[idx]  # (N, k, 3)
     d = nb - nb.mean(axis=1, keepdims=True)
     C = np.einsum("nki,nkj->nij", d, d) / kk
-    C += float(eps) * np.eye(3)
+    if eps > 0.0:
+        C += float(eps) * np.eye(3)
+        return C
+    # eps 0 (valid with the network's geometric head): a planar or straight neighbourhood (noise-free
+    # data) would be singular; a floor relative to its size keeps it positive definite
+    floor = 1e-9 * np.trace(C, axis1=1, axis2=2)
+    floor[floor <= 0.0] = 1e-12  # every neighbour at one place
+    C += floor[:, None, None] * np.eye(3)
     return C
 
 

@@ -105,6 +105,7 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                               ("odometry", "map_keyframe_rotation_deg"): 0.0,
                                               ("loops", "min_path_length"): 0.0, ("loops", "sc_height_offset"): 2.0,
                                               ("training", "prediction_passes"): "split",
+                                              ("training", "learned_noise_outlier_alpha"): 0.0,
                                               ("sensor", "rotation"): "clockwise",
                                               ("sensor", "sweep_start_azimuth_deg"): 180.0,
                                               **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
@@ -123,7 +124,8 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
     options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
-    ``sensor.rotation`` and ``sweep_start_azimuth_deg``, ``training.prediction_passes``; the trainer's
+    ``sensor.rotation`` and ``sweep_start_azimuth_deg``, ``training.prediction_passes`` and
+    ``learned_noise_outlier_alpha``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as their former

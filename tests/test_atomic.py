@@ -55,3 +55,10 @@ def test_read_json_or_none_takes_a_broken_file_as_missing(tmp_path: Path) -> Non
     (tmp_path / "binary.json").write_bytes(b"\x89PNG\r\n\xff\xfe")
     assert read_json_or_none(tmp_path / "cut.json") is None and read_json_or_none(tmp_path / "binary.json") is None
     assert read_json_or_none(tmp_path / "missing.json") is None
+
+
+def test_a_file_that_cannot_be_written_is_named_not_its_temporary(tmp_path: Path) -> None:
+    (tmp_path / "a_file").write_text("")
+    target = tmp_path / "a_file" / "out.json"  # a folder that is a file
+    with pytest.raises(OSError, match=f"cannot write {target}"):
+        atomic_write_json(target, {"a": 1})

@@ -212,7 +212,7 @@ def test_ring_indexer_never_refuses_and_counts(frames: list[LidarFrame]) -> None
     # nearest-reference-ring fallback: most points of the true ring land on it or a neighbour
     truth = f.ring[np.random.default_rng(0).permutation(len(f))]
     assert np.mean(np.abs(ring.astype(int) - truth) <= 1) > 0.8
-    assert indexer.counts == {"storage_order": 1, "reference": 1, "elevation": 1}
+    assert indexer.counts == {"storage_order": 1, "reference": 1, "line_rank": 0, "elevation": 1}
 
 
 def test_partial_last_frame_does_not_stop_a_16_channel_run(kitti_root: Path, tmp_path: Path) -> None:
@@ -232,8 +232,94 @@ def test_partial_last_frame_does_not_stop_a_16_channel_run(kitti_root: Path, tmp
     rings = [seq[i].ring for i in range(len(seq))]
     assert all(r is not None for r in rings)
     np.testing.assert_array_equal(rings[5], full.ring[full.ring < 39])
-    assert seq.ring_recovery_counts == {"storage_order": 5, "reference": 1, "elevation": 0}
+    assert seq.ring_recovery_counts == {"storage_order": 5, "reference": 1, "line_rank": 0, "elevation": 0}
     view, _ = open_sequence("00", data_root=str(root), channels=16)
     sub = [view[i] for i in range(len(view))]
     assert all(s.n_rings == 16 for s in sub)
     assert set(np.unique(sub[-1].ring)) == set(range(10))  # rings 0, 4, ..., 36 of the 39 lines
+
+
+def test_an_empty_scan_does_not_stop_a_16_channel_run(kitti_root: Path, tmp_path: Path) -> None:
+    """A 0-byte .bin in a KITTI sequence: an empty frame with (no) rings, as without --channels."""
+    import shutil
+
+    from gr_graph.datasets.registry import open_sequence
+
+    root = tmp_path / "kitti"
+    shutil.copytree(kitti_root, root)
+    sorted((root / "sequences" / "00" / "velodyne").glob("*.bin"))[2].write_bytes(b"")
+    view, _ = open_sequence("00", data_root=str(root), channels=16)
+    frames = [view[i] for i in range(len(view))]
+    assert len(frames[2].points) == 0 and frames[2].ring is not None and len(frames[2].ring) == 0
+    assert all(len(f.points) > 1000 and set(np.unique(f.ring)) == set(range(16)) for i, f in enumerate(frames) if i != 2)
+
+
+class _Frames:
+    """A few in-memory frames of ``n_rings`` rings (None: no ring field)."""
+
+    name = "recording.bag"
+
+    def __init__(self, n_rings: int, with_ring: bool = True) -> None:
+        rng = np.random.default_rng(0)
+        self.frames = [LidarFrame(index=i, timestamp=0.1 * i, points=rng.normal(size=(400, 3)) * 10,
+                                  intensity=np.zeros(400, np.float32),
+                                  ring=rng.integers(0, n_rings, 400).astype(np.int16) if with_ring else None,
+                                  n_rings=n_rings) for i in range(2)]
+        self.timestamps = np.array([0.0, 0.1])
+        self.gt_poses = None
+        self.T_cam_velo = np.eye(4)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> LidarFrame:
+        return self.frames[i]
+
+
+def test_channels_of_data_without_rings_or_of_another_ring_count_are_refused_naming_the_source() -> None:
+    from gr_graph.datasets.registry import _view
+    from gr_graph.sensors import SensorConfig
+
+    sensor = SensorConfig()  # nothing said: the default 64-beam model
+    view, _ = _view(_Frames(64, with_ring=False), "src", None, sensor, 16)
+    with pytest.raises(DatasetError, match="recording.bag, frame 0: no ring indices, cannot keep 16 of 64 channels: "
+                                           "the data has no per-point ring field"):
+        view[0]
+    view, _ = _view(_Frames(128), "src", None, sensor, 32)  # used to keep every 4th of 128 rings silently
+    with pytest.raises(DatasetError, match="recording.bag, frame 0: 128 rings, but --channels keeps one ring in 2 "
+                                           "of a 64-beam sensor"):
+        view[0]
+    view, _ = _view(_Frames(64), "src", None, sensor, 16)
+    assert view[0].n_rings == 16 and set(np.unique(view[0].ring)) <= set(range(16))
+    view, _ = _view(_Frames(16), "src", None, sensor, 16)  # a source that made only the kept rings
+    assert view[1] is not None and view[1].n_rings == 16
+
+
+def test_lines_stored_in_laser_id_order_are_numbered_by_elevation() -> None:
+    """Every line of the sweep present, but stored in a permuted (laser id) order: no frame is in storage
+    order, so no reference can be probed; the lines are numbered by their median elevation, exactly."""
+    from gr_graph.sensors import sensor_model
+
+    rng = np.random.default_rng(1)
+    elevation = np.array(sensor_model("hdl64e").elevations_deg)  # ring 0 highest
+    assert np.all(np.diff(elevation) < 0)
+    ring_of_line = rng.permutation(64)
+
+    def sweep() -> tuple[np.ndarray, np.ndarray]:
+        rows, truth = [], []
+        for line in range(64):
+            r = ring_of_line[line]
+            n = 1500 if r >= 8 else 300  # the upper block returns less
+            az = np.linspace(0, 2 * np.pi, n, endpoint=False) + 1e-4  # each line a turn from straight ahead
+            e = np.radians(elevation[r] + rng.normal(0, 0.1, n))  # the lasers sit off the origin
+            d = 8 + 20 * rng.random(n)
+            rows.append(np.c_[d * np.cos(e) * np.cos(az), d * np.cos(e) * np.sin(az), d * np.sin(e)])
+            truth.append(np.full(n, r))
+        return np.concatenate(rows), np.concatenate(truth)
+
+    frames = [sweep() for _ in range(4)]
+    indexer = RingIndexer(64, reference_source=lambda k: frames[k][0] if k < len(frames) else None)
+    ring, method, problem = indexer(frames[0][0])
+    assert method == "line_rank" and "not ordered by elevation" in problem
+    np.testing.assert_array_equal(ring, frames[0][1])
+    assert indexer.counts == {"storage_order": 0, "reference": 0, "line_rank": 1, "elevation": 0}

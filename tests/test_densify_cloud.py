@@ -265,6 +265,21 @@ def test_gr_densify_errors_name_the_file(model_path: Path, pcd_file: Path, tmp_p
         assert err.startswith("error: ") and name in err, err
     assert not list(tmp_path.glob("o.*"))  # nothing written
 
+    # bad option values are named by their option, before anything is read (the input does not exist)
+    for option, value, message in (("--tau-ani", "1.0", "argument --tau-ani: 1.0 is not in [0, 1)"),
+                                   ("--samples", "0", "argument --samples: 0 is below 1")):
+        with pytest.raises(SystemExit):
+            densify_main([str(tmp_path / "missing.pcd"), str(tmp_path / "o.ply"), option, value])
+        assert message in capsys.readouterr().err
+
+
+def test_read_ply_covariances_names_a_missing_or_foreign_file(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="missing.ply: point file not found"):
+        read_ply_covariances(tmp_path / "missing.ply")
+    write_cloud(tmp_path / "c.pcd", np.random.default_rng(0).normal(size=(20, 3)))
+    with pytest.raises(DatasetError, match="c.pcd: not a PLY file"):
+        read_ply_covariances(tmp_path / "c.pcd")
+
 
 def test_gr_densify_writes_covariances_under_an_upper_case_suffix(model_path: Path, pcd_file: Path,
                                                                    tmp_path: Path) -> None:

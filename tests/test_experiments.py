@@ -212,6 +212,16 @@ def test_bad_cell_index_is_an_error(capsys, tmp_path):
         main(["table1", "--root", str(tmp_path), "--cell", "99"])
 
 
+@pytest.mark.parametrize("option", ["--list", "--report", "--publish", "--publish-records"])
+def test_one_cell_with_a_whole_table_option_is_refused(capsys, tmp_path, option):
+    """They used to be ignored silently (--cell --publish published nothing; --list listed every cell)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["table1", "--root", str(tmp_path), "--cell", "0", option])
+    assert exc.value.code == 2
+    assert f"--cell runs one cell; {option} work(s) on the whole table" in capsys.readouterr().err
+    assert not (tmp_path / "table1").exists()
+
+
 # ----------------------------------------------------------------------------- resume and pruning
 
 
@@ -463,6 +473,15 @@ def test_table2_success_mean_std_and_best_step():
             for r in (0, 1)]
     s16 = agg.table2_summary(only)["16"]
     assert s16["steps"]["1-step"]["kiss_matcher"]["mean"] is None and s16["best_step"] == {}
+    # the report labels every seed's rate and says when steps were measured on different seeds
+    from gr_graph.experiments.report import _table2_md
+
+    md = "\n".join(_table2_md(agg.table2_summary(res[:5])))
+    assert "| 32 | raw | fpfh_ransac | 75.0 ± 7.1 | s0 80, s1 70 | raw 90 |" in md
+    assert "| 32 | 2-step | fpfh_ransac | 85.0 (n=1) | s0 85 |" in md
+    assert "Steps measured on different seeds (cells missing): 32 channels: raw seeds 0, 1; 1-step seeds 0, 1; " \
+           "2-step seeds 0." in md
+    assert "different seeds" not in "\n".join(_table2_md(agg.table2_summary(res[:6])))
 
 
 def test_ablation_differences_and_the_consistency_rule():
@@ -717,6 +736,15 @@ def test_pca_covariances_against_numpy():
     assert np.all(np.linalg.eigvalsh(C) >= 1e-6 - 1e-12)
     with pytest.raises(ValueError, match="k must be"):
         pca_covariances(P, 1)
+    # eps 0 (valid with the geometric head): an exactly planar neighbourhood stays positive definite,
+    # so a noise-free frame is densified, not sent whole to the non-PD fallback
+    from gr_graph.densify import covariance_problem
+
+    plane = np.c_[rng.uniform(-5, 5, (200, 2)), np.zeros(200)]
+    C0 = pca_covariances(plane, k=10, eps=0.0)
+    assert covariance_problem(C0) is None and np.all(np.linalg.eigvalsh(C0)[:, 0] > 0)
+    lam = np.linalg.eigvalsh(C0)
+    assert np.all(lam[:, 0] <= 1e-8 * lam.sum(axis=1))  # the floor is a trace fraction: the shape stays flat
 
 
 def test_densify_off_returns_raw_frames_and_keeps_predictions():
@@ -792,7 +820,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                                       "min_clusters"}, "odometry": keyframes, "loops": loop_options,
                                             "sensor": spin_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
-                                                         "weights", "fine_tune", "keep_dropped", "prediction_passes"}})
+                                                         "weights", "fine_tune", "keep_dropped", "prediction_passes",
+                                                         "learned_noise_outlier_alpha"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")
     for key in ("corr_likelihood", "corr_dof"):  # the trainer's options added later, likewise
         d1["training"]["trainer"].pop(key)
@@ -805,6 +834,9 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # training.prediction_passes (2026-12-06) likewise: the learning rounds only, away from its default
     pp = load_config(None, {"training": {"rounds": 2, **legacy, "prediction_passes": "training_size"}})
     assert round_fingerprint(pp, 1) != round_fingerprint(a, 1) and round_fingerprint(pp, 0) == round_fingerprint(a, 0)
+    # training.learned_noise_outlier_alpha (2026-12-06) likewise
+    oa = load_config(None, {"training": {"rounds": 2, **legacy, "learned_noise_outlier_alpha": 1e-4}})
+    assert round_fingerprint(oa, 1) != round_fingerprint(a, 1) and round_fingerprint(oa, 0) == round_fingerprint(a, 0)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2, **legacy}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]

@@ -142,6 +142,29 @@ def test_a_frame_that_cannot_be_stored_is_returned_and_counted(tmp_path, monkeyp
     assert sum("not stored" in r.message for r in caplog.records) == 1  # warned once, then counted
 
 
+def test_the_cache_leaves_room_for_the_results(tmp_path, monkeypatch, caplog):
+    """Below DISK_RESERVE free, frames are no longer stored (said once, counted), still returned;
+    with room again they are stored."""
+    import collections
+
+    import gr_graph.datasets.frame_cache as fc
+
+    seq = CountingSequence()
+    cache = CachedFrames(seq, tmp_path / "frames", key="k")
+    free = {"bytes": fc.DISK_RESERVE - 1}
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(fc.shutil, "disk_usage", lambda path: usage(10 * fc.DISK_RESERVE, 0, free["bytes"]))
+    with caplog.at_level("WARNING", logger="gr_graph.datasets.frame_cache"):
+        assert_same_frame(cache[1], seq.frames[1])
+        assert_same_frame(cache[2], seq.frames[2])
+    assert not cache.path(1).exists() and not cache.path(2).exists()
+    assert cache.stats()["not_stored_low_disk"] == 2 and cache.stats()["write_errors"] == 0
+    assert sum("no longer stored" in r.message for r in caplog.records) == 1
+    free["bytes"] = fc.DISK_RESERVE
+    assert_same_frame(cache[1], seq.frames[1])
+    assert cache.path(1).exists()
+
+
 def test_remove_deletes_the_files_and_the_view_still_reads(tmp_path):
     seq = CountingSequence()
     cache = CachedFrames(seq, tmp_path / "frames", key="k")

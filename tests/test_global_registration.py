@@ -236,6 +236,46 @@ def test_kiss_matcher_gives_the_same_answer_in_every_call_and_process(tmp_path: 
     np.testing.assert_array_equal(np.load(tmp_path / "T.npy"), outs[0].T)
 
 
+@pytest.mark.skipif(not kiss_matcher_available(), reason="kiss-matcher not installed")
+def test_a_script_without_a_main_guard_runs_once(tmp_path: Path) -> None:
+    """The worker is started with -m: it never imports the caller's script (spawn would run it again)."""
+    script = tmp_path / "plain.py"
+    script.write_text("import numpy as np\n"
+                      "from gr_graph.global_solvers import register_kiss_matcher, worker_cpu_seconds\n"
+                      f"open(r'{tmp_path / 'runs.txt'}', 'a').write('ran\\n')\n"
+                      "rng = np.random.default_rng(0)\n"
+                      "pts = rng.uniform(-20, 20, (3000, 3))\n"
+                      "out = register_kiss_matcher(pts, pts, voxel=0.5)\n"
+                      "print(out.valid, worker_cpu_seconds() > 0)\n")
+    res = subprocess.run([sys.executable, str(script)], cwd=REPO, timeout=300, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "runs.txt").read_text() == "ran\n" and res.stdout.split()[-1] == "True"
+
+
+@pytest.mark.skipif(not kiss_matcher_available(), reason="kiss-matcher not installed")
+def test_a_worker_that_dies_is_started_again_once_then_the_evaluation_stops(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+    import signal
+
+    import gr_graph.global_solvers as gs
+
+    worker = gs._BoundWorker()
+    monkeypatch.setattr(gs, "_WORKER", worker)
+    src, tgt = _hard_pair()
+    first = register_kiss_matcher(src, tgt, voxel=0.5)
+    os.kill(worker._proc.pid, signal.SIGKILL)  # a crash in the native library, or the OOM killer
+    worker._proc.wait()
+    again = register_kiss_matcher(src, tgt, voxel=0.5)  # started again, the same answer
+    np.testing.assert_array_equal(again.T, first.T)
+    assert worker.cpu_seconds > 0
+    worker.close()
+    monkeypatch.setattr(worker, "_start", lambda: subprocess.Popen(
+        [sys.executable, "-c", "import sys; sys.exit(3)"], stdin=subprocess.PIPE, stdout=subprocess.PIPE))
+    poses = np.stack([np.eye(4), make_T([0, 0, 0.1], [3.0, 0, 0])])
+    with pytest.raises(gs.SolverCrashError, match="died twice on one pair \\(exit code 3"):
+        evaluate_pairs([src, tgt], poses, np.array([[1, 0]]), solvers=["kiss_matcher"], progress=False)
+
+
 def test_a_pair_the_solver_cannot_take_is_a_failure_not_a_lost_run(monkeypatch: pytest.MonkeyPatch) -> None:
     """A scan with too few points (e.g. densified into nothing) fails its pairs; the others are kept."""
     import gr_graph.global_registration as gr

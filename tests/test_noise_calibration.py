@@ -16,6 +16,7 @@ from gr_graph.noise_calibration import (
     factor_redundancies,
     loop_axis_variance_factors,
     loop_variance_factor,
+    outlying_loop,
     variance_factor,
 )
 from gr_graph.noise_consistency import (
@@ -119,6 +120,93 @@ def test_variance_factor_recovers_the_true_scale_and_makes_nees_consistent():
     ref = np.linalg.inv(gt[0]) @ gt
     pn = position_nees(est, position_covariance_world(est, res.covariances), ref)
     assert 1.5 < pn.mean() < 6.0
+
+
+def _wrong_loop(gt: np.ndarray, edges: list[RegistrationEdge]) -> RegistrationEdge:
+    """A loop that passed verification but is 4.5 m and 10 deg off, between poses 100 and 40."""
+    info = edges[0].information
+    T = np.linalg.inv(gt[40]) @ gt[100] @ _exp(np.array([0, 0, 0.17, 4.0, 2.0, 0]))
+    return RegistrationEdge(100, 40, T, info, info.copy(), 1.0, 0.0, 1, True, "", "loop")
+
+
+def _gaussian(gt: np.ndarray, edges: list[RegistrationEdge]) -> PoseGraph:
+    g, _ = _solve(gt, edges)
+    return g
+
+
+def test_a_wrong_loop_is_left_out_of_the_variance_factor_and_good_ones_are_not():
+    """The deletion F test (no ground truth): no loop of 8 correct graphs fails it at 1e-4; a loop
+    4.5 m off does, and the variance factor without it is back in the band of the correct graph,
+    while with it the factor is 1.7x too large (it would weaken every edge)."""
+    for seed in range(8):
+        gt, edges, _ = _simulated_graph(np.random.default_rng(seed))
+        g = _gaussian(gt, edges)
+        assert outlying_loop(g.graph, g.values, edges, 1e-4) is None, seed
+    gt, edges, _ = _simulated_graph(np.random.default_rng(1))
+    bad = edges + [_wrong_loop(gt, edges)]
+    g = _gaussian(gt, bad)
+    found = outlying_loop(g.graph, g.values, bad, 1e-4)
+    assert found is not None and found[0] == len(bad) - 1 and found[1] > found[2] > 1.0
+    assert outlying_loop(g.graph, g.values, bad, 0.0) is None  # alpha 0: the test is off
+    with_it = variance_factor(g.optimize(marginals=False).poses, bad).sigma0_sq
+    _, res = _solve(gt, edges)
+    without = variance_factor(res.poses, edges).sigma0_sq
+    assert 25.0 / 1.35 < without < 25.0 * 1.35 and with_it > 1.5 * without
+
+
+def test_the_deletion_statistic_is_what_the_loop_adds_to_the_chi_square():
+    """The F statistic from the redundancy matrix equals the one from solving the graph without the loop
+    (the change of the total chi-square over the variance factor of the rest; exact for a linear graph)."""
+    gt, edges, _ = _simulated_graph(np.random.default_rng(1))
+    bad = edges + [_wrong_loop(gt, edges)]
+    g = _gaussian(gt, bad)
+    index, stat, threshold = outlying_loop(g.graph, g.values, bad, 1e-4)
+    total_with = 2.0 * g.graph.error(g.values)
+    g_without = _gaussian(gt, edges)
+    total_without = 2.0 * g_without.graph.error(g_without.values)
+    rest = 6 * (len(bad) - len(gt) + 1) - 6
+    direct = ((total_with - total_without) / 6) / (total_without / rest)
+    assert stat == pytest.approx(direct, rel=0.02)
+    # solved a loop at a time (the memory bound of long runs): the same statistic
+    import gr_graph.noise_calibration as nc
+
+    nc_bytes = nc.SOLVE_CHUNK_BYTES
+    try:
+        nc.SOLVE_CHUNK_BYTES = 1.0
+        assert outlying_loop(g.graph, g.values, bad, 1e-4) == pytest.approx((index, stat, threshold), rel=1e-9)
+    finally:
+        nc.SOLVE_CHUNK_BYTES = nc_bytes
+
+
+def test_calibration_leaves_the_wrong_loop_out_and_keeps_it_in_the_robust_graph():
+    """The frame loop's calibration of learned edges: the wrong loop is named in the summary, the scale
+    comes from the other edges, and the loop still weighs in the robust graph (its kernel decides)."""
+    import types
+
+    from gr_graph.frame_loop import _FrameLoop
+
+    gt, edges, _ = _simulated_graph(np.random.default_rng(1))
+    bad = edges + [_wrong_loop(gt, edges)]
+    for e in bad:
+        e.info["edge_noise"] = "learned"
+    raw = [e.information.copy() for e in bad]
+    loop = object.__new__(_FrameLoop)  # only what the calibration uses
+    loop.edges, loop.cfg = bad, load_config(None, {"training": {"learned_noise_outlier_alpha": 1e-4}})
+    loop.edge_noise = types.SimpleNamespace(calibration=None)
+    loop.calibrate_noise(gt @ _exp(np.full(6, 1e-3)))
+    cal = loop.edge_noise.calibration
+    assert [t["loop"] for t in cal["loops_left_out"]] == [[100, 40]] and cal["loops_left_out_max"] == 3
+    assert cal["redundancy"] == 6 * 30 and 25.0 / 1.35 < cal["sigma0_sq"] < 25.0 * 1.35
+    for e, info in zip(bad, raw):
+        np.testing.assert_allclose(e.information, cal["scale"] * info)
+    assert loop.graph.graph.size() == 1 + len(bad) and loop.graph.n_loops == 31
+    # the test off (the default): every loop counts, as before
+    for e, info in zip(bad, raw):
+        e.information = info.copy()
+    loop.cfg = load_config(None, {})
+    loop.calibrate_noise(gt @ _exp(np.full(6, 1e-3)))
+    assert loop.edge_noise.calibration["loops_left_out"] == []
+    assert loop.edge_noise.calibration["sigma0_sq"] > 1.5 * cal["sigma0_sq"]
 
 
 def test_no_loops_no_calibration():

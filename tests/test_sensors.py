@@ -232,7 +232,7 @@ def test_kitti_layout_export_of_a_vlp16_reads_back_with_its_rings(tmp_path, synt
         got, ref = view[k], seq[40 + k]
         np.testing.assert_allclose(got.points, ref.points, atol=1e-5)  # float32 files
         np.testing.assert_array_equal(got.ring, ref.ring)
-    assert view.parent.ring_recovery_counts == {"storage_order": 3, "reference": 0, "elevation": 0}
+    assert view.parent.ring_recovery_counts == {"storage_order": 3, "reference": 0, "line_rank": 0, "elevation": 0}
     with pytest.raises(DatasetError, match="64-beam sensors"):
         open_sequence("00", data_root=tmp_path / "k", sensor="vlp16", channels=32)
 

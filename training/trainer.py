@@ -440,9 +440,11 @@ class Trainer:
             raise TrainingError("the memory has no edges to train on")
         self._resumed = resume and self.try_resume()
         if not self._resumed:
-            # from scratch: no checkpoint, nor the log lines of a run killed before its first one
+            # from scratch: no checkpoint, nor the log lines of a run killed before its first one, nor the
+            # weights and summary of an earlier run
             if self.rank == 0:
-                (self.out_dir / CHECKPOINT_NAME).unlink(missing_ok=True)
+                for name in (CHECKPOINT_NAME, MODEL_NAME, SUMMARY_NAME):
+                    (self.out_dir / name).unlink(missing_ok=True)
             self._log_path().unlink(missing_ok=True)
         B, W = cfg.pairs_per_step, self.world_size
         n_steps = self.steps_per_epoch()
@@ -522,7 +524,7 @@ class Trainer:
     def _finish(self) -> Path:
         path = self.out_dir / MODEL_NAME
         summary_path = self.out_dir / SUMMARY_NAME
-        if self._resumed and not self.step_seconds and path.is_file() and summary_path.is_file():
+        if self._resumed and not self.step_seconds and summary_path.is_file() and self._model_file_is_current(path):
             # a finished training run again: its summary (runtime, provenance) stays the one that trained
             log.info("%s: training already finished, model.pt and summary.json kept", self.out_dir)
             return path
@@ -536,6 +538,18 @@ class Trainer:
             atomic_write_text(summary_path, json.dumps(self.summary(path), indent=2))
         return path
 
+    def _model_file_is_current(self, path: Path) -> bool:
+        """Whether ``path`` holds exactly the weights of this run's checkpoint, after as many epochs
+        (not a file another run left in the folder, nor one written before a kill)."""
+        try:
+            stored = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:  # missing, truncated or foreign: written again
+            return False
+        if not isinstance(stored, dict) or stored.get("epochs_done") != self.epoch:
+            return False
+        mine, theirs = self.model.state_dict(), stored.get("model_state") or {}
+        return set(mine) == set(theirs) and all(torch.equal(mine[k].cpu(), theirs[k]) for k in mine)
+
     def summary(self, model_path: Path) -> dict[str, Any]:
         """The content of ``summary.json``: counts, configuration, timing and provenance.
 
@@ -543,7 +557,8 @@ class Trainer:
         ``provenance`` (:func:`gr_graph.provenance.provenance`) holds the commit, package
         versions, seed, device and the torch thread count of this process; ``threads_used``
         every thread count the weights were computed with (more than one after a resume with
-        another count; empty for checkpoints written before it was kept).
+        another count; after a resume of a checkpoint written before the counts were kept, only
+        the counts from the resume on).
         """
         steps = np.asarray(self.step_seconds, np.float64)
         return {

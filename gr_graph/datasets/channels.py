@@ -212,9 +212,10 @@ class RingIndexer:
     (``reference_source``; the per-ring median over up to :data:`REFERENCE_FRAMES` probes
     that strategy 1 indexes), so the reference, and every ring index, does not depend on
     the order in which frames are read. Such frames are matched against the reference
-    (strategy 2) when they have most of the reference's lines. A frame neither strategy
-    indexes (e.g. shuffled points, or a sweep cut in azimuth, whose lines cannot be split)
-    gets rings from per-point elevation (``"elevation"``: nearest reference ring, or
+    (strategy 2) when they have most of the reference's lines. A frame with every line but
+    stored out of elevation order (e.g. laser-id order) numbers its lines by their median
+    elevation (``"line_rank"``). A frame none of these indexes (e.g. shuffled points, or a sweep
+    cut in azimuth, whose lines cannot be split) gets rings from per-point elevation (``"elevation"``: nearest reference ring, or
     equal-count elevation bins without a reference): approximate, logged by the caller and
     counted in :attr:`counts`, so that a whole run is never refused for one odd frame.
 
@@ -231,7 +232,7 @@ class RingIndexer:
     def __init__(self, n_rings: int = 64, reference_source=None) -> None:
         self.n_rings = n_rings
         self.reference_source = reference_source
-        self.counts: dict[str, int] = {"storage_order": 0, "reference": 0, "elevation": 0}
+        self.counts: dict[str, int] = {"storage_order": 0, "reference": 0, "line_rank": 0, "elevation": 0}
         self.reference: np.ndarray | None = None
         """Per-ring median elevation (deg, ring 0 highest) of the probe frames; None until probed."""
         self._probed = False
@@ -273,8 +274,29 @@ class RingIndexer:
             return ring, method, first
         except RingRecoveryError as exc:
             problem = str(exc)
+        ring = line_rank_rings(points, self.n_rings)
+        if ring is not None:
+            self.counts["line_rank"] += 1
+            return ring, "line_rank", problem
         self.counts["elevation"] += 1
         return elevation_rings(points, self.n_rings, self.reference), "elevation", problem
+
+
+def line_rank_rings(points: np.ndarray, n_rings: int) -> np.ndarray | None:
+    """Rings of a frame whose scan lines are all there but stored out of elevation order (e.g. in
+    laser-id order): every line gets the rank of its median elevation, highest first; None unless
+    :func:`scan_lines` finds exactly ``n_rings`` lines (a cut or shuffled scan)."""
+    if len(points) < 2 * n_rings:
+        return None
+    line, n_lines, _ = scan_lines(points)
+    if n_lines != n_rings:
+        return None
+    medians = line_elevations(points, line, n_lines)
+    if not np.all(np.isfinite(medians)):
+        return None
+    rank = np.empty(n_lines, np.int64)
+    rank[np.argsort(-medians, kind="stable")] = np.arange(n_lines)
+    return rank[line].astype(np.int16)
 
 
 def elevation_rings(points: np.ndarray, n_rings: int, reference: np.ndarray | None = None) -> np.ndarray:

@@ -14,7 +14,8 @@ first read: a run with the cache gives the same poses as a run without it
 (``tests/test_frame_cache.py``). Writes are atomic. A file that cannot be read back (e.g.
 truncated) is logged, counted in :attr:`CachedFrames.unreadable` and made again from the
 parent; a frame that cannot be stored (e.g. a full disk) is logged, counted in
-:attr:`CachedFrames.write_errors`, and the run goes on. ``key`` names what the frames depend on
+:attr:`CachedFrames.write_errors`, and the run goes on; below :data:`DISK_RESERVE` of free disk no
+frame is stored (:attr:`CachedFrames.not_stored_low_disk`), so the run's results keep their room. ``key`` names what the frames depend on
 (the pipeline passes a hash of the data, sensor and seed settings and the code's commit): a
 directory written under another key is emptied first.
 
@@ -45,6 +46,8 @@ log = logging.getLogger(__name__)
 __all__ = ["CachedFrames", "makes_frames"]
 
 META = "cache.json"
+#: free disk the cache always leaves for the run's own results [bytes]
+DISK_RESERVE = 2 * 1024**3
 
 
 def makes_frames(sequence: Any) -> bool:
@@ -81,6 +84,7 @@ class CachedFrames:
         self.misses = 0  # frames read from the parent (and written)
         self.unreadable = 0  # cached files that could not be read back (made again)
         self.write_errors = 0  # frames that could not be stored (e.g. a full disk; made again when read again)
+        self.not_stored_low_disk = 0  # frames not stored to keep DISK_RESERVE free (made again when read again)
         self._lock = threading.Lock()
         self._opened = False
         if open_now:
@@ -130,6 +134,10 @@ class CachedFrames:
                     self.hits += 1
                 return frame
         frame = self.parent[i]
+        if not self._room_for_more():
+            with self._lock:
+                self.misses += 1
+            return frame
         try:
             self._store(p, i, frame)
         except OSError as exc:  # e.g. a full disk: the run goes on, this frame is made again when read again
@@ -141,6 +149,24 @@ class CachedFrames:
         with self._lock:
             self.misses += 1
         return frame
+
+    def _room_for_more(self) -> bool:
+        """Whether the disk keeps :data:`DISK_RESERVE` free beside another frame; when not, the frame is not
+        stored (counted in :attr:`not_stored_low_disk`, said once): the cache must never take the room the
+        run's own results need (a 64-channel sequence caches about 16 GB)."""
+        try:
+            free = shutil.disk_usage(self.directory).free
+        except OSError:  # cannot tell: store, and let a failed write be counted as usual
+            return True
+        if free >= DISK_RESERVE:
+            return True
+        with self._lock:
+            self.not_stored_low_disk += 1
+            first = self.not_stored_low_disk == 1
+        if first:
+            log.warning("frame cache: less than %.1f GB free on %s: frames are no longer stored (made again when "
+                        "read again), so that the run's results still fit", DISK_RESERVE / 1e9, self.directory)
+        return False
 
     def _store(self, p: Path, i: int, frame: LidarFrame) -> None:
         arrays: dict[str, np.ndarray] = {
@@ -176,7 +202,8 @@ class CachedFrames:
         frames that could not be stored."""
         with self._lock:
             return {"directory": str(self.directory), "hits": self.hits, "misses": self.misses,
-                    "unreadable": self.unreadable, "write_errors": self.write_errors}
+                    "unreadable": self.unreadable, "write_errors": self.write_errors,
+                    "not_stored_low_disk": self.not_stored_low_disk}
 
     def remove(self) -> None:
         """Delete the cached frames (the view still works: frames are made again); a folder holding

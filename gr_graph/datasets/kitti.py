@@ -203,7 +203,9 @@ def read_velodyne_scan(path: str | Path, point_format: str = "xyzi", ring_indexe
         raw = raw[finite]
     points = raw[:, :3].astype(np.float64)
     ring = None
-    if ring_indexer is not None and len(points):
+    if ring_indexer is not None and not len(points):
+        ring = np.zeros(0, np.int16)  # an empty scan has its (no) rings: --channels keeps it as an empty frame
+    elif ring_indexer is not None:
         ring, method, problem = ring_indexer(points)
         if method != "storage_order":
             log.warning("%s: rings by %s (%s)%s", path, method, problem,
@@ -346,7 +348,7 @@ class KittiSequence:
 
     @property
     def ring_recovery_counts(self) -> dict[str, int]:
-        """Frames indexed per method so far: ``storage_order``, ``reference``, ``elevation``."""
+        """Frames indexed per method so far: ``storage_order``, ``reference``, ``line_rank``, ``elevation``."""
         return dict(self.ring_indexer.counts)
 
     def __getitem__(self, index: int) -> LidarFrame:

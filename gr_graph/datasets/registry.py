@@ -517,7 +517,17 @@ def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int
         problem = frame_sensor_problem(frame, sensor, None if named else max(int(frame.n_rings), sensor.beams))
         if problem is not None:
             raise DatasetError(f"{name}, frame {frame.index}: {problem}")
-        return frame if n_rings == sensor.beams else subsample_channels(frame, n_rings)
+        if n_rings in (sensor.beams, frame.n_rings):  # all rings, or a source that made only the kept ones
+            return frame
+        if frame.ring is None:
+            raise DatasetError(f"{name}, frame {frame.index}: no ring indices, cannot keep {n_rings} of {sensor.beams} "
+                               "channels: the data has no per-point ring field ('ring') and its rings could not be "
+                               "recovered; leave --channels out, or add the field")
+        if frame.n_rings != sensor.beams:
+            raise DatasetError(f"{name}, frame {frame.index}: {frame.n_rings} rings, but --channels keeps one ring "
+                               f"in {sensor.beams // n_rings} of a {sensor.beams}-beam sensor ({sensor.model}): "
+                               "name the sensor that took the data (--sensor), or leave --channels out")
+        return subsample_channels(frame, n_rings)
 
     label = "" if n_rings == sensor.beams else f"-{n_rings}ch"
     view = SequenceView(base, start, stop, transform, label)

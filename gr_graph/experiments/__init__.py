@@ -10,7 +10,8 @@ spread the cells over machines::
     python -m gr_graph.experiments table1 --root runs/exp --report --publish   # report only -> benchmarks/results
 
 A SLURM array (one cell per task; Table II needs Table I's cells, the ablations' reusing
-cells prefer their default cell finished first, otherwise they compute everything themselves)::
+cells prefer their default cell finished first, otherwise they compute everything themselves;
+the array sizes are the ``paper`` budget's, ``--list`` gives another budget's)::
 
     sbatch --array=0-7 --cpus-per-task=2 --mem=8G --wrap \\
         'python -m gr_graph.experiments table1 --root $SCRATCH/exp --cell $SLURM_ARRAY_TASK_ID'

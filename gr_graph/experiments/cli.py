@@ -98,7 +98,14 @@ def _pick(cells: list[Cell], k: str) -> Cell:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring); returns the exit status."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.cell is not None:  # one cell: the whole-table options would be silently ignored
+        whole = [o for o, on in (("--list", args.list), ("--report", args.report), ("--publish", args.publish),
+                                 ("--publish-records", args.publish_records)) if on]
+        if whole:
+            parser.error(f"--cell runs one cell; {', '.join(whole)} work(s) on the whole table: run it without "
+                         "--cell once the cells are done")
     setup_logging(args.log_level)
     root = Path(args.root) if args.root else default_root(args.budget)
     budget = BUDGETS[args.budget]

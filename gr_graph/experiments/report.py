@@ -147,22 +147,35 @@ def _percent(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.0f}"
 
 
+def _seed_percent(per_seed: dict[str, Any]) -> str:
+    """One seed's success rate, labelled: ``s0 72``."""
+    return f"s{per_seed['seed']} {_percent(per_seed['success_percent'])}"
+
+
 def _table2_md(summary: dict[str, Any]) -> list[str]:
     lines = ["Success = rotation error < 10° and translation error < 2 m, pairs within 10 m (ground truth), "
              "sampled with the world seed; the same pairs for every step of a seed.", "",
              "| channels | step | solver | success [%] | per seed | paper |", "|---|---|---|---|---|---|"]
+    unpaired = []
     for ch, s in summary.items():
         paper = s.get("paper") or {}
+        seeds = {}
         for step, solvers in s["steps"].items():
             for solver, row in solvers.items():
                 pap = paper.get("raw") if step == "raw" else None
+                seeds[step] = sorted({q["seed"] for q in row["per_seed"] if q["success_percent"] is not None})
                 lines.append(f"| {ch} | {step} | {solver} | {agg.fmt_ms(row, '{:.1f}')} | "
-                             f"{', '.join(_percent(q['success_percent']) for q in row['per_seed'])} | "
+                             f"{', '.join(_seed_percent(q) for q in row['per_seed'])} | "
                              f"{'' if pap is None else f'raw {pap:.0f}'} |")
         for solver, b in s["best_step"].items():
             lines.append(f"| {ch} | best densified step | {solver} | {b['mean']:.1f} ({b['step']}) | | "
                          f"{'best step %.0f' % paper['best_step'] if paper else ''} |")
+        if len({tuple(v) for v in seeds.values()}) > 1:
+            unpaired.append(f"{ch} channels: " + "; ".join(f"{step} seeds {', '.join(map(str, v)) or 'none'}"
+                                                          for step, v in seeds.items()))
     lines.append("")
+    if unpaired:  # a step's mean over other seeds than another's: its difference is not the densification's alone
+        lines += ["Steps measured on different seeds (cells missing): " + " / ".join(unpaired) + ".", ""]
     return lines
 
 

@@ -275,13 +275,15 @@ def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
         log.info("%s: source %s not finished (or pruned): computing round 0 itself", cell.key, cell.source)
         verdict = {"source": cell.source, "what": None, "copied": [],
                    "note": "source not available: everything computed here"}
-    else:
+    else:  # the verdict follows every copy: a kill between two leaves it saying what is in place
+        verdict = {"source": cell.source, "what": what, "copied": []}
+        atomic_write_json(verdict_path, verdict)
         _copy_tree_atomic(src / "round_0", slam / "round_0")
-        copied = ["round_0"]
+        verdict["copied"].append("round_0")
+        atomic_write_json(verdict_path, verdict)
         if what == "round1_training" and (src / "round_1" / "training" / "checkpoint.pt").is_file():
             _copy_tree_atomic(src / "round_1" / "training", slam / "round_1" / "training")
-            copied.append("round_1/training")
-        verdict = {"source": cell.source, "what": what, "copied": copied}
+            verdict["copied"].append("round_1/training")
     atomic_write_json(verdict_path, verdict)
     return verdict
 
@@ -425,10 +427,12 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
 
 
 def cpu_seconds() -> float:
-    """CPU time of this process and of its finished child processes (the synthetic world's render
-    process) [s]: ``time.process_time`` plus the children's user and system time where
-    ``getrusage`` exists."""
-    total = time.process_time()
+    """CPU time of this process and of its child processes [s]: ``time.process_time``, the finished
+    children's user and system time where ``getrusage`` exists (the synthetic world's render process),
+    and the solves of the KISS-Matcher worker, which lives on until this process ends."""
+    from gr_graph.global_solvers import worker_cpu_seconds
+
+    total = time.process_time() + worker_cpu_seconds()
     try:
         import resource
     except ImportError:  # not on Windows

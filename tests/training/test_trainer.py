@@ -54,6 +54,18 @@ def _cfg(**kw):
     return TrainConfig.from_dict(base)
 
 
+class _Kill(Exception):
+    """Stands for a kill of the training process."""
+
+
+def _kill_at(key: str, value: int):
+    """A ``fit`` callback that kills the run at the first step record whose ``key`` is ``value``."""
+    def callback(rec):
+        if rec[key] == value:
+            raise _Kill()
+    return callback
+
+
 def _log(out):
     return [json.loads(line) for line in (Path(out) / "train_log.jsonl").read_text().splitlines()]
 
@@ -137,19 +149,33 @@ def test_a_finished_training_run_again_keeps_the_summary_of_the_run_that_trained
     assert json.loads((out / "summary.json").read_text())["runtime_s"]["steps"] == 5
 
 
+def test_a_resumed_run_never_keeps_another_runs_model(memory_dir, tmp_path):
+    """Run A finished in a folder; run B starts there from scratch, is killed after its first epoch, and is
+    resumed asking for that one epoch: the result is B's weights and summary, not A's files."""
+    mem = load_memory(memory_dir)
+    out = tmp_path / "t"
+    Trainer(mem, out, _cfg(epochs=1, lr=3e-3)).fit(resume=False)
+    with pytest.raises(_Kill):
+        Trainer(mem, out, _cfg(epochs=2, lr=1e-2)).fit(resume=False, callback=_kill_at("epoch", 1))
+    assert not (out / "model.pt").exists() and not (out / "summary.json").exists()  # A's: gone at B's start
+    ck = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert ck["epoch"] == 1
+    # even with A's files put back, they are not taken for B's
+    a_dir = tmp_path / "a"
+    Trainer(mem, a_dir, _cfg(epochs=1, lr=3e-3)).fit(resume=False)
+    for name in ("model.pt", "summary.json"):
+        (out / name).write_bytes((a_dir / name).read_bytes())
+    path = Trainer(mem, out, _cfg(epochs=1, lr=1e-2)).fit(resume=True)
+    got = torch.load(path, weights_only=False)["model_state"]
+    assert all(torch.equal(got[k], ck["model_state"][k]) for k in got)
+    assert json.loads((out / "summary.json").read_text())["config"]["lr"] == 1e-2
+
+
 def test_a_resume_with_another_thread_count_says_so_and_records_both(memory_dir, tmp_path, caplog):
     mem = load_memory(memory_dir)
-
-    class Kill(Exception):
-        pass
-
-    def killer(rec):
-        if rec["step"] == 2:
-            raise Kill()
-
     out = tmp_path / "t"
-    with pytest.raises(Kill):
-        Trainer(mem, out, _cfg(epochs=1, num_threads=1)).fit(resume=False, callback=killer)
+    with pytest.raises(_Kill):
+        Trainer(mem, out, _cfg(epochs=1, num_threads=1)).fit(resume=False, callback=_kill_at("step", 2))
     assert torch.load(out / "checkpoint.pt", weights_only=False)["threads_used"] == [1]
     try:
         with caplog.at_level("WARNING", logger="training.trainer"):
