@@ -101,29 +101,34 @@ def _log_level(text: str) -> str:
     return text.strip().upper()
 
 
-def at_least(minimum: float, kind: type = int) -> Any:
-    """An argparse ``type``: a number of ``kind`` not below ``minimum`` (the error names the bound)."""
+def number_in(kind: type, low: float, high: float | None = None, low_open: bool = False) -> Any:
+    """An argparse ``type``: a number of ``kind`` (int or float) from ``low`` (excluded with ``low_open``,
+    then also finite) up to, not including, ``high``; the error names the range."""
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
-        if not value >= minimum:
-            raise argparse.ArgumentTypeError(f"{text} is below {minimum}")
+        if high is not None:
+            if not low <= value < high:
+                raise argparse.ArgumentTypeError(f"{text} is not in [{low:g}, {high:g})")
+        elif low_open:
+            if not low < value < float("inf"):
+                raise argparse.ArgumentTypeError(f"{text} is not a finite number > {low:g}")
+        elif not value >= low:
+            raise argparse.ArgumentTypeError(f"{text} is below {low}")
         return value
     parse.__name__ = kind.__name__  # argparse names the type in its messages
     return parse
 
 
-def positive_float(text: str) -> float:
-    """An argparse ``type``: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"{text} is not a finite number > 0")
-    return value
+def at_least(minimum: float, kind: type = int) -> Any:
+    """An argparse ``type``: a number of ``kind`` not below ``minimum`` (:func:`number_in`)."""
+    return number_in(kind, minimum)
+
+
+#: an argparse ``type``: a finite number > 0
+positive_float = number_in(float, 0.0, low_open=True)
 
 
 def add_log_level(p: argparse.ArgumentParser, default: str = "INFO") -> None:

@@ -25,6 +25,7 @@ from gr_graph.cli_common import (
     add_seed,
     at_least,
     make_parser,
+    number_in,
     setup_logging,
 )
 from gr_graph.config import PreprocessConfig, TrainingConfig
@@ -36,17 +37,6 @@ EXAMPLES = (
     "--covariances dense_cov.npy",
     "python -m gr_graph.densify_cli scan.npy dense.ply --weights model.pt --ply-covariances --seed 1",
 )
-
-
-def _anisotropy_threshold(text: str) -> float:
-    """``--tau-ani``: a number in [0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"{text} is not in [0, 1)")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'pretrained' (the model shipped with gr_graph; see the README's model card) or a model.pt "
                         "written by `gr-train` or by a gr-slam --rounds run (round_<r>/training/model.pt) "
                         "(default: pretrained)")
-    p.add_argument("--tau-ani", type=_anisotropy_threshold, default=None, metavar="A",
+    p.add_argument("--tau-ani", type=number_in(float, 0.0, 1.0), default=None, metavar="A",
                    help=f"anisotropy threshold: keep points with 1 - l_min/l_max > A (default: {t.tau_ani})")
     p.add_argument("--samples", type=at_least(1), default=None, metavar="M",
                    help=f"samples ~ N(s, C) per kept point (default: {t.samples_per_point})")

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from factors.se3 import check_poses, rotation_angle
+from factors.wls import umeyama
 from gr_graph.trajectory import Trajectory, to_evo_path
 
 logger = logging.getLogger(__name__)
@@ -211,28 +212,11 @@ def _aligned_paths(est: np.ndarray | Trajectory, ref: np.ndarray | Trajectory, a
                     "collinear or coincident"
                 ) from exc
             # a straight or stationary path (e.g. a run that failed): the best rigid fit is not unique,
-            # but its error is; evo refuses the rank-deficient case, so it is solved here
-            est_path.transform(_rigid_fit(est_path.positions_xyz, ref_path.positions_xyz))
+            # but its error is; evo refuses the rank-deficient case, factors.wls.umeyama takes one of them
+            est_path.transform(umeyama(est_path.positions_xyz, ref_path.positions_xyz))
             s = 1.0
         scale = float(s)
     return ref_path, est_path, scale
-
-
-def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """The 4x4 rigid transform T minimising sum |T src_i - dst_i|^2 (Kabsch/Umeyama without scale).
-
-    Valid also when the cross-covariance has rank < 2 (one of the point sets collinear or
-    coincident): the rotation is then one of several minimisers, all with the same residuals.
-    """
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
-    U, _, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    S[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
-    T = np.eye(4)
-    T[:3, :3] = U @ S @ Vt
-    T[:3, 3] = mu_d - T[:3, :3] @ mu_s
-    return T
 
 
 def _degenerate_side(est: np.ndarray, ref: np.ndarray) -> str:

@@ -88,12 +88,13 @@ def test_ellipse_axes_and_scale_closed_form() -> None:
     assert ellipse_scale(np.zeros(3), 600.0) == 1.0
 
 
-def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, monkeypatch) -> None:
+def _captured_trajectory_plots(monkeypatch) -> dict:
+    """What each trajectory plot drew, instead of saving it: its ellipses and legend texts."""
     import matplotlib.patches
 
     from gr_graph import plots
 
-    captured = {}
+    captured: dict = {}
 
     def grab(fig, path, **kw):
         ax = fig.axes[0]
@@ -103,6 +104,11 @@ def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, mo
         return Path(path)
 
     monkeypatch.setattr(plots, "atomic_savefig", grab)
+    return captured
+
+
+def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, monkeypatch) -> None:
+    captured = _captured_trajectory_plots(monkeypatch)
     K = 120
     poses = np.tile(np.eye(4), (K, 1, 1))
     poses[:, 0, 3] = np.linspace(0, 600, K)  # a 600 m drive
@@ -117,21 +123,9 @@ def test_trajectory_plot_draws_magnified_ellipses_and_says_so(tmp_path: Path, mo
 
 def test_trajectory_plot_leaves_out_poses_without_a_covariance_and_refuses_no_poses(tmp_path: Path,
                                                                                       monkeypatch) -> None:
-    import matplotlib.patches
     import matplotlib.pyplot as plt
 
-    from gr_graph import plots
-
-    captured = {}
-
-    def grab(fig, path, **kw):
-        ax = fig.axes[0]
-        captured["ellipses"] = [p for p in ax.patches if isinstance(p, matplotlib.patches.Ellipse)]
-        captured["labels"] = [t.get_text() for t in ax.get_legend().get_texts()]
-        Path(path).write_bytes(b"png")
-        return Path(path)
-
-    monkeypatch.setattr(plots, "atomic_savefig", grab)
+    captured = _captured_trajectory_plots(monkeypatch)
     K = 10
     poses = np.tile(np.eye(4), (K, 1, 1))
     poses[:, 0, 3] = np.arange(K)
