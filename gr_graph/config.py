@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from gr_graph.atomic import atomic_write_text
 from gr_graph.config_errors import describe_validation_error
+from gr_graph.config_yaml import read_config_yaml
 from gr_graph.sensors import SensorConfig, SensorError, loop_rmse_threshold
 from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
@@ -499,7 +500,7 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
             raise ValueError(f"{p}: cannot be read ({exc.strerror or exc})") from None
         written_since_given_keys = text.startswith(GIVEN_SENSOR_KEYS_MARK)
         try:
-            loaded = yaml.safe_load(text) or {}
+            loaded = read_config_yaml(text) or {}
         except yaml.YAMLError as exc:  # e.g. a tab in the indentation
             raise ValueError(f"{p}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):

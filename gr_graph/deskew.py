@@ -27,8 +27,8 @@ import numpy as np
 
 from factors.se3 import exp_se3_batch, hat, log_se3
 
-__all__ = ["times_from_azimuth", "normalise_times", "resolve_time_reference", "TIME_REFERENCES", "deskew", "distort",
-           "sweep_motion_from_velocity"]
+__all__ = ["times_from_azimuth", "normalise_times", "sweep_middle_offset", "resolve_time_reference", "TIME_REFERENCES",
+           "deskew", "distort", "sweep_motion_from_velocity"]
 
 
 def times_from_azimuth(points: np.ndarray, clockwise: bool = True, start_azimuth_deg: float = 180.0) -> np.ndarray:
@@ -155,6 +155,20 @@ def normalise_times(times: np.ndarray, scan_period: float | None = None, referen
     period = float(scan_period)
     if period <= 0.0:
         return np.full_like(t, 0.5)
+    origin, ref = _sweep_origin(t, period, reference, sweep_start)
+    rel = t - origin
+    frac = rel / period
+    if tolerance is not None:
+        lo, hi = float(frac.min()), float(frac.max())
+        if lo < -tolerance or hi > 1.0 + tolerance:
+            raise ValueError(f"per-point times (from {ref}) span {float(rel.min()):.6g}..{float(rel.max()):.6g} s, "
+                             f"i.e. sweep fractions {lo:.3g}..{hi:.3g} with a scan period of {period:.6g} s")
+    return np.clip(frac, 0.0, 1.0)
+
+
+def _sweep_origin(t: np.ndarray, period: float, reference: str, sweep_start: float | None) -> tuple[float, str]:
+    """The time (on the clock of ``t``, non-empty and finite) that :func:`normalise_times` maps to
+    fraction 0, and the reference it resolved ``reference`` to."""
     ref = resolve_time_reference(t, period) if reference == "auto" else reference
     if ref == "sweep_start":
         start: float | None = 0.0
@@ -172,16 +186,38 @@ def normalise_times(times: np.ndarray, scan_period: float | None = None, referen
     if start is None or abs(t_min - start) <= START_SLACK * period or stamped_full_sweep:
         # absolute stamps without a start, or a full sweep of absolute stamps (whatever the stamp's
         # latency): from its first point
-        rel = t - t_min
-    else:
-        rel = t - start
-    frac = rel / period
-    if tolerance is not None:
-        lo, hi = float(frac.min()), float(frac.max())
-        if lo < -tolerance or hi > 1.0 + tolerance:
-            raise ValueError(f"per-point times (from {ref}) span {float(rel.min()):.6g}..{float(rel.max()):.6g} s, "
-                             f"i.e. sweep fractions {lo:.3g}..{hi:.3g} with a scan period of {period:.6g} s")
-    return np.clip(frac, 0.0, 1.0)
+        return t_min, ref
+    return start, ref
+
+
+def sweep_middle_offset(times: np.ndarray, scan_period: float, reference: str = "auto",
+                        sweep_start: float | None = None) -> float | None:
+    """Seconds from a frame's stamp to the middle of its sweep (fraction 0.5, where deskewing moves the
+    points and the frame's pose refers), read from the frame's per-point times (seconds).
+
+    The fractions are those of :func:`normalise_times` (same ``reference`` and ``sweep_start``): times
+    relative to the sweep count from the stamp (a driver stamping the sweep's start gives about
+    ``+scan_period / 2``, one stamping its end ``-scan_period / 2``); absolute times count from
+    ``sweep_start``, the stamp on their clock.
+
+    Returns
+    -------
+    float or None
+        None when the times cannot say: no times, absolute times without ``sweep_start``, or no
+        ``scan_period``.
+    """
+    t = np.asarray(times, np.float64)
+    if t.size == 0 or not np.all(np.isfinite(t)) or not scan_period or scan_period <= 0.0:
+        return None
+    if reference not in TIME_REFERENCES:
+        raise ValueError(f"time reference must be one of {TIME_REFERENCES}, got {reference!r}")
+    period = float(scan_period)
+    origin, ref = _sweep_origin(t, period, reference, sweep_start)
+    if ref == "absolute":
+        if sweep_start is None:
+            return None
+        origin -= float(sweep_start)
+    return origin + 0.5 * period
 
 
 def sweep_motion_from_velocity(frame_motion: np.ndarray, frame_period: float = 0.1,

@@ -315,11 +315,12 @@ class FrameDeskewer:
             self.n_without_motion -= 1
         return out
 
-    def summary(self, enabled: bool, mode: str, reason: str) -> dict[str, Any]:
-        """What the run summary records about deskewing."""
+    def summary(self, enabled: bool, mode: str, reason: str, stamps_moved_by_s: float = 0.0) -> dict[str, Any]:
+        """What the run summary records about deskewing (``stamps_moved_by_s``: the loader moved the
+        frame stamps to the sweeps' middles by this much, :mod:`gr_graph.datasets.stamp_shift`)."""
         return {"mode": mode, "enabled": enabled, "reason": reason, "scan_period": self.scan_period,
                 "frames_deskewed": self.n_deskewed, "frames_without_motion": self.n_without_motion,
-                "time_source": dict(self.time_sources)}
+                "time_source": dict(self.time_sources), "stamps_moved_by_s": stamps_moved_by_s}
 
 
 @dataclass
@@ -415,6 +416,11 @@ class _FrameLoop:
         self.deskewer = FrameDeskewer(scan_period, cfg.sensor.rotation == "clockwise", cfg.sensor.sweep_start_azimuth_deg)
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
+        moved = float(getattr(sequence, "stamps_moved_by_s", 0.0))
+        if moved and not self.deskew_on:
+            log.warning("the frame stamps were moved by %+.4g s to the sweeps' middles, but deskewing is off (%s): "
+                        "the poses refer to the scans as the data hold them, not necessarily to the sweeps' middles", moved,
+                        self.deskew_reason)
         if self.deskew_on:
             log.info("deskewing every frame to mid-sweep (%s)", self.deskew_reason)
             if edge_noise is not None:  # H(C) pairs the network's points under T̂ between deskewed frames
@@ -746,7 +752,8 @@ class _FrameLoop:
             info={"n_flagged_odometry": self.n_flagged, "n_dropped_nonfinite": self.n_dropped,
                   "n_unusable_scans": len(self.usable) - sum(self.usable),
                   "scans_left_out_of_map": self.odometry.scans_left_out_of_map,
-                  "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason),
+                  "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason,
+                                                  float(getattr(self.sequence, "stamps_moved_by_s", 0.0))),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
                              "loop_max_rmse": self.loop_cfg.max_rmse},
                   "marginals": marginals, "loop_variance": self.loop_variance},

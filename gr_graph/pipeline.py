@@ -108,6 +108,7 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                               ("training", "learned_noise_outlier_alpha"): 0.0,
                                               ("sensor", "rotation"): "clockwise",
                                               ("sensor", "sweep_start_azimuth_deg"): 180.0,
+                                              ("sensor", "frame_stamp"): None,
                                               **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
 
 # sensor options whose default became None (guessed from the data) after runs were published: None
@@ -124,7 +125,7 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
     options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
-    ``sensor.rotation`` and ``sweep_start_azimuth_deg``, ``training.prediction_passes`` and
+    ``sensor.rotation``, ``sweep_start_azimuth_deg`` and ``frame_stamp``, ``training.prediction_passes`` and
     ``learned_noise_outlier_alpha``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
@@ -148,7 +149,7 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
         node = d
         for section in sections:
             node = node.get(section, {})
-        if node.get(key) == default:
+        if key in node and node[key] == default:
             node.pop(key)
     for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed) hashes as the former default
         if d.get("sensor", {}).get(key, before) is None:
@@ -471,6 +472,10 @@ class SlamPipeline:
         else:
             what = ("the same number of frames, but the files differ (names, sizes or sampled content) or their "
                     "timestamps, ground truth or calibration do")
+            moved = float(getattr(self.sequence, "stamps_moved_by_s", 0.0) or 0.0)
+            if moved:
+                what += (f"; these data's stamps and ground truth are moved {moved:+.4g} s to the sweeps' middles, "
+                         "which runs made before 2026-12-06 did not do")
         raise ResumeDataError(
             f"{self.round_dir(r)}: round {r} is finished but was made from other data than {self.source_description} "
             f"({what}); its results would not belong to these data. Use a new --out, or --no-resume (output.resume: "

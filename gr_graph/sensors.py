@@ -171,6 +171,10 @@ class SensorConfig(BaseModel):
     ``time_reference`` when they are set (None, the default: guessed from the data;
     ``times_to_fractions`` then reads seconds from the sweep's start), and take the ring count
     from a named sensor (:attr:`named_beams`: ``model`` or ``n_beams`` given), else from the data.
+    ``frame_stamp`` says where the data's frame stamps lie in the sweep (a driver stamps its first or
+    last point, KITTI the instant facing forward); the folder and bag loaders move the stamps to the
+    sweep's middle, the instant a deskewed sweep's pose refers to (None: the offset the per-point
+    times show, else the stamps as they are; :mod:`gr_graph.datasets.frame_fields`).
     ``config.yaml`` keeps only the sensor fields that were given, so a rerun from it guesses
     what the first run guessed (:func:`gr_graph.config.config_to_yaml`).
     """
@@ -204,6 +208,10 @@ class SensorConfig(BaseModel):
     scan_period: float | None = Field(None, gt=0.0, description="sweep duration [s]; None: the sequence's (the "
                                                                 "frame spacing, or a full revolution's per-point time span "
                                                                 "when they differ by more than 10 %)")
+    frame_stamp: Literal["sweep_start", "sweep_middle", "sweep_end"] | None = Field(
+        None, description="where a frame's stamp lies in its sweep: a deskewed sweep's pose is that of its middle, "
+        "and the folder and bag loaders move the stamps (and the ground truth) there; None: from the per-point "
+        "times when they say, else the stamps are kept")
 
     @field_validator("model", mode="before")
     @classmethod

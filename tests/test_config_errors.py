@@ -91,6 +91,8 @@ def test_load_train_config_file_and_overrides(tmp_path):
         load_train_config(f)
     with pytest.raises(FileNotFoundError, match="missing.yaml"):
         load_train_config(tmp_path / "missing.yaml")
+    f.write_text("epochs: 010\n")  # leading zeros: decimal, as in the SLAM config (YAML 1.1 read 8)
+    assert load_train_config(f).epochs == 10
 
 
 def test_pipeline_trainer_config_combines_section_and_run_settings():
@@ -108,7 +110,15 @@ def test_yaml_on_off_and_sequence_numbers_are_read_as_meant(tmp_path):
     path = tmp_path / "c.yaml"
     for text, deskew, seq in [("odometry: {deskew: off}\ndata: {seq: 05}\n", "off", "05"),
                               ("odometry: {deskew: on}\ndata: {seq: 00}\n", "on", "00"),
-                              ("odometry: {deskew: auto}\ndata: {seq: '08'}\n", "auto", "08")]:
+                              ("odometry: {deskew: auto}\ndata: {seq: '08'}\n", "auto", "08"),
+                              # leading zeros: decimal (YAML 1.2), not YAML 1.1's octal (010 was sequence 08)
+                              ("odometry: {deskew: auto}\ndata: {seq: 010}\n", "auto", "10"),
+                              ("odometry: {deskew: auto}\ndata: {seq: 08}\n", "auto", "08")]:
         path.write_text(text)
         cfg = load_config(path, {})
         assert (cfg.odometry.deskew, cfg.data.seq) == (deskew, seq), text
+    path.write_text("training: {rounds: 010}\ndata: {route_seed: 0x10}\n")  # other integers alike; hex stays hex
+    cfg = load_config(path, {})
+    assert (cfg.training.rounds, cfg.data.route_seed) == (10, 16)
+    path.write_text("data: {frames: 10:50}\n")  # a frame range, not YAML 1.1's base 60 (650)
+    assert load_config(path, {}).data.frames == (10, 50)

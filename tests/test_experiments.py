@@ -765,6 +765,16 @@ def test_densify_off_returns_raw_frames_and_keeps_predictions():
     assert len(on[1].points) != len(seq[1].points)
 
 
+def test_round_fingerprints_of_the_defaults_stay_those_of_finished_runs():
+    """An option added later must not change the fingerprint at its default (pipeline._ADDED_OPTIONS), or
+    every finished round of every run is recomputed on resume. The values are those of 7cd09ab
+    (2026-12-06), computed there; before sensor.frame_stamp was listed, round 0 hashed 5c176f6b483a7b31."""
+    from gr_graph.pipeline import round_fingerprint
+
+    cfg = load_config(None, {"training": {"rounds": 2}})
+    assert [round_fingerprint(cfg, r) for r in (0, 1)] == ["6f7e390c5d4d8e78", "f93fc853f0eb14d0"]
+
+
 def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     from gr_graph.pipeline import round_fingerprint
 
@@ -787,7 +797,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
 
     keyframes = {"map_keyframe_translation", "map_keyframe_rotation_deg"}
     loop_options = {"min_path_length", "sc_height_offset"}
-    spin_options = {"rotation", "sweep_start_azimuth_deg"}
+    spin_options = {"rotation", "sweep_start_azimuth_deg", "frame_stamp"}
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                     "render_process"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
@@ -808,7 +818,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     assert all(round_fingerprint(m, r) != round_fingerprint(a, r) for r in (0, 1))
     # loops.min_path_length and sc_height_offset likewise
     for section, options in (("loops", {"min_path_length": 20.0}), ("loops", {"sc_height_offset": 3.0}),
-                             ("sensor", {"rotation": "counterclockwise"}), ("sensor", {"sweep_start_azimuth_deg": 0.0})):
+                             ("sensor", {"rotation": "counterclockwise"}), ("sensor", {"sweep_start_azimuth_deg": 0.0}),
+                             ("sensor", {"frame_stamp": "sweep_start"})):
         lp = load_config(None, {"training": {"rounds": 2}, section: options})
         assert all(round_fingerprint(lp, r) != round_fingerprint(a, r) for r in (0, 1)), options
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)

@@ -67,7 +67,9 @@ def test_open3d_files_round_trip(tmp_path: Path, frames: list, suffix: str, kwar
         np.testing.assert_allclose(back.intensity, frame.intensity, rtol=1e-5)
         np.testing.assert_array_equal(back.ring, frame.ring)
         np.testing.assert_allclose(back.time, frame.time - frame.time.min(), atol=1e-6)
-    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S)  # no times file: 0.1 s
+    # no times file: 0.1 s apart; moved to the sweeps' middles (times from the sweep's start: + half a sweep)
+    assert seq.stamps_moved_by_s == pytest.approx(FRAME_PERIOD_S / 2, abs=1e-3)
+    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S + seq.stamps_moved_by_s)
 
 
 def test_compressed_pcd_through_open3d(tmp_path: Path, frames: list) -> None:

@@ -43,7 +43,9 @@ def test_bag_round_trip(tmp_path: Path, frames: list, kind: str) -> None:
     assert guess_dataset(bag) == "rosbag"
     seq = RosbagSequence(bag)
     assert seq.topic == "/points" and len(seq) == N_FRAMES
-    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S, atol=1e-9)
+    # the stamps mark the sweeps' starts (times from 0): moved to their middles
+    assert seq.stamps_moved_by_s == pytest.approx(FRAME_PERIOD_S / 2, abs=1e-3)
+    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S + seq.stamps_moved_by_s, atol=1e-9)
     assert seq.motion_compensated is False and seq.scan_period == pytest.approx(FRAME_PERIOD_S)
     for i in (0, 1, 3, 2, 2):  # in order, a jump ahead, a jump back, the same frame twice
         _assert_same(seq[i], frames[i], with_time=True)

@@ -497,3 +497,21 @@ def test_rounds_along_a_pose_file_finished_before_its_digest_was_kept_still_resu
         SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {**now, "digest": "0" * 16}})
     with pytest.raises(ResumeDataError, match="40 frames then, 50 now"):
         SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {"n_frames": 40, "files": None, "digest": None}})
+
+
+def test_a_finished_round_of_data_whose_stamps_are_now_moved_says_so(tmp_path):
+    """Folders and bags with per-point times have their stamps moved to the sweeps' middles since 2026-12-06:
+    their rounds finished before are other data, and the refusal says why (the user changed nothing)."""
+    from types import SimpleNamespace
+
+    from gr_graph.pipeline import ResumeDataError, SlamPipeline
+
+    now = {"n_frames": 50, "files": 50, "digest": "abcdef0123456789"}
+    before = {"data_fingerprint": {**now, "digest": "0" * 16}}
+    for moved, said in ((0.05, True), (0.0, False)):
+        stub = SimpleNamespace(data_fingerprint=now, source_description="a bag", out=tmp_path,
+                               round_dir=lambda r: tmp_path / f"round_{r}",
+                               sequence=SimpleNamespace(stamps_moved_by_s=moved))
+        with pytest.raises(ResumeDataError, match="files differ") as info:
+            SlamPipeline.check_round_data(stub, 0, before)
+        assert ("moved +0.05 s to the sweeps' middles" in str(info.value)) is said

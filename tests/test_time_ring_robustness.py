@@ -216,13 +216,16 @@ def test_folder_and_bag_take_the_sweep_duration(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.diff(sub.timestamps), 0.2)
     # frames 0.1 s apart, 0.1 s sweeps: the spacing, as before
     usual = FolderSequence(_sweep_folder(tmp_path / "usual", 0.1, None))
-    assert usual.scan_period == 0.1 and np.array_equal(usual.timestamps, np.arange(3) * 0.1)
+    # (the stamps then move to the sweeps' middles: times counted from the sweep's start, +0.05 s)
+    assert usual.stamps_moved_by_s == pytest.approx(0.05, abs=1e-3)
+    assert usual.scan_period == 0.1 and np.array_equal(usual.timestamps, np.arange(3) * 0.1 + usual.stamps_moved_by_s)
     # ... also where the median spacing of k x 0.1 rounds off 0.1 (100 frames): the times, and so the
     # data fingerprint a resume compares, are exactly those of before
     for k in range(3, 100):
         np.save(tmp_path / "usual" / f"{k:06d}.npy", np.load(tmp_path / "usual" / "000000.npy"))
     many = FolderSequence(tmp_path / "usual")
-    assert many.scan_period != 0.1 and np.array_equal(many.timestamps, np.arange(100) * 0.1)
+    assert many.scan_period != 0.1
+    assert np.array_equal(many.timestamps, np.arange(100) * 0.1 + many.stamps_moved_by_s)
     # a bag: the sensor section's scan period reaches the sequence (and so the deskewer)
     s = _sweep()
     arr = np.zeros(len(s["points"]), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<u4")])

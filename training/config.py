@@ -188,12 +188,12 @@ def load_train_config(path: str | os.PathLike[str] | None = None, overrides: Map
     data: dict[str, Any] = {}
     what = "training config"
     if path is not None:
-        import yaml
+        from gr_graph.config_yaml import read_config_yaml
 
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"training config file not found: {p}")
-        loaded = yaml.safe_load(p.read_text()) or {}
+        loaded = read_config_yaml(p.read_text()) or {}
         if not isinstance(loaded, dict):
             raise TrainConfigError(f"{p}: a training config file must hold a mapping of TrainConfig keys")
         data = loaded

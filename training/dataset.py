@@ -11,6 +11,12 @@ the network predicts), ``T̂_kl`` and correspondences ``(i, j)``. A sample holds
   (at most ``max_corr``) and the row of ``q_points`` holding each target point;
 * ``T_hat`` ``(4, 4)`` float64.
 
+Edges whose registration failed in SLAM (the memory's ``info["flagged_edges"]``: the odometry
+replaced the registration by its constant-velocity guess) are left out: their T̂ and
+correspondences rest on that guess, not on the scans' geometry, and a network trained to explain
+them learns the failure (counted as ``n_flagged_left_out`` in :meth:`PairDataset.describe`).
+Without flagged edges the dataset's positions are the memory's edge numbers.
+
 Sampling is deterministic: sample ``(epoch, e)`` uses ``np.random.default_rng([seed, epoch, e])``,
 so it does not depend on what was drawn before (needed for exact resume).
 
@@ -65,7 +71,7 @@ class PairSample:
 
 
 class PairDataset:
-    """All edges of a memory as training pairs.
+    """The edges of a memory as training pairs, but those whose registration failed (flagged).
 
     Parameters
     ----------
@@ -91,14 +97,35 @@ class PairDataset:
         self.min_corr = max(3, int(min_corr))
         self.seed = int(seed)
         self.augment_yaw = bool(augment_yaw)
+        flagged = {int(e) for e in (memory.info or {}).get("flagged_edges", [])}
+        self.edge_ids = np.array([e for e in range(memory.n_edges) if e not in flagged], np.int64)
+        """The memory's edge number of each position (the flagged edges left out)."""
+        if flagged:
+            log.log(logging.WARNING if len(self.edge_ids) == 0 else logging.INFO,
+                    "training: %d of %d edges left out, their registration failed in SLAM (flagged)",
+                    memory.n_edges - len(self.edge_ids), memory.n_edges)
 
     def __len__(self) -> int:
-        return self.memory.n_edges
+        return len(self.edge_ids)
 
-    def sample(self, e: int, epoch: int = 0) -> PairSample:
-        """Build the sample of edge ``e`` for ``epoch`` (raises :class:`SkipSample`)."""
+    def edge_number(self, i: int) -> int:
+        """The memory's edge number of position ``i``.
+
+        Raises
+        ------
+        IndexError
+            ``i`` outside ``0 .. len - 1``.
+        """
+        if not 0 <= int(i) < len(self):
+            raise IndexError(f"position {i} out of range for {len(self)} edges trained on")
+        return int(self.edge_ids[int(i)])
+
+    def sample(self, i: int, epoch: int = 0) -> PairSample:
+        """Build the sample of position ``i`` (the memory's edge :meth:`edge_number`) for ``epoch``
+        (raises :class:`SkipSample`)."""
         mem = self.memory
-        edge = mem.edge(int(e))
+        e = self.edge_number(i)
+        edge = mem.edge(e)
         rng = np.random.default_rng([self.seed, int(epoch), int(e)])
         corr = np.asarray(edge.corr, np.int64)
         if len(corr) < self.min_corr:
@@ -142,7 +169,8 @@ class PairDataset:
         )
 
     def describe(self) -> dict[str, Any]:
-        """Counts for logs, and ``edges_sha256``: a hash of the memory's edges (pairs, kinds, T̂_kl,
+        """Counts for logs (of the edges trained on; ``n_flagged_left_out`` when some were left out),
+        and ``edges_sha256``: a hash of the memory's edges (pairs, kinds, T̂_kl,
         correspondence offsets), so that a checkpoint of other data with the same counts is not
         resumed."""
         m = self.memory
@@ -150,17 +178,20 @@ class PairDataset:
         h = hashlib.sha256()
         for part in (m.edges, kinds, m.edge_T, m.corr_offsets):
             h.update(np.ascontiguousarray(part).tobytes())
-        return {"n_edges": len(self), "n_odometry": int((kinds == 0).sum()), "n_loop": int((kinds == 1).sum()),
-                "edges_sha256": h.hexdigest()[:16]}
+        used = kinds[self.edge_ids]
+        left_out = m.n_edges - len(self)  # said only when there are some: a checkpoint of before still resumes
+        return {"n_edges": len(self), "n_odometry": int((used == 0).sum()), "n_loop": int((used == 1).sum()),
+                **({"n_flagged_left_out": left_out} if left_out else {}), "edges_sha256": h.hexdigest()[:16]}
 
 
 class ConcatPairDataset:
     """The edges of several memories as one dataset (training on several sequences, sensors or
     channel counts, e.g. the shipped weights of :mod:`training.pretrain`).
 
-    Edge ``e`` of the whole is edge ``e - offset[m]`` of memory ``m`` (memories in the given
-    order). Memory ``m`` samples with its own seed (:meth:`memory_seed`), so equal local edge
-    numbers of different memories draw different subsets.
+    Position ``e`` of the whole is position ``e - offset[m]`` of memory ``m``'s :class:`PairDataset`
+    (memories in the given order; without flagged edges, its edge number). Memory ``m`` samples with
+    its own seed (:meth:`memory_seed`), so equal local edge numbers of different memories draw
+    different subsets.
 
     Parameters
     ----------
@@ -193,8 +224,14 @@ class ConcatPairDataset:
         m = int(np.searchsorted(self.offsets, e, side="right") - 1)
         return m, int(e - self.offsets[m])
 
+    def edge_number(self, e: int) -> int:
+        """The number of position ``e`` in the training log: the global position itself (memory ``m``'s
+        edges follow those of the memories before it)."""
+        self.locate(int(e))  # IndexError outside the range
+        return int(e)
+
     def sample(self, e: int, epoch: int = 0) -> PairSample:
-        """Sample of global edge ``e`` (its ``edge`` field is the global number)."""
+        """Sample of global position ``e`` (its ``edge`` field is the global number)."""
         m, local = self.locate(int(e))
         try:
             s = self.datasets[m].sample(local, epoch)
@@ -206,5 +243,6 @@ class ConcatPairDataset:
     def describe(self) -> dict[str, Any]:
         """Summed counts, and each memory's."""
         parts = [d.describe() for d in self.datasets]
-        total = {k: sum(p[k] for p in parts) for k in parts[0] if k != "edges_sha256"}
+        keys = dict.fromkeys(k for p in parts for k in p if k != "edges_sha256")  # in order, each once
+        total = {k: sum(p.get(k, 0) for p in parts) for k in keys}
         return {**total, "n_memories": len(parts), "memories": parts}

@@ -437,7 +437,8 @@ class Trainer:
         log.info("training with %d torch thread(s), deterministic algorithms", torch.get_num_threads())
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if len(self.dataset) == 0:
-            raise TrainingError("the memory has no edges to train on")
+            raise TrainingError("the memory has no edges to train on (none, or every one flagged: its registration "
+                                "failed in SLAM)")
         self._resumed = resume and self.try_resume()
         if not self._resumed:
             # from scratch: no checkpoint, nor the log lines of a run killed before its first one, nor the
@@ -466,7 +467,9 @@ class Trainer:
                     for b, e in enumerate(mine):
                         sync = b == B - 1
                         ctx = self.ddp_model.no_sync() if (W > 1 and not sync) else contextlib.nullcontext()
-                        rec: dict[str, Any] = {"epoch": self.epoch, "step": self.step, "edge": int(e), "rank": self.rank}
+                        rec: dict[str, Any] = {"epoch": self.epoch, "step": self.step,
+                                               "edge": self.dataset.edge_number(int(e)) if e >= 0 else int(e),
+                                               "rank": self.rank}
                         with ctx:
                             C = None
                             try:

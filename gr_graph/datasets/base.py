@@ -60,7 +60,8 @@ class LidarFrame:
     index : int
         Frame index within its sequence.
     timestamp : float
-        Seconds since the start of the sequence.
+        Seconds since the sequence's first stamp (folders and bags whose stamps were moved to the
+        sweeps' middles start at that offset, e.g. +-0.05 s: :mod:`gr_graph.datasets.stamp_shift`).
     points : np.ndarray
         ``(N, 3)`` float64 points in the LiDAR frame.
     intensity : np.ndarray
@@ -138,8 +139,11 @@ def is_motion_compensated(sequence: Any) -> bool:
 
 def inherit_sweep_attributes(view: Any, parent: Any) -> None:
     """Give a view of ``parent`` (a frame subset, densified scans) the parent's sweep attributes:
-    ``motion_compensated`` and, when the parent has them, ``scan_period`` and ``sensor``."""
+    ``motion_compensated`` and, when the parent has them, ``scan_period``, ``sensor`` and
+    ``stamps_moved_by_s`` (:mod:`gr_graph.datasets.stamp_shift`)."""
     view.motion_compensated = is_motion_compensated(parent)
+    if getattr(parent, "stamps_moved_by_s", None) is not None:
+        view.stamps_moved_by_s = float(parent.stamps_moved_by_s)
     if getattr(parent, "scan_period", None) is not None:
         view.scan_period = float(parent.scan_period)
     if getattr(parent, "sensor", None) is not None:

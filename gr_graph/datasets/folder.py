@@ -37,7 +37,10 @@ Optional side files, given explicitly or found next to the scans (in the folder,
   own estimate, not ground truth (logged); the file taken is logged.
 
 Files with a per-point time field (PCD/PLY/npy ``t``/``time``/``timestamp``) make the sequence
-``motion_compensated = False``, so the odometry's ``deskew: auto`` deskews them.
+``motion_compensated = False``, so the odometry's ``deskew: auto`` deskews them. When those times
+are relative to the sweep (or ``sensor.frame_stamp`` says where the stamps lie), the timestamps
+are moved to the sweeps' middles, where the deskewed poses refer, and the ground truth along itself
+with them (:mod:`gr_graph.datasets.stamp_shift`); absolute per-point times keep the stamps.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ from gr_graph.datasets.frame_fields import (
 )
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
 from gr_graph.datasets.pointcloud2 import DecodedCloud
+from gr_graph.datasets.stamp_shift import stamps_at_sweep_middle
 from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
@@ -349,7 +353,10 @@ class FolderSequence:
             log.warning("%s: no timestamps file (%s): frames taken %.4g s apart (%s)", self.folder,
                         " / ".join(TIMESTAMP_FILES), float(stamps[1] - stamps[0]) if n > 1 else DEFAULT_FRAME_PERIOD_S,
                         "the usual 10 Hz" if source == "frame spacing" else source)
-        self.timestamps = stamps
+        self.timestamps, self.gt_poses = stamps_at_sweep_middle(
+            stamps, self.gt_poses, self.conventions.stamp_to_sweep_middle, str(self.folder),
+            self.conventions.stamp_to_sweep_middle_source)
+        self.stamps_moved_by_s = float(self.conventions.stamp_to_sweep_middle or 0.0)
         self.motion_compensated = self.conventions.motion_compensated
 
     @property

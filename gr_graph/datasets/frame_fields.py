@@ -30,6 +30,15 @@ a sequence fixes once, from its probe frames and the ``sensor`` section (:class:
   takes its frames 0.05 s apart; before, they were deskewed with half the motion) or a folder
   that keeps every other frame (spacing 0.2 s, sweeps of 0.1 s: deskewed to the sweep's middle
   instead of its end; the relative poses were right before too).
+- **Frame stamps**: a deskewed sweep's pose is that of the sweep's middle, while drivers stamp a
+  sweep's first point (Ouster, ROS2 Velodyne), its last (ROS1 Velodyne) or some instant between.
+  :attr:`FieldConventions.stamp_to_sweep_middle` is the time from a frame's stamp to its sweep's
+  middle: ``sensor.frame_stamp`` when given (``(0.5 - f) * scan_period`` for a stamp at sweep
+  fraction ``f``), else the median over the probe frames of what their per-point times show
+  (:func:`gr_graph.deskew.sweep_middle_offset`; times relative to the sweep count from the stamp,
+  absolute times from a bag's header stamp). Unknown (None) without per-point times, for absolute
+  times without a stamp on their clock (folders), and for offsets beyond one sweep (logged). The
+  loaders move the stamps by it (:func:`gr_graph.datasets.stamp_shift.stamps_at_sweep_middle`).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first probe frame's rings rises with the ring number, rings are flipped
@@ -57,7 +66,7 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame
 from gr_graph.datasets.pointcloud2 import DecodedCloud
-from gr_graph.deskew import RELATIVE_SLACK, normalise_times
+from gr_graph.deskew import RELATIVE_SLACK, normalise_times, sweep_middle_offset
 from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
@@ -77,6 +86,10 @@ have): a span outside, e.g. nanoseconds declared as seconds, is not a sweep dura
 SWEEP_SPACING_MISMATCH = 0.1
 """A full revolution's time span more than this (relative) away from the frame spacing is its
 sweep duration; closer, the spacing stays (unchanged results for data that agree)."""
+FRAME_STAMP_FRACTIONS = {"sweep_start": 0.0, "sweep_middle": 0.5, "sweep_end": 1.0}
+"""``sensor.frame_stamp``: the sweep fraction where the frame stamps lie."""
+STAMP_DISAGREEMENT = 0.1
+"""``sensor.frame_stamp`` further than this many sweeps from what the per-point times show is logged."""
 PROBE_FRAMES = 5
 """Frames that fix a sequence's conventions: its first frame with points and up to this many
 minus one more spread over the sequence (:func:`probe_indices`)."""
@@ -207,6 +220,10 @@ class FieldConventions:
         false): frames get no times / rings.
     fixed_rings : bool
         ``n_rings`` is the named sensor's beam count.
+    stamp_to_sweep_middle : float or None
+        Seconds from a frame's stamp to its sweep's middle (see the module docstring); None: unknown.
+    stamp_to_sweep_middle_source : str
+        ``"sensor.frame_stamp"``, ``"per-point times"`` or ``""`` (unknown).
     overlong_frames : set of str
         Sources of the frames read so far whose times spanned more than :data:`GUESSED_UNIT_SLACK`
         sweeps past one under a guessed unit (clipped to the sweep; each logged once);
@@ -226,6 +243,8 @@ class FieldConventions:
     use_time: bool = True
     use_ring: bool = True
     fixed_rings: bool = False
+    stamp_to_sweep_middle: float | None = None
+    stamp_to_sweep_middle_source: str = ""
     overlong_frames: set[str] = field(default_factory=set)
 
     @property
@@ -241,7 +260,8 @@ class FieldConventions:
     @classmethod
     def probe(cls, cloud: DecodedCloud, frame_period: float, source: str,
               sensor: SensorConfig | None = None,
-              more: Sequence[tuple[DecodedCloud, str]] = ()) -> FieldConventions:
+              more: Sequence[tuple[DecodedCloud, str]] = (),
+              sweep_starts: Sequence[float | None] = ()) -> FieldConventions:
         """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart.
 
         Parameters
@@ -262,6 +282,9 @@ class FieldConventions:
             Further probe frames (:func:`probe_indices`) and their sources: the time unit is guessed
             on the frame of the median time span (the sweep duration is judged on ``cloud``), the
             ring count is their highest ring.
+        sweep_starts : sequence of float or None
+            The stamps (s) of ``cloud`` and of each of ``more`` on the clock of absolute per-point
+            times (a bag's header stamps), for :attr:`stamp_to_sweep_middle`; empty: not known.
 
         Raises
         ------
@@ -274,9 +297,14 @@ class FieldConventions:
         if sensor is not None and sensor.scan_period is not None:
             period, period_source = float(sensor.scan_period), "sensor.scan_period"
         conv = cls(scan_period=period, scan_period_source=period_source)
-        probes = [(cloud, source), *[(c, src) for c, src in more if len(c.points)]]
+        starts = list(sweep_starts) or [None] * (1 + len(more))
+        if len(starts) != 1 + len(more):
+            raise ValueError(f"sweep_starts holds {len(starts)} stamps for {1 + len(more)} probe frames")
+        kept = [0, *[k + 1 for k, (c, _) in enumerate(more) if len(c.points)]]
+        probes = [(cloud, source), *[more[k - 1] for k in kept[1:]]]
         conv._probe_time(probes, frame_period, sensor)
         conv._probe_ring(probes, sensor)
+        conv._probe_stamp([(*probes[j], starts[k]) for j, k in enumerate(kept)], sensor)
         return conv
 
     def _probe_time(self, probes: list[tuple[DecodedCloud, str]], frame_period: float,
@@ -337,6 +365,37 @@ class FieldConventions:
                     "sweep duration %.4g s taken from the times (set sensor.scan_period to say otherwise)",
                     source, span, self.scan_period, span)
         self.scan_period, self.scan_period_source = span, "per-point times"
+
+    def _probe_stamp(self, probes: list[tuple[DecodedCloud, str, float | None]], sensor: SensorConfig | None) -> None:
+        """:attr:`stamp_to_sweep_middle`: ``sensor.frame_stamp``, else what the probe frames' times show."""
+        measured: list[float] = []
+        if self.has_time and self.use_time:
+            for c, _, start in probes:
+                if c.time is None or not len(c.time):
+                    continue
+                offset = sweep_middle_offset(np.asarray(c.time, np.float64) * self.time_unit_s, self.scan_period,
+                                             self.time_reference, start)
+                if offset is not None:
+                    measured.append(offset)
+        source = probes[0][1]
+        median = float(np.median(measured)) if measured else None
+        given = None if sensor is None else sensor.frame_stamp
+        if given is not None:
+            self.stamp_to_sweep_middle = (0.5 - FRAME_STAMP_FRACTIONS[given]) * self.scan_period
+            self.stamp_to_sweep_middle_source = "sensor.frame_stamp"
+            if median is not None and abs(median - self.stamp_to_sweep_middle) > STAMP_DISAGREEMENT * self.scan_period:
+                log.warning("%s: sensor.frame_stamp %s puts the sweep's middle %+.4g s from the stamps; the "
+                            "per-point times show %+.4g s (median of %d probe frames): the sensor section is "
+                            "followed", source, given, self.stamp_to_sweep_middle, median, len(measured))
+            return
+        if median is None:
+            return
+        if abs(median) > self.scan_period:
+            log.warning("%s: the per-point times put the sweep's middle %+.4g s from the frame stamps, more than "
+                        "one sweep (%.4g s): the stamps are kept (set sensor.frame_stamp to move them)", source,
+                        median, self.scan_period)
+            return
+        self.stamp_to_sweep_middle, self.stamp_to_sweep_middle_source = median, "per-point times"
 
     def _probe_ring(self, probes: list[tuple[DecodedCloud, str]], sensor: SensorConfig | None) -> None:
         want = None if sensor is None else sensor.has_ring

@@ -508,6 +508,9 @@ def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int
     start, stop = parse_frames(frames, len(base))
     name = base.name
     _check_bin_sizes(base, start, stop)
+    if sensor.frame_stamp is not None and getattr(base, "stamps_moved_by_s", None) is None:
+        log.warning("%s: sensor.frame_stamp (%s) is read by the folder and bag loaders only; these data keep their "
+                    "stamps (KITTI's mark the sweep's middle, the synthetic world's too)", source, sensor.frame_stamp)
 
     named = sensor.named_beams is not None
 

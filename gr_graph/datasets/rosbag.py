@@ -16,7 +16,10 @@ when the header stamps do not increase (logged). Per-point times (fields ``t``/`
 (:mod:`gr_graph.datasets.frame_fields` for units, references and rings, and how the ``sensor``
 section overrides what is guessed); absolute per-point stamps that fall in the sweep starting
 at a message's header stamp count from it. The bag has no ground truth;
-``poses`` (a KITTI or TUM file with one LiDAR pose a message) adds it.
+``poses`` (a KITTI or TUM file with one LiDAR pose a message, at the message's stamp) adds it.
+With per-point times (or ``sensor.frame_stamp``) the timestamps are then moved to the sweeps'
+middles, where the deskewed poses refer, and the ground truth along itself with them
+(:mod:`gr_graph.datasets.stamp_shift`; e.g. +0.05 s for a 10 Hz driver stamping a sweep's first point).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import numpy as np
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index, increasing_stamps
 from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
 from gr_graph.datasets.pointcloud2 import decode_pointcloud2
+from gr_graph.datasets.stamp_shift import stamps_at_sweep_middle
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -148,11 +152,12 @@ class RosbagSequence:
         self.stamps_s = stamp_ns.astype(np.float64) * 1e-9
         """The frames' stamps (s, the bag's clock): where absolute per-point times may count from."""
         self._cursor: tuple[int, Iterator] | None = None
-        more = [(decode_pointcloud2(self._message(k), self._source(k)), self._source(k))
-                for k in probe_indices(len(self), probe_index)[1:]]  # spread over the bag (FieldConventions.probe)
+        more_indices = probe_indices(len(self), probe_index)[1:]  # spread over the bag (FieldConventions.probe)
+        more = [(decode_pointcloud2(self._message(k), self._source(k)), self._source(k)) for k in more_indices]
         self._cursor = None
         self.conventions = FieldConventions.probe(first_cloud, frame_period(self.timestamps), self._source(probe_index),
-                                                  sensor, more)
+                                                  sensor, more,
+                                                  [float(self.stamps_s[k]) for k in (probe_index, *more_indices)])
         self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
         self.motion_compensated = self.conventions.motion_compensated
         if self.motion_compensated:  # a driver's raw sweeps without times look the same: say what is assumed
@@ -166,6 +171,10 @@ class RosbagSequence:
             self.gt_poses, pose_times = read_pose_file(Path(poses), len(self))
             if pose_times is not None:  # a TUM file: its times must follow the messages' (up to an offset)
                 check_pose_times(pose_times, self.timestamps, Path(poses), self.path)
+        self.timestamps, self.gt_poses = stamps_at_sweep_middle(
+            self.timestamps, self.gt_poses, self.conventions.stamp_to_sweep_middle, f"{self.path}: topic {self.topic}",
+            self.conventions.stamp_to_sweep_middle_source)
+        self.stamps_moved_by_s = float(self.conventions.stamp_to_sweep_middle or 0.0)
 
     def _source(self, k: int) -> str:
         return f"{self.path}: topic {self.topic} message {k}"

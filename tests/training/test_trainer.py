@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -83,6 +84,38 @@ def test_dataset_sample_is_consistent_and_deterministic(memory_dir):
     s2 = ds.sample(1, epoch=0)
     np.testing.assert_array_equal(s.q_points, s2.q_points)
     assert not np.array_equal(ds.sample(1, epoch=1).q_points, s.q_points)
+
+
+def test_edges_whose_registration_failed_are_not_trained_on(memory_dir):
+    """Flagged edges (info["flagged_edges"]: the odometry's constant-velocity fallback) are left out; every
+    other edge gives the sample it gave before, drawn with its own edge number."""
+    mem = load_memory(memory_dir)
+    net = NetConfig(**SMALL_NET)
+    every = PairDataset(mem, net, max_corr=300, seed=0)
+    flagged = dataclasses.replace(mem, info={**mem.info, "flagged_edges": [1, 3]})
+    ds = PairDataset(flagged, net, max_corr=300, seed=0)
+    assert len(every) == mem.n_edges == 5 and len(ds) == 3
+    assert [ds.sample(i).edge for i in range(len(ds))] == [0, 2, 4]
+    for i, e in enumerate((0, 2, 4)):
+        np.testing.assert_array_equal(ds.sample(i, epoch=1).q_points, every.sample(e, epoch=1).q_points)
+    d = ds.describe()
+    assert (d["n_edges"], d["n_flagged_left_out"], d["n_odometry"] + d["n_loop"]) == (3, 2, 3)
+    assert "n_flagged_left_out" not in every.describe()  # a checkpoint written before still resumes
+    for outside in (3, -1):
+        with pytest.raises(IndexError):
+            ds.sample(outside)
+
+
+def test_training_logs_memory_edge_numbers_and_refuses_a_memory_of_flagged_edges(memory_dir, tmp_path):
+    from training.train import load_training_memory
+
+    mem = load_memory(memory_dir)
+    flagged = dataclasses.replace(mem, info={**mem.info, "flagged_edges": [1, 3]})
+    Trainer(flagged, tmp_path / "run", _cfg(epochs=1)).fit(resume=False)
+    assert sorted(r["edge"] for r in _log(tmp_path / "run")) == [0, 2, 4]  # the memory's, not positions 0-2
+    dataclasses.replace(mem, info={**mem.info, "flagged_edges": list(range(mem.n_edges))}).save(tmp_path / "all")
+    with pytest.raises(TrainingError, match=r"all: all 5 edges of the memory are flagged"):
+        load_training_memory(tmp_path / "all")
 
 
 def test_losses_decrease_on_short_run(memory_dir, tmp_path):
