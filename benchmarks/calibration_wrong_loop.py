@@ -5,7 +5,8 @@ is right, and ``n`` correct loops between the laps (``n`` = 15, or 3); every dra
 (poses 280 -> 20, 2 m and 3 deg off) that passed verification. The information of every edge is
 then calibrated as the learning rounds do (:func:`gr_graph.noise_calibration.variance_factor` on the
 Gaussian graph) with the wrong loop in the estimate (the behaviour before 2026-12-06) and with the
-loops that fail :func:`gr_graph.noise_calibration.outlying_loop` left out (the default since), and the
+loops that fail :func:`gr_graph.noise_calibration.outlying_loop` left out (opt-in since, with
+``training.learned_noise_outlier_alpha``: on the full synthetic route it left out correct loops), and the
 robust graph (Cauchy loops, as SLAM solves it) is scored by ATE against the constructed truth, beside
 the same graph without the wrong loop. Also counted: false alarms of the test on the graphs without
 a wrong loop.

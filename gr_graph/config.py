@@ -270,6 +270,9 @@ class AcceptanceConfig(_Section):
     window_quantile: float = Field(0.9, gt=0.0, le=1.0, description="quantile of the per-window entropy increase tested")
     max_window_entropy_increase: float = Field(
         0.1, description="reject when that quantile of per-window entropy increases is above this [nats]")
+    min_measurable_fraction: float = Field(
+        0.5, ge=0.0, le=1.0, description="reject when a window keeps less than this fraction of the reference's "
+        "measurable query points (a map spread too thin to measure; its entropy would look sharp)")
     max_flagged_rate_increase: float = Field(
         0.02, description="reject when the fraction of failed odometry registrations rose by more")
     standstill_step: float = Field(

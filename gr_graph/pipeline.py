@@ -364,6 +364,8 @@ class SlamPipeline:
             neither ``metrics.json`` nor the final poses are written).
         """
         self.check_resume()
+        for name in ("poses_kitti.txt", "poses_tum.txt"):  # an earlier run's final trajectory, even when every
+            (self.out / name).unlink(missing_ok=True)   # round resumes: written again at the end
         if self.frame_cache is not None:
             self.frame_cache.open()
         self.prepare()
@@ -530,15 +532,13 @@ class SlamPipeline:
     def compute_round(self, r: int, resume_training: bool) -> dict[str, Any]:
         """Round 0: SLAM on the raw scans; round r ≥ 1: train, densify, SLAM on the densified scans.
         Every later round's ``round.json`` is removed first: made from another round ``r``, it must
-        not be resumed after an interruption (kept were a later run's rounds spliced onto this one);
-        so is the final trajectory at the top of ``--out`` (written again at the end of the run, it
-        must not stay beside a new ``config.yaml`` when this run fails)."""
+        not be resumed after an interruption (kept were a later run's rounds spliced onto this one).
+        (The final trajectory at the top of ``--out`` is removed when :meth:`run` starts: written
+        again at its end, it must not stay beside a new ``config.yaml`` when this run fails.)"""
         for later in sorted(self.out.glob("round_*/round.json")):
             k = later.parent.name.removeprefix("round_")
             if k.isdigit() and int(k) > r:
                 later.unlink()
-        for name in ("poses_kitti.txt", "poses_tum.txt"):
-            (self.out / name).unlink(missing_ok=True)
         if r == 0:
             return self.slam_round(0)
         t0 = time.perf_counter()
@@ -554,8 +554,10 @@ class SlamPipeline:
         summary = summaries[str(r)]
         ac = self.cfg.training.acceptance
         if r == 0 or not ac.enabled:
-            summary["accepted"] = True
-            summary.pop("acceptance", None)
+            if summary.get("accepted") is not True or "acceptance" in summary:  # e.g. a verdict of before
+                summary["accepted"] = True                                       # the test was disabled
+                summary.pop("acceptance", None)
+                write_round_summary(self.round_dir(r), summary)
             return True
         from gr_graph.round_acceptance import evaluate_round
 

@@ -202,6 +202,36 @@ def test_unmeasurable_map_or_other_windows_are_named():
         decide(shorter, ref, CFG)
 
 
+def test_a_stretch_thrown_apart_is_rejected_though_its_few_measurable_points_look_sharp():
+    """Frames 25-39 scattered by N(0, sigma) in position: the worse the scatter, the fewer centre points keep
+    min_neighbors map points, and the few left (near their own scan) look sharp: at 30 m the entropy alone
+    accepted the round. The share of the reference's measurable points a window keeps rejects it."""
+    poses = moving_then_stopped(60, 0)
+    scans = street_scans(poses, seed=6)
+    ref = sharpness(scans, poses)
+    entropy_only = CFG.model_copy(update={"min_measurable_fraction": 0.0})
+    for sigma, kept_at_least in ((0.01, 0.9), (30.0, None)):
+        scattered = poses.copy()
+        scattered[25:40, :3, 3] += np.random.default_rng(5).normal(0, sigma, (15, 3))
+        fig = sharpness(scans, scattered)
+        v = decide(fig, ref, CFG)
+        if kept_at_least is not None:  # jitter: the windows stay measurable
+            assert v["worst_window_measurable_fraction"] > kept_at_least
+            continue
+        assert decide(fig, ref, entropy_only)["accepted"]  # what the entropy alone said
+        assert not v["accepted"] and v["worst_window_measurable_fraction"] < 0.1
+        assert any("spread too thin to measure" in r for r in v["reasons"])
+
+
+def test_reported_mean_entropies_are_over_the_windows_both_rounds_measure():
+    poses = moving_then_stopped(20, 0)
+    ref = sharpness(street_scans(poses, seed=4), poses)
+    fig = {**ref, "entropy": ref["entropy"] + 0.01}
+    fig["entropy"][0] = np.nan  # one window the round cannot measure: left out of both means
+    v = decide(fig, ref, CFG)
+    assert v["mean_entropy"] - v["reference_mean_entropy"] == pytest.approx(v["mean_entropy_increase"]) == 0.01
+
+
 def test_relative_pose_agreement_closed_form():
     """A trajectory whose every step is 2 cm longer than the reference's: the translation
     difference is 2 cm per pair; under isotropic edge information 1e4 (sigma 1 cm) on both,
@@ -391,3 +421,24 @@ def test_untrained_round_is_rejected_and_round_0_is_the_final_trajectory(tmp_pat
     assert (out / "round_1" / "round.json").stat().st_mtime_ns == stamp
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["final_round"] == 0 and m2["rounds"]["1"]["accepted"] is False
+    assert json.loads((out / "round_0" / "round.json").read_text())["accepted"] is True
+    # a rerun that resumes every round and fails before the end leaves no earlier final trajectory behind
+    from gr_graph.pipeline import SlamPipeline
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("stopped while judging")
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(SlamPipeline, "judge", fail)
+        with pytest.raises(RuntimeError, match="stopped while judging"):
+            main(argv)
+    assert not (out / "poses_kitti.txt").exists() and not (out / "poses_tum.txt").exists()
+    # the test disabled: the rounds resume, and round 1's folder no longer says it was rejected
+    cfg["training"]["acceptance"]["enabled"] = False
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    assert main([*argv[:argv.index("--rounds")], "--rounds", "1", *argv[argv.index("--rounds") + 2:]]) == 0
+    r1_now = json.loads((out / "round_1" / "round.json").read_text())
+    assert r1_now["accepted"] is True and "acceptance" not in r1_now
+    m3 = json.loads((out / "metrics.json").read_text())
+    assert m3["final_round"] == 1 and m3["rounds"]["1"]["accepted"] is True
+    assert (out / "poses_kitti.txt").read_bytes() == (out / "round_1" / "poses_kitti.txt").read_bytes()
