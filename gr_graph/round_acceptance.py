@@ -27,7 +27,9 @@ on figures that need no ground truth:
 * **Creep at a standstill** (:func:`standstill_creep`): the stretches of at least
   ``min_standstill_frames`` frames in which the reference moves less than ``standstill_step`` a
   frame; over each, the round's net displacement (first to last frame) minus the reference's,
-  per frame. Jitter does not add up to a net displacement; a creep does.
+  per frame. Jitter does not add up to a net displacement; a creep does. When the reference is a
+  later round, the same test is also made against round 0's standstills, so that creep accepted
+  round after round within the tolerance does not add up (``standstill_round_0`` in the verdict).
 
 The map entropy uses a surface thickness floor ``thickness_floor`` (σ_f: the entropy of
 Σ + σ_f² I): where the reference map is sharper than any sensor's range noise (a standstill,
@@ -285,10 +287,14 @@ def round_figures(scans: Sequence[np.ndarray], poses: np.ndarray, rd: Path, summ
 
 
 def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
-           long_baseline: dict[str, Any] | None = None) -> dict[str, Any]:
+           long_baseline: dict[str, Any] | None = None,
+           round0_positions: np.ndarray | None = None) -> dict[str, Any]:
     """Accept or reject a round from its figures and the reference's (module docstring).
 
     ``long_baseline`` is :func:`long_baseline_comparison` of the two rounds (None: not measured).
+    ``round0_positions``: round 0's positions when the reference is a later round; the creep test is
+    then also made against round 0's standstills, so that creep accepted round after round within the
+    tolerance does not add up (None: against the reference only).
     Returns the verdict: ``accepted``, the ``reasons`` for a rejection and the figures compared.
     """
     if not np.array_equal(np.asarray(fig["centres"]), np.asarray(ref["centres"])):
@@ -307,6 +313,10 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
         creep = standstill_creep(fig["positions"], ref["positions"], cfg.standstill_step, cfg.min_standstill_frames)
     elif fig["finite_poses"]:
         log.warning("acceptance: no standstill test (the figures hold no positions of the same frames)")
+    creep0 = None
+    if (round0_positions is not None and creep is not None
+            and np.shape(round0_positions) == np.shape(fig["positions"])):
+        creep0 = standstill_creep(fig["positions"], round0_positions, cfg.standstill_step, cfg.min_standstill_frames)
     reasons = []
     if not fig["finite_poses"]:
         reasons.append("non-finite poses")
@@ -322,11 +332,11 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
     if ok.any() and window_inc > cfg.max_window_entropy_increase:
         reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
                        f"{cfg.max_window_entropy_increase} nats")
-    if creep is not None and creep["worst_creep_per_frame"] > cfg.max_standstill_creep:
-        w = int(np.argmax(np.nan_to_num(creep["creep_per_frame"], nan=np.inf)))
-        first, last = creep["stretches"][w]
-        reasons.append(f"crept {1e3 * creep['worst_creep_per_frame']:.2f} mm a frame more than the reference while it "
-                       f"stood still (frames {first}-{last}) > {1e3 * cfg.max_standstill_creep:g} mm")
+    for c, than in ((creep, "the reference"), (creep0, "round 0")):
+        if c is not None and c["worst_creep_per_frame"] > cfg.max_standstill_creep:
+            first, last = c["stretches"][int(np.argmax(np.nan_to_num(c["creep_per_frame"], nan=np.inf)))]
+            reasons.append(f"crept {1e3 * c['worst_creep_per_frame']:.2f} mm a frame more than {than} while it "
+                           f"stood still (frames {first}-{last}) > {1e3 * cfg.max_standstill_creep:g} mm")
     if flagged_inc > cfg.max_flagged_rate_increase:
         reasons.append(f"registration failures rose by {flagged_inc:.4f} > {cfg.max_flagged_rate_increase}")
     lb_inc = None if long_baseline is None else long_baseline.get("rotation_increase")
@@ -353,10 +363,16 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
         "n_windows": int(ok.sum()),
         "worst_window_measurable_fraction": None if measurable is None else round(measurable["worst"], 4),
         "long_baseline": long_baseline,
-        "standstill": None if creep is None else {
-            "stretches": creep["stretches"], "creep_per_frame_m": [round(c, 6) for c in creep["creep_per_frame"]],
-            "worst_creep_per_frame_m": round(creep["worst_creep_per_frame"], 6)},
+        "standstill": _creep_figures(creep),
+        "standstill_round_0": _creep_figures(creep0),
     }
+
+
+def _creep_figures(creep: dict[str, Any] | None) -> dict[str, Any] | None:
+    """:func:`standstill_creep`'s figures as the verdict records them."""
+    return None if creep is None else {
+        "stretches": creep["stretches"], "creep_per_frame_m": [round(c, 6) for c in creep["creep_per_frame"]],
+        "worst_creep_per_frame_m": round(creep["worst_creep_per_frame"], 6)}
 
 
 def _measurable_fraction(fig: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any] | None:
@@ -487,7 +503,8 @@ def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[
     ref = round_figures(scans, ref_poses, rd_ref, summaries[str(reference)], cfg)
     measure = cfg.long_baseline or cfg.max_long_baseline_rotation_increase is not None
     lb = long_baseline_comparison(scans, poses, ref_poses, cfg) if measure else None
-    verdict = {"reference_round": reference, **decide(fig, ref, cfg, long_baseline=lb)}
+    round0 = read_round_poses(round_dir(out, 0))[:, :3, 3] if reference != 0 else None
+    verdict = {"reference_round": reference, **decide(fig, ref, cfg, long_baseline=lb, round0_positions=round0)}
     if len(poses) == len(ref_poses):
         verdict["relative_pose_agreement"] = relative_pose_agreement(
             poses, ref_poses, _odometry_information(rd, len(poses)), _odometry_information(rd_ref, len(ref_poses)))

@@ -223,6 +223,28 @@ def test_a_stretch_thrown_apart_is_rejected_though_its_few_measurable_points_loo
         assert any("spread too thin to measure" in r for r in v["reasons"])
 
 
+def test_creep_accepted_round_after_round_is_tested_against_round_0_too():
+    """Each round creeps 0.9 mm a frame more than the one before over a stop (within the 1 mm tolerance):
+    against its reference alone round 2 passes, against round 0's standstill (1.8 mm a frame) it fails."""
+    poses = moving_then_stopped(20, 30)
+    ref = sharpness(street_scans(poses, seed=7), poses)
+    still = np.arange(30)  # frames 20-49 stand still in round 0
+
+    def creeping(mm_per_frame: float) -> dict:
+        p = np.asarray(ref["positions"]).copy()
+        p[20:, 0] += 1e-3 * mm_per_frame * still
+        return {**ref, "positions": p}
+
+    round1, round2 = creeping(0.9), creeping(1.8)
+    assert decide(round1, ref, CFG)["accepted"]
+    alone = decide(round2, round1, CFG)
+    assert alone["accepted"] and alone["standstill_round_0"] is None
+    v = decide(round2, round1, CFG, round0_positions=ref["positions"])
+    assert not v["accepted"] and v["reasons"] == [
+        "crept 1.80 mm a frame more than round 0 while it stood still (frames 20-49) > 1 mm"]
+    assert v["standstill_round_0"]["worst_creep_per_frame_m"] == pytest.approx(1.8e-3)
+
+
 def test_reported_mean_entropies_are_over_the_windows_both_rounds_measure():
     poses = moving_then_stopped(20, 0)
     ref = sharpness(street_scans(poses, seed=4), poses)
