@@ -7,7 +7,8 @@ Each learning round is then judged against its recorded reference round from its
 and summary (:func:`gr_graph.round_acceptance.round_figures`, :func:`decide`), and set beside its
 recorded verdict: whether the recomputed window entropies reproduce the recorded ones, the verdict,
 the smallest share of the reference's measurable points a window kept and the worst creep against
-round 0's standstills (the two rules added on 2026-12-06). ``--full-coverage`` places the windows side by side over the whole run instead of the
+round 0's standstills (the two rules added on 2026-12-06), and the mean entropy rise against round 0
+(tested since 2026-12-07). ``--full-coverage`` places the windows side by side over the whole run instead of the
 default 60.
 
 Run::
@@ -66,8 +67,7 @@ def rejudge(cell_dir: Path, scans: list[np.ndarray], cfg: AcceptanceConfig, full
         if r == 0 or not recorded:
             continue
         reference = recorded["reference_round"]
-        round0 = read_round_poses(cell_dir / "round_0")[:, :3, 3] if reference != 0 else None
-        v = decide(figure(r), figure(reference), cfg, round0_positions=round0)
+        v = decide(figure(r), figure(reference), cfg, round0=figure(0) if reference != 0 else None)
         creep0 = (v["standstill_round_0"] or v["standstill"] or {}).get("worst_creep_per_frame_m")
         same = None if full else bool(np.allclose(np.asarray(figure(r)["entropy"], float),
                                                   np.asarray(recorded["window_entropy"], float),
@@ -78,8 +78,13 @@ def rejudge(cell_dir: Path, scans: list[np.ndarray], cfg: AcceptanceConfig, full
                      "mean_entropy_increase": v["mean_entropy_increase"],
                      "window_entropy_increase": v["window_entropy_increase"],
                      "worst_window_measurable_fraction": v["worst_window_measurable_fraction"],
-                     "worst_creep_vs_round_0_m": creep0})
+                     "worst_creep_vs_round_0_m": creep0,
+                     "mean_entropy_increase_vs_round_0": (v["map_sharpness_round_0"] or v)["mean_entropy_increase"]})
     return rows
+
+
+def _nats(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:+.4f}"
 
 
 def _mm(metres: float | None) -> str:
@@ -110,13 +115,14 @@ def main(argv: list[str] | None = None) -> int:
              f"{' --full-coverage' if args.full_coverage else ''}` on {args.root.name} ({len(cells)} cells); "
              f"{changed} of {len(rows)} verdicts differ from the recorded ones.", "",
              "| cell | round (reference) | windows | recorded | now | entropies reproduced | mean / q0.9 entropy rise "
-             "(nats) | worst window measurable share | worst creep vs round 0 (mm/frame) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "(nats) | mean entropy rise vs round 0 | worst window measurable share | worst creep vs round 0 (mm/frame) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['cell']} | {r['round']} ({r['reference']}) | {r['windows']} | {r['recorded_accepted']} | "
                      f"{r['accepted']}{' (' + '; '.join(r['reasons']) + ')' if r['reasons'] else ''} | "
                      f"{'-' if r['entropies_reproduced'] is None else r['entropies_reproduced']} | "
-                     f"{r['mean_entropy_increase']:+.4f} / {r['window_entropy_increase']:+.4f} | "
+                     f"{_nats(r['mean_entropy_increase'])} / {_nats(r['window_entropy_increase'])} | "
+                     f"{_nats(r['mean_entropy_increase_vs_round_0'])} | "
                      f"{r['worst_window_measurable_fraction']:.3f} | {_mm(r['worst_creep_vs_round_0_m'])} |")
     name = "acceptance_rejudge_full" if args.full_coverage else "acceptance_rejudge"
     print_and_write(name, "\n".join(lines), {"root": args.root.name, "cells": cells, "rows": rows}, args.write)

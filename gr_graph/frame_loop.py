@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict, deque
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing, contextmanager
 from dataclasses import dataclass, field, replace
@@ -350,6 +350,12 @@ class SlamResult:
         return [e for e in self.edges if e.kind == "loop"]
 
 
+def not_converged_counts(edges: Sequence[RegistrationEdge]) -> dict[str, int]:
+    """Accepted edges of each kind (``odometry``, ``loop``) whose registration ended without passing
+    small_gicp's convergence test (:attr:`RegistrationEdge.converged`)."""
+    return {kind: sum(e.ok and e.kind == kind and not e.converged for e in edges) for kind in ("odometry", "loop")}
+
+
 class LoopCorrectedEstimate:
     """The current trajectory estimate: the last optimised poses (a prefix of the run), then
     the odometry poses moved by the correction at the end of that prefix."""
@@ -416,11 +422,11 @@ class _FrameLoop:
         self.deskewer = FrameDeskewer(scan_period, cfg.sensor.rotation == "clockwise", cfg.sensor.sweep_start_azimuth_deg)
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
-        moved = float(getattr(sequence, "stamps_moved_by_s", 0.0))
-        if moved and not self.deskew_on:
+        self.stamps_moved_by_s = float(getattr(sequence, "stamps_moved_by_s", 0.0))  # by the loader (stamp_shift)
+        if self.stamps_moved_by_s and not self.deskew_on:
             log.warning("the frame stamps were moved by %+.4g s to the sweeps' middles, but deskewing is off (%s): "
-                        "the poses refer to the scans as the data hold them, not necessarily to the sweeps' middles", moved,
-                        self.deskew_reason)
+                        "the poses refer to the scans as the data hold them, not necessarily to the sweeps' middles",
+                        self.stamps_moved_by_s, self.deskew_reason)
         if self.deskew_on:
             log.info("deskewing every frame to mid-sweep (%s)", self.deskew_reason)
             if edge_noise is not None:  # H(C) pairs the network's points under T̂ between deskewed frames
@@ -720,6 +726,10 @@ class _FrameLoop:
         if self.n_flagged:
             log.warning("%d of %d odometry edges failed and were replaced by the constant-velocity guess",
                         self.n_flagged, max(K - 1, 0))
+        for kind, n in not_converged_counts(self.edges).items():
+            if n:
+                log.warning("%d accepted %s edges ended without passing small_gicp's convergence test (iteration "
+                            "limit, or no step lowered the error); kept, as their other tests passed", n, kind)
         odom_poses = np.asarray(self.odometry.poses)
         with self.timer("graph"):
             self.graph.set_estimate(self.estimate.poses(K))
@@ -753,7 +763,7 @@ class _FrameLoop:
                   "n_unusable_scans": len(self.usable) - sum(self.usable),
                   "scans_left_out_of_map": self.odometry.scans_left_out_of_map,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason,
-                                                  float(getattr(self.sequence, "stamps_moved_by_s", 0.0))),
+                                                  self.stamps_moved_by_s),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
                              "loop_max_rmse": self.loop_cfg.max_rmse},
                   "marginals": marginals, "loop_variance": self.loop_variance},

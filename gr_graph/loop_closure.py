@@ -330,4 +330,4 @@ def verify_loop(
                                                         cfg.max_correspondence_distance))
     return RegistrationEdge(cand.query, cand.match, T, H, information, ratio,
                             float(res.error / max(res.num_inliers, 1)), int(res.iterations), True, "", "loop",
-                            {**info, **extra, "covariance": model})
+                            {**info, **extra, "covariance": model}, converged=bool(res.converged))

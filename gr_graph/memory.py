@@ -171,6 +171,13 @@ class Memory:
         """Number of scan pairs E."""
         return len(self.edges)
 
+    @property
+    def flagged_edges(self) -> frozenset[int]:
+        """Numbers of the edges whose registration failed in SLAM (``info["flagged_edges"]``,
+        :mod:`gr_graph.memory_builder`): their T̂ and correspondences come from the fallback
+        guess. Numbers outside ``0 .. E-1`` are ignored."""
+        return frozenset(int(e) for e in (self.info or {}).get("flagged_edges", []) if 0 <= int(e) < self.n_edges)
+
     def scans(self) -> list[np.ndarray]:
         """Every scan's points, as :meth:`scan` gives them (views: memory-mapped when loaded so, no copy)."""
         return [self.scan(k) for k in range(self.n_scans)]

@@ -91,6 +91,11 @@ class RegistrationEdge:
         "odometry" or "loop".
     info : dict
         Extra figures (loop rmse, descriptor distance...).
+    converged : bool
+        False when the registration ended without passing small_gicp's convergence test: it
+        stopped at its iteration limit, or the Levenberg-Marquardt steps found no lower error (of a
+        loop, the last of its three GICP stages). Such an edge is kept if its other tests pass,
+        and counted in the round's summary. True for failed edges, which carry no registration.
     """
 
     source: int
@@ -105,6 +110,7 @@ class RegistrationEdge:
     reason: str = ""
     kind: str = "odometry"
     info: dict = field(default_factory=dict)
+    converged: bool = True
 
 
 def sigmas_information(sigmas: tuple[float, ...] | np.ndarray) -> np.ndarray:
@@ -364,6 +370,7 @@ class VgicpOdometry:
                 iterations=int(res.iterations),
                 ok=True,
                 info={"covariance": model},
+                converged=bool(res.converged),
             )
             self._delta = T_rel
             self._motion_known = True

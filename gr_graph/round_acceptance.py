@@ -27,9 +27,11 @@ on figures that need no ground truth:
 * **Creep at a standstill** (:func:`standstill_creep`): the stretches of at least
   ``min_standstill_frames`` frames in which the reference moves less than ``standstill_step`` a
   frame; over each, the round's net displacement (first to last frame) minus the reference's,
-  per frame. Jitter does not add up to a net displacement; a creep does. When the reference is a
-  later round, the same test is also made against round 0's standstills, so that creep accepted
-  round after round within the tolerance does not add up (``standstill_round_0`` in the verdict).
+  per frame. Jitter does not add up to a net displacement; a creep does.
+
+When the reference is a later round, the map-sharpness tests and the creep test are also made
+against round 0, with the same tolerances, so that losses accepted round after round within the
+tolerances do not add up (``map_sharpness_round_0`` and ``standstill_round_0`` in the verdict).
 
 The map entropy uses a surface thickness floor ``thickness_floor`` (σ_f: the entropy of
 Σ + σ_f² I): where the reference map is sharper than any sensor's range noise (a standstill,
@@ -207,6 +209,19 @@ def standstill_creep(positions: np.ndarray, reference_positions: np.ndarray, sti
     return {"stretches": stretches, "creep_per_frame": creep, "worst_creep_per_frame": worst}
 
 
+def _linear_quantile_with_inf(values: np.ndarray, q: float) -> float:
+    """``np.quantile(values, q)`` (linear) of values some of which are +inf: inf when the quantile
+    lies between a finite value and an infinite one, the value itself when it falls on one
+    (numpy's interpolation gives NaN for inf - inf and inf * 0)."""
+    s = np.sort(np.asarray(values, np.float64))
+    pos = q * (len(s) - 1)
+    lo = int(np.floor(pos))
+    frac = pos - lo
+    if frac == 0.0 or lo + 1 >= len(s):
+        return float(s[lo])
+    return float("inf") if np.isinf(s[lo + 1]) else float(s[lo] + frac * (s[lo + 1] - s[lo]))
+
+
 def _log_se3_translation_rotation(T: np.ndarray) -> np.ndarray:
     """(M, 6) [omega, v] of each 4x4 in ``T`` (gtsam's Pose3 log, tangent order)."""
     import gtsam
@@ -221,6 +236,9 @@ def relative_pose_agreement(poses: np.ndarray, reference: np.ndarray, informatio
     ``information`` / ``reference_information``: (K-1, 6, 6) odometry-edge information of each
     consecutive pair (k, k+1), gtsam order [omega, v]; the difference xi = Log(dT_ref⁻¹ dT) is
     scored with (Λ⁻¹ + Λ_ref⁻¹)⁻¹. Without information only the metric differences are returned.
+    A pair whose relative pose is not finite in one trajectory or both disagrees without bound: its
+    differences count as infinite (``n_nonfinite_pairs`` says how many; :func:`evaluate_round`
+    records infinite figures as null).
     """
     poses, reference = np.asarray(poses, np.float64), np.asarray(reference, np.float64)
     if poses.shape != reference.shape:
@@ -230,19 +248,29 @@ def relative_pose_agreement(poses: np.ndarray, reference: np.ndarray, informatio
     rel = np.linalg.inv(poses[:-1]) @ poses[1:]
     rel_ref = np.linalg.inv(reference[:-1]) @ reference[1:]
     diff = np.linalg.inv(rel_ref) @ rel
-    trans = np.linalg.norm(diff[:, :3, 3], axis=1)
+    finite = np.isfinite(diff).all(axis=(1, 2))
+    with np.errstate(over="ignore"):
+        trans = np.linalg.norm(np.where(finite[:, None], diff[:, :3, 3], 0.0), axis=1)
+    finite &= np.isfinite(trans)
+    trans[~finite] = np.inf
+    p95 = np.quantile(trans, 0.95) if finite.all() else _linear_quantile_with_inf(trans, 0.95)
     out: dict[str, float] = {"median_translation_difference_m": float(np.median(trans)),
-                             "p95_translation_difference_m": float(np.quantile(trans, 0.95))}
+                             "p95_translation_difference_m": float(p95)}
+    if not finite.all():
+        out["n_nonfinite_pairs"] = int((~finite).sum())
     if information is not None and reference_information is not None:
-        xi = _log_se3_translation_rotation(diff)
+        xi = _log_se3_translation_rotation(np.where(finite[:, None, None], diff, np.eye(4)))
         d2 = np.full(len(xi), np.nan)
         for k in range(len(xi)):
+            if not finite[k]:
+                d2[k] = np.inf
+                continue
             try:
                 S = np.linalg.inv(information[k]) + np.linalg.inv(reference_information[k])
                 d2[k] = float(xi[k] @ np.linalg.solve(S, xi[k]))
             except np.linalg.LinAlgError:
                 continue
-        ok = np.isfinite(d2)
+        ok = ~np.isnan(d2)  # a singular information leaves its pair out
         out["median_mahalanobis2"] = float(np.median(d2[ok])) if ok.any() else float("nan")
         out["fraction_beyond_chi2_999"] = float(np.mean(d2[ok] > CHI2_6_999)) if ok.any() else float("nan")
     return out
@@ -288,50 +316,45 @@ def round_figures(scans: Sequence[np.ndarray], poses: np.ndarray, rd: Path, summ
 
 def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
            long_baseline: dict[str, Any] | None = None,
-           round0_positions: np.ndarray | None = None) -> dict[str, Any]:
+           round0: dict[str, Any] | None = None) -> dict[str, Any]:
     """Accept or reject a round from its figures and the reference's (module docstring).
 
     ``long_baseline`` is :func:`long_baseline_comparison` of the two rounds (None: not measured).
-    ``round0_positions``: round 0's positions when the reference is a later round; the creep test is
-    then also made against round 0's standstills, so that creep accepted round after round within the
-    tolerance does not add up (None: against the reference only).
+    ``round0``: round 0's figures (:func:`round_figures`) when the reference is a later round; the map
+    sharpness tests and the creep test are then also made against round 0, so that losses accepted
+    round after round within the tolerances do not add up (None: against the reference only).
     Returns the verdict: ``accepted``, the ``reasons`` for a rejection and the figures compared.
     """
     if not np.array_equal(np.asarray(fig["centres"]), np.asarray(ref["centres"])):
         raise ValueError("decide: the two rounds' windows are centred on different frames "
                          f"({len(fig['centres'])} and {len(ref['centres'])} windows); compare runs of the same frames")
-    d = np.asarray(fig["entropy"]) - np.asarray(ref["entropy"])
+    sharp = _sharpness_changes(fig, ref, cfg)
+    ok = sharp["measured"]
     dp = np.asarray(fig["plane_variance"]) - np.asarray(ref["plane_variance"])
-    ok = np.isfinite(d)
-    mean_inc = float(np.mean(d[ok])) if ok.any() else None  # None: not measurable (rejected for it)
-    window_inc = float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else None
     flagged_inc = fig["registration_failure_rate"] - ref["registration_failure_rate"]
-    measurable = _measurable_fraction(fig, ref)
     creep = None
     if (fig.get("positions") is not None and ref.get("positions") is not None and fig["finite_poses"]
             and np.shape(fig["positions"]) == np.shape(ref["positions"])):
         creep = standstill_creep(fig["positions"], ref["positions"], cfg.standstill_step, cfg.min_standstill_frames)
     elif fig["finite_poses"]:
         log.warning("acceptance: no standstill test (the figures hold no positions of the same frames)")
-    creep0 = None
-    if (round0_positions is not None and creep is not None
-            and np.shape(round0_positions) == np.shape(fig["positions"])):
-        creep0 = standstill_creep(fig["positions"], round0_positions, cfg.standstill_step, cfg.min_standstill_frames)
+    creep0, sharp0 = None, None
+    if round0 is not None and not round0["finite_poses"]:  # (then round 1 was rejected: not in a run that stops)
+        log.warning("acceptance: round 0 has non-finite poses: the round is judged against its reference only")
+    elif round0 is not None:
+        if not np.array_equal(np.asarray(round0["centres"]), np.asarray(fig["centres"])):
+            raise ValueError("decide: round 0's windows are centred on other frames than the round's")
+        sharp0 = _sharpness_changes(fig, round0, cfg)
+        if creep is not None and np.shape(round0.get("positions")) == np.shape(fig["positions"]):
+            creep0 = standstill_creep(fig["positions"], round0["positions"], cfg.standstill_step,
+                                      cfg.min_standstill_frames)
     reasons = []
     if not fig["finite_poses"]:
         reasons.append("non-finite poses")
-    if not ok.any():
-        if fig["finite_poses"]:  # (non-finite poses have their own reason)
-            reasons.append("map sharpness not measurable: no window has enough neighbours in both rounds")
-    elif mean_inc > cfg.max_mean_entropy_increase:
-        reasons.append(f"mean map entropy rose by {mean_inc:.4f} > {cfg.max_mean_entropy_increase} nats")
-    if fig["finite_poses"] and measurable is not None and measurable["worst"] < cfg.min_measurable_fraction:
-        reasons.append(f"the window at frame {measurable['centre']} kept {100 * measurable['worst']:.0f} % of the "
-                       f"reference's measurable points (< {100 * cfg.min_measurable_fraction:g} %): its map is spread "
-                       "too thin to measure")
-    if ok.any() and window_inc > cfg.max_window_entropy_increase:
-        reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {window_inc:.4f} > "
-                       f"{cfg.max_window_entropy_increase} nats")
+    reasons += _sharpness_reasons(sharp, cfg, fig["finite_poses"], "")
+    if sharp0 is not None:
+        # (when the reference's windows are not measurable either, that reason is given once)
+        reasons += _sharpness_reasons(sharp0, cfg, fig["finite_poses"] and sharp["mean"] is not None, " than round 0")
     for c, than in ((creep, "the reference"), (creep0, "round 0")):
         if c is not None and c["worst_creep_per_frame"] > cfg.max_standstill_creep:
             first, last = c["stretches"][int(np.argmax(np.nan_to_num(c["creep_per_frame"], nan=np.inf)))]
@@ -345,14 +368,15 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
         reasons.append(f"median rotation discrepancy over {long_baseline['n_registered']} pairs "
                        f"{cfg.long_baseline_distance:g} m apart rose by {100 * lb_inc:.1f} % > "
                        f"{100 * cfg.max_long_baseline_rotation_increase:g} %")
+    d = sharp["entropy_increase"]
     return {
         "accepted": not reasons,
         "reasons": reasons,
         # both means over the windows measurable in both rounds, as the increase is
         "mean_entropy": float(np.mean(np.asarray(fig["entropy"])[ok])) if ok.any() else None,
         "reference_mean_entropy": float(np.mean(np.asarray(ref["entropy"])[ok])) if ok.any() else None,
-        "mean_entropy_increase": mean_inc,
-        "window_entropy_increase": window_inc,
+        "mean_entropy_increase": sharp["mean"],
+        "window_entropy_increase": sharp["window"],
         "max_window_entropy_increase_seen": float(np.max(d[ok])) if ok.any() else None,
         "mean_plane_variance": float(np.nanmean(fig["plane_variance"])) if ok.any() else None,
         "mean_plane_variance_change": float(np.nanmean(dp)) if np.isfinite(dp).any() else None,
@@ -361,11 +385,52 @@ def decide(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig,
         "loop_rejection_rate": fig["loop_rejection_rate"],
         "reference_loop_rejection_rate": ref["loop_rejection_rate"],
         "n_windows": int(ok.sum()),
-        "worst_window_measurable_fraction": None if measurable is None else round(measurable["worst"], 4),
+        "worst_window_measurable_fraction": _worst_fraction(sharp),
         "long_baseline": long_baseline,
         "standstill": _creep_figures(creep),
         "standstill_round_0": _creep_figures(creep0),
+        "map_sharpness_round_0": None if sharp0 is None else {
+            "mean_entropy_increase": sharp0["mean"], "window_entropy_increase": sharp0["window"],
+            "n_windows": int(sharp0["measured"].sum()), "worst_window_measurable_fraction": _worst_fraction(sharp0)},
     }
+
+
+def _sharpness_changes(fig: dict[str, Any], ref: dict[str, Any], cfg: AcceptanceConfig) -> dict[str, Any]:
+    """The map-sharpness changes of ``fig`` against ``ref``: per-window entropy increase, the windows
+    measured in both (``measured``), the ``mean`` and ``window`` (quantile) increases (None when no
+    window is measured in both) and the measurable-points share (:func:`_measurable_fraction`)."""
+    d = np.asarray(fig["entropy"]) - np.asarray(ref["entropy"])
+    ok = np.isfinite(d)
+    return {"entropy_increase": d, "measured": ok,
+            "mean": float(np.mean(d[ok])) if ok.any() else None,
+            "window": float(np.quantile(d[ok], cfg.window_quantile)) if ok.any() else None,
+            "measurable": _measurable_fraction(fig, ref)}
+
+
+def _sharpness_reasons(changes: dict[str, Any], cfg: AcceptanceConfig, finite_poses: bool, than: str) -> list[str]:
+    """Why ``changes`` (:func:`_sharpness_changes`) reject a round; ``than`` names what it was compared with
+    ("" for the reference)."""
+    reasons = []
+    measurable = changes["measurable"]
+    if changes["mean"] is None:
+        if finite_poses:  # (non-finite poses have their own reason)
+            reasons.append(f"map sharpness not measurable{' against round 0' if than else ''}: no window has enough "
+                           "neighbours in both rounds")
+    elif changes["mean"] > cfg.max_mean_entropy_increase:
+        reasons.append(f"mean map entropy rose by {changes['mean']:.4f} > {cfg.max_mean_entropy_increase} nats{than}")
+    if finite_poses and measurable is not None and measurable["worst"] < cfg.min_measurable_fraction:
+        reasons.append(f"the window at frame {measurable['centre']} kept {100 * measurable['worst']:.0f} % of "
+                       f"{'round 0' if than else 'the reference'}'s measurable points "
+                       f"(< {100 * cfg.min_measurable_fraction:g} %): its map is spread too thin to measure")
+    if changes["window"] is not None and changes["window"] > cfg.max_window_entropy_increase:
+        reasons.append(f"map entropy of the worst windows (q{cfg.window_quantile:g}) rose by {changes['window']:.4f} > "
+                       f"{cfg.max_window_entropy_increase} nats{than}")
+    return reasons
+
+
+def _worst_fraction(changes: dict[str, Any]) -> float | None:
+    measurable = changes["measurable"]
+    return None if measurable is None else round(measurable["worst"], 4)
 
 
 def _creep_figures(creep: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -503,11 +568,16 @@ def evaluate_round(out: Path, r: int, reference: int, summaries: dict[str, dict[
     ref = round_figures(scans, ref_poses, rd_ref, summaries[str(reference)], cfg)
     measure = cfg.long_baseline or cfg.max_long_baseline_rotation_increase is not None
     lb = long_baseline_comparison(scans, poses, ref_poses, cfg) if measure else None
-    round0 = read_round_poses(round_dir(out, 0))[:, :3, 3] if reference != 0 else None
-    verdict = {"reference_round": reference, **decide(fig, ref, cfg, long_baseline=lb, round0_positions=round0)}
+    round0 = None
+    if reference != 0:  # losses accepted round after round must not add up: round 0 is tested against too
+        rd0 = round_dir(out, 0)
+        round0 = round_figures(scans, read_round_poses(rd0), rd0, summaries["0"], cfg)
+    verdict = {"reference_round": reference, **decide(fig, ref, cfg, long_baseline=lb, round0=round0)}
     if len(poses) == len(ref_poses):
-        verdict["relative_pose_agreement"] = relative_pose_agreement(
+        agreement = relative_pose_agreement(
             poses, ref_poses, _odometry_information(rd, len(poses)), _odometry_information(rd_ref, len(ref_poses)))
+        # strict JSON in round.json and metrics.json: a non-finite figure is null (n_nonfinite_pairs says why)
+        verdict["relative_pose_agreement"] = {k: v if np.isfinite(v) else None for k, v in agreement.items()}
     verdict["window_entropy"] = [None if not np.isfinite(v) else round(float(v), 5) for v in fig["entropy"]]
     verdict["reference_window_entropy"] = [None if not np.isfinite(v) else round(float(v), 5)
                                            for v in ref["entropy"]]

@@ -61,7 +61,7 @@ import numpy as np
 
 from gr_graph.atomic import atomic_save_npz, atomic_write_json, read_json_or_none
 from gr_graph.datasets.base import velo_to_cam_poses
-from gr_graph.frame_loop import SlamResult
+from gr_graph.frame_loop import SlamResult, not_converged_counts
 from gr_graph.pose_graph import position_covariance_world
 from gr_graph.trajectory import write_kitti_poses, write_tum_poses
 
@@ -143,6 +143,8 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "n_unusable_scans": res.info.get("n_unusable_scans"),
         "n_odometry_edges": sum(e.kind == "odometry" for e in res.edges),
         "n_flagged_odometry_edges": res.info["n_flagged_odometry"],
+        # accepted edges whose registration did not pass small_gicp's convergence test (kept)
+        **{f"n_{kind}_edges_not_converged": n for kind, n in not_converged_counts(res.edges).items()},
         "n_loops": len(res.loops),
         "n_loop_candidates": len(res.loop_attempts),
         "graph_error": list(res.graph_error),

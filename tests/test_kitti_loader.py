@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from pathlib import Path
 
@@ -185,3 +186,24 @@ def test_loader_applies_the_configured_correction(kitti_root: Path) -> None:
     np.testing.assert_array_equal(f.ring, ref.ring)  # rings recovered before the correction
     with pytest.raises(ValueError, match="vertical_correction_deg"):
         KittiSequence(kitti_root, "00", vertical_correction_deg=5.0)
+
+
+def test_bin_scans_follow_the_folder_rules_for_intensity_and_points_at_the_origin(
+        kitti_copy: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A NaN intensity keeps its point (intensity 0, logged) and a point exactly at the origin (no
+    return) is dropped and counted: the same points a folder of the same ``.bin`` files gives."""
+    from gr_graph.datasets.folder import FolderSequence
+
+    f = kitti_copy / "sequences/00/velodyne/000002.bin"
+    raw = np.fromfile(f, np.float32).reshape(-1, 4)
+    raw[[5, 15, 25], 3] = np.nan
+    raw[[7, 8], :3] = 0.0
+    raw.tofile(f)
+    with caplog.at_level(logging.WARNING):
+        frame = KittiSequence(kitti_copy, "00")[2]
+    assert frame.dropped_nonfinite == 2 and len(frame) == len(raw) - 2
+    assert "3 non-finite intensity values at finite points replaced by 0" in caplog.text
+    assert np.all(np.isfinite(frame.intensity)) and np.count_nonzero(frame.intensity == 0) >= 3
+    folder = FolderSequence(kitti_copy / "sequences/00/velodyne")[2]
+    np.testing.assert_array_equal(frame.points, folder.points)
+    np.testing.assert_array_equal(frame.intensity, folder.intensity)

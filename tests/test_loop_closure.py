@@ -20,6 +20,7 @@ from gr_graph.loop_closure import (
     verify_loop,
     yaw_matrix,
 )
+from gr_graph.frame_loop import not_converged_counts
 from gr_graph.loop_evaluation import loop_error, loop_precision_recall, true_revisits
 from gr_graph.preprocess import preprocess_scan
 
@@ -152,6 +153,14 @@ def test_verify_accepts_real_overlapping_pair(gicp_pair):
     assert et < 0.05 and er < 0.5
     assert e.kind == "loop" and np.all(np.linalg.eigvalsh(e.information) > 0)
     assert e.info["covariance"] == "scaled_hessian"
+    assert e.converged  # the last stage's registration converged within its 30 iterations
+    # cut to one iteration a stage, the same pair stops before converging and says so
+    real_align = small_gicp.align
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(small_gicp, "align", lambda *a, **kw: real_align(*a, **{**kw, "max_iterations": 1}))
+        cut = verify_loop(s, t, cand, LoopConfig(), GraphConfig())
+    assert cut.ok and not cut.converged  # kept: its inlier, rmse and Hessian tests pass
+    assert not_converged_counts([e, cut]) == {"odometry": 0, "loop": 1}
     # the cluster-robust covariance of the same registration (same pose; its own information)
     r = verify_loop(s, t, cand, LoopConfig(), GraphConfig(registration_covariance="cluster_robust", min_clusters=10))
     assert r.ok and r.info["covariance"] == "cluster_robust"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -224,3 +225,22 @@ def test_map_keyframes_follow_the_pitch_at_motion_start():
     assert left_out_every == 0 and left_out > 40
     assert every > 2e-3  # the failure the option is for
     assert keyframes < 1e-3 and keyframes < 0.2 * every
+
+
+def test_registration_at_its_iteration_limit_is_kept_and_marked_not_converged():
+    """An edge whose registration stops at ``max_iterations`` before converging passes the other
+    tests here (kept, as before) but says so (``converged`` False), and the round counts it."""
+    from gr_graph.frame_loop import not_converged_counts
+
+    rng = np.random.default_rng(2)
+    frames = [_box_scan(rng, shift=np.array([0.5 * i, 0, 0])) for i in range(3)]
+    cut = run_odometry(frames, OdometryConfig(max_iterations=1))
+    full = run_odometry(frames, OdometryConfig())
+    assert all(e.ok for e in cut.edges + full.edges)
+    # edge (2, 1) starts from the constant-velocity guess: converged within the default 30 iterations, not in 1
+    assert full.edges[1].converged and not cut.edges[1].converged
+    assert np.linalg.norm(full.edges[1].T[:3, 3] - [0.5, 0, 0]) < 0.01
+    assert not_converged_counts(cut.edges) == {"odometry": 2, "loop": 0}  # (edge (1, 0) from identity: neither)
+    # failed edges carry no registration and are not counted
+    failed = replace(cut.edges[1], ok=False)
+    assert not_converged_counts([failed]) == {"odometry": 0, "loop": 0}

@@ -54,6 +54,8 @@ def test_cli_real_kitti_outputs(kitti_run, kitti_root):
     m = json.loads((out / "metrics.json").read_text())
     r0 = m["rounds"]["0"]
     assert r0["n_frames"] == 6 and r0["n_flagged_odometry_edges"] == 0
+    # the real pairs' registrations converge within the iteration limit (each 2-4 iterations)
+    assert r0["n_odometry_edges_not_converged"] == 0 and r0["n_loop_edges_not_converged"] == 0
     assert "KITTI" in m["source"] and "synthetic" not in m["source"]
     assert {"preprocess", "odometry", "graph", "total"} <= set(r0["runtime_s"])
     assert r0["slam"]["rpe300_consecutive_mean"] is None  # too short, reported as None
@@ -290,6 +292,15 @@ def test_learning_round_structure_with_stub_trainer(kitti_root, tmp_path, monkey
     assert m["rounds"]["1"]["trajectory_change"] < 1e-9
     assert m["rounds"]["1"]["edge_noise"]["fallbacks"] == {"no_covariances": 5}
     assert (out / "round_1" / "round.json").exists() and not (out / "round_2").exists()
+    # not allowed to converge: round 2 is judged against round 1 and also against round 0 (the same poses)
+    (tmp_path / "go_on.yaml").write_text("training:\n  convergence_delta: 0.0\n  warm_start: false\n")
+    out2 = tmp_path / "rounds_go_on"
+    assert main(["--data-root", str(kitti_root), "--out", str(out2), "--rounds", "2", "--quiet",
+                 "--config", str(tmp_path / "go_on.yaml")]) == 0
+    a2 = json.loads((out2 / "metrics.json").read_text())["rounds"]["2"]["acceptance"]
+    assert a2["accepted"] and a2["reference_round"] == 1
+    assert a2["map_sharpness_round_0"]["mean_entropy_increase"] == 0.0
+    assert a2["map_sharpness_round_0"]["n_windows"] == a2["n_windows"] > 0
 
 
 @pytest.mark.slow

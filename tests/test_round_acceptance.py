@@ -189,6 +189,38 @@ def test_round_with_a_nonfinite_pose_is_rejected_not_a_crash(tmp_path):
     json.dumps(v["mean_entropy_increase"], allow_nan=False)  # null in metrics.json, not Infinity
 
 
+def test_verdict_of_a_run_folder_is_strict_json_and_round_2_is_judged_against_round_0_too(tmp_path):
+    """:func:`evaluate_round` on round folders as SLAM writes them (``marginals.npz``): a round with a NaN
+    pose gives a verdict without NaN or Infinity (the relative-pose figures of its spoilt pairs are null);
+    a round 2 judged against round 1 carries its comparison with round 0."""
+    from gr_graph.round_acceptance import evaluate_round
+
+    poses = moving_then_stopped(20, 0)
+    scans = street_scans(poses, seed=4)
+    n = len(poses)
+    edges = np.array([(k + 1, k) for k in range(n - 1)])
+
+    def write_round(r: int, P: np.ndarray) -> None:
+        (tmp_path / f"round_{r}").mkdir()
+        np.savez(tmp_path / f"round_{r}" / "marginals.npz", poses=P, edges=edges, edge_kind=np.zeros(n - 1, np.uint8),
+                 edge_information=np.broadcast_to(np.eye(6) * 1e4, (n - 1, 6, 6)))
+
+    broken = poses.copy()
+    broken[7, 0, 3] = np.nan
+    for r, P in enumerate((poses, broken, poses)):
+        write_round(r, P)
+    summaries = {str(r): {"n_odometry_edges": n - 1, "n_flagged_odometry_edges": 0} for r in range(3)}
+    v = evaluate_round(tmp_path, 1, 0, summaries, CFG, scans=scans)
+    assert not v["accepted"] and "non-finite poses" in v["reasons"]
+    agreement = v["relative_pose_agreement"]
+    assert agreement["n_nonfinite_pairs"] == 2 and agreement["p95_translation_difference_m"] is None
+    json.dumps(v, allow_nan=False)
+    v2 = evaluate_round(tmp_path, 2, 1, summaries, CFG, scans=scans)  # (round 1 as a reference: a constructed case)
+    assert v2["map_sharpness_round_0"]["mean_entropy_increase"] == 0.0  # round 2's poses are round 0's
+    assert v2["map_sharpness_round_0"]["worst_window_measurable_fraction"] == 1.0
+    json.dumps(v2, allow_nan=False)
+
+
 def test_unmeasurable_map_or_other_windows_are_named():
     poses = moving_then_stopped(20, 0)
     scans = street_scans(poses, seed=4)
@@ -239,10 +271,46 @@ def test_creep_accepted_round_after_round_is_tested_against_round_0_too():
     assert decide(round1, ref, CFG)["accepted"]
     alone = decide(round2, round1, CFG)
     assert alone["accepted"] and alone["standstill_round_0"] is None
-    v = decide(round2, round1, CFG, round0_positions=ref["positions"])
+    v = decide(round2, round1, CFG, round0=ref)
     assert not v["accepted"] and v["reasons"] == [
         "crept 1.80 mm a frame more than round 0 while it stood still (frames 20-49) > 1 mm"]
     assert v["standstill_round_0"]["worst_creep_per_frame_m"] == pytest.approx(1.8e-3)
+
+
+def test_map_sharpness_lost_round_after_round_is_tested_against_round_0_too():
+    """Each round raises the map entropy of ten windows by 0.01 nats and of two by 0.06 over the round
+    before (mean 0.018, q0.9 0.055): within the tolerances (0.02, 0.1) against the reference alone round 2
+    passes; against round 0 (0.037, 0.11) it fails on both. Thinning likewise: each round keeps 60 % of the one before's
+    measurable points, round 2 keeps 36 % of round 0's."""
+    poses = moving_then_stopped(40, 0)
+    ref = sharpness(street_scans(poses, seed=8), poses, CFG)
+    n = len(ref["entropy"])
+    assert np.isfinite(ref["entropy"]).all() and n == CFG.n_windows
+
+    def blurred(k: int) -> dict:
+        rise = np.full(n, 0.01 * k)
+        rise[:2] = 0.06 * k  # the two worst windows of twelve: the 0.9 quantile lies between them and the rest
+        return {**ref, "entropy": ref["entropy"] + rise}
+
+    round1, round2 = blurred(1), blurred(2)
+    assert decide(round1, ref, CFG)["accepted"]
+    alone = decide(round2, round1, CFG)
+    assert alone["accepted"] and alone["map_sharpness_round_0"] is None
+    v = decide(round2, round1, CFG, round0=ref)
+    assert not v["accepted"]
+    assert [r.split(" rose")[0] for r in v["reasons"]] == ["mean map entropy", "map entropy of the worst windows (q0.9)"]
+    assert all(r.endswith("than round 0") for r in v["reasons"])
+    r0 = v["map_sharpness_round_0"]
+    assert r0["mean_entropy_increase"] == pytest.approx(0.02 + 0.1 * 2 / n)
+    assert r0["window_entropy_increase"] == pytest.approx(0.02 + 0.9 * 0.1)
+    assert v["mean_entropy_increase"] == pytest.approx(0.01 + 0.05 * 2 / n)  # against the reference: as before
+
+    thin1 = {**ref, "n_query": np.floor(0.6 * np.asarray(ref["n_query"]))}
+    thin2 = {**ref, "n_query": np.floor(0.36 * np.asarray(ref["n_query"]))}
+    assert decide(thin1, ref, CFG)["accepted"] and decide(thin2, thin1, CFG)["accepted"]
+    v = decide(thin2, thin1, CFG, round0=ref)
+    assert not v["accepted"] and len(v["reasons"]) == 1 and "of round 0's measurable points" in v["reasons"][0]
+    assert v["map_sharpness_round_0"]["worst_window_measurable_fraction"] < 0.37
 
 
 def test_reported_mean_entropies_are_over_the_windows_both_rounds_measure():
@@ -267,6 +335,30 @@ def test_relative_pose_agreement_closed_form():
     assert a["fraction_beyond_chi2_999"] == 0.0
     b = relative_pose_agreement(ref, ref)
     assert b["p95_translation_difference_m"] == 0.0 and "median_mahalanobis2" not in b
+    assert "n_nonfinite_pairs" not in a
+
+
+def test_relative_pose_agreement_counts_nonfinite_poses_as_disagreeing():
+    """A pose that is not finite spoils its two pairs: they count as infinitely far apart (not
+    left out, which made a trajectory of NaNs look in perfect agreement)."""
+    ref = np.stack([translation(0.5 * k) for k in range(20)])
+    info = np.broadcast_to(np.eye(6) * 1e4, (19, 6, 6))
+    broken = ref.copy()
+    broken[4] = np.nan
+    a = relative_pose_agreement(broken, ref, info, info)
+    assert a["n_nonfinite_pairs"] == 2
+    assert a["median_translation_difference_m"] == 0.0 and a["p95_translation_difference_m"] == np.inf
+    assert a["fraction_beyond_chi2_999"] == pytest.approx(2 / 19) and a["median_mahalanobis2"] == 0.0
+    # the 0.95 quantile on an index (21 pairs: the 20th smallest) is that pair's value, not the inf above it
+    ref22 = np.stack([translation(0.5 * k) for k in range(22)])
+    longer = ref22.copy()
+    longer[:, 0, 3] += np.cumsum(np.r_[0.0, np.linspace(0.001, 0.02, 21)])
+    longer[21] = np.nan
+    assert relative_pose_agreement(longer, ref22)["p95_translation_difference_m"] == pytest.approx(0.02 - 0.019 / 20)
+    broken[:] = np.nan
+    b = relative_pose_agreement(broken, ref, info, info)
+    assert b["n_nonfinite_pairs"] == 19 and b["fraction_beyond_chi2_999"] == 1.0
+    assert b["median_mahalanobis2"] == np.inf and b["median_translation_difference_m"] == np.inf
 
 
 def pitched(T: np.ndarray, pitch: float) -> np.ndarray:

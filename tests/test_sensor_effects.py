@@ -149,6 +149,17 @@ def test_exporter_writes_the_preset_and_raw_times(tmp_path):
     np.save(sdir / "times" / "000001.npy", t[:-3])  # not one a point: an error naming the file
     with pytest.raises(DatasetError, match=r"times/000001.npy: \d+ per-point times for the \d+ points of 000001.bin"):
         KittiSequence(tmp_path, "00")[1]
+    # points without a return (exactly at the origin, or NaN) are dropped with their times
+    pts0 = np.fromfile(sdir / "velodyne" / "000000.bin", dtype=np.float32).reshape(-1, 4)
+    t0 = np.load(sdir / "times" / "000000.npy")
+    pts0[[3, 9]] = [0.0, 0.0, 0.0, 0.5]
+    pts0[4, 1] = np.nan
+    pts0.tofile(sdir / "velodyne" / "000000.bin")
+    f0 = KittiSequence(tmp_path, "00", n_rings=64)[0]
+    keep = np.ones(len(pts0), bool)
+    keep[[3, 4, 9]] = False
+    assert f0.dropped_nonfinite == 3 and len(f0.time) == len(f0) == len(pts0) - 3
+    np.testing.assert_array_equal(f0.time, t0[keep].astype(np.float64))
 
 
 def test_calibration_errors_move_ring_elevations_by_the_drawn_offsets():
@@ -199,6 +210,12 @@ def test_interpolated_sweep_poses_follow_a_constant_twist():
     times, poses = _constant_twist_path(xi)
     t = np.linspace(0.15, 0.25, 7)
     np.testing.assert_allclose(interpolate_poses(times, poses, t, 2), exp_se3_batch(t[:, None] * xi), atol=1e-9)
+    # the end frames extrapolate their end segments (a sweep reaches half a frame past the path)
+    for i, t in ((0, np.linspace(-0.05, 0.05, 5)), (len(times) - 1, np.linspace(0.35, 0.45, 5))):
+        np.testing.assert_allclose(interpolate_poses(times, poses, t, i), exp_se3_batch(t[:, None] * xi), atol=1e-9)
+    np.testing.assert_array_equal(interpolate_poses(times[:1], poses[:1], t, 0), np.repeat(poses[:1], len(t), axis=0))
+    with pytest.raises(ValueError, match="strictly increase"):
+        interpolate_poses(np.array([0.0, 0.1, 0.1, 0.3]), poses[:4], t, 2)
 
 
 def test_motion_distortion_deskewed_with_the_true_motion_falls_back_on_the_wall():

@@ -97,7 +97,7 @@ class PairDataset:
         self.min_corr = max(3, int(min_corr))
         self.seed = int(seed)
         self.augment_yaw = bool(augment_yaw)
-        flagged = {int(e) for e in (memory.info or {}).get("flagged_edges", [])}
+        flagged = memory.flagged_edges
         self.edge_ids = np.array([e for e in range(memory.n_edges) if e not in flagged], np.int64)
         """The memory's edge number of each position (the flagged edges left out)."""
         if flagged:

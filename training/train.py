@@ -91,8 +91,7 @@ def load_training_memory(memory_dir: str | os.PathLike[str]) -> Memory:
     log.info("training on %s: %d scans, %d edges", memory_dir, memory.n_scans, memory.n_edges)
     if memory.n_edges == 0:
         raise TrainingError(f"{memory_dir}: the memory has no edges to train on (fewer than two usable scans?)")
-    flagged = {int(e) for e in memory.info.get("flagged_edges", [])} & set(range(memory.n_edges))
-    if len(flagged) == memory.n_edges:
+    if len(memory.flagged_edges) == memory.n_edges:
         raise TrainingError(f"{memory_dir}: all {memory.n_edges} edges of the memory are flagged (their registration "
                             "failed in SLAM): none to train on")
     return memory

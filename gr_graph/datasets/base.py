@@ -71,8 +71,8 @@ class LidarFrame:
     n_rings : int
         Number of rings of the sensor this frame was taken (or subsampled) with.
     dropped_nonfinite : int
-        Number of points removed when the frame was loaded: a non-finite coordinate, or (bags and
-        point files) exactly the origin, how organized clouds mark a beam without a return.
+        Number of points removed when the frame was loaded: a non-finite coordinate, or exactly
+        the origin, how organized clouds mark a beam without a return.
     time : np.ndarray or None
         ``(N,)`` float64 per-point sweep fraction in ``[0, 1]``, or None if the data has none.
     """

@@ -62,7 +62,7 @@ from gr_graph.datasets.frame_fields import (
 )
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
 from gr_graph.datasets.pointcloud2 import DecodedCloud
-from gr_graph.datasets.stamp_shift import stamps_at_sweep_middle
+from gr_graph.datasets.stamp_shift import stamps_moved_by_conventions
 from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
@@ -353,10 +353,8 @@ class FolderSequence:
             log.warning("%s: no timestamps file (%s): frames taken %.4g s apart (%s)", self.folder,
                         " / ".join(TIMESTAMP_FILES), float(stamps[1] - stamps[0]) if n > 1 else DEFAULT_FRAME_PERIOD_S,
                         "the usual 10 Hz" if source == "frame spacing" else source)
-        self.timestamps, self.gt_poses = stamps_at_sweep_middle(
-            stamps, self.gt_poses, self.conventions.stamp_to_sweep_middle, str(self.folder),
-            self.conventions.stamp_to_sweep_middle_source)
-        self.stamps_moved_by_s = float(self.conventions.stamp_to_sweep_middle or 0.0)
+        self.timestamps, self.gt_poses, self.stamps_moved_by_s = stamps_moved_by_conventions(
+            stamps, self.gt_poses, self.conventions, str(self.folder))
         self.motion_compensated = self.conventions.motion_compensated
 
     @property

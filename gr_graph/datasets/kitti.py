@@ -45,6 +45,7 @@ from gr_graph.datasets.base import (
 )
 from gr_graph.datasets.channels import PROBE_FRAMES, RingIndexer
 from gr_graph.datasets.point_layout import POINT_FORMATS, check_point_layout, float64_bin_problem, size_error
+from gr_graph.datasets.pointcloud2 import finite_intensity, has_return
 
 log = logging.getLogger(__name__)
 
@@ -188,19 +189,23 @@ def read_velodyne_bin(path: str | Path, point_format: str = "xyzi") -> np.ndarra
 
 
 def read_velodyne_scan(path: str | Path, point_format: str = "xyzi", ring_indexer: RingIndexer | None = None
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
-    """One Velodyne ``.bin`` scan as ``(points (N, 3) float64, intensity (N,), ring or None, dropped)``.
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """One Velodyne ``.bin`` scan as ``(points (N, 3) float64, intensity (N,), ring or None, kept)``;
+    ``kept`` is the mask of the file's points that were kept.
 
-    Non-finite points are dropped (counted in ``dropped``, logged with the file name); with a
-    ``ring_indexer`` every point gets its ring, and a frame not indexed by storage order is logged.
-    Shared by the KITTI odometry and raw-drive loaders.
+    Points without a return (a non-finite coordinate, or exactly the origin) are dropped (logged
+    with the file name and counted); a non-finite intensity at a point with a return is set to 0
+    and the point kept (logged): the rules of the other readers
+    (:func:`gr_graph.datasets.pointcloud2.decode_structured`), so a ``.bin`` gives the same points
+    in a KITTI layout as in a folder. With a ``ring_indexer`` every point gets its ring, and a frame
+    not indexed by storage order is logged. Shared by the KITTI odometry and raw-drive loaders.
     """
     raw = read_velodyne_bin(path, point_format)
-    finite = np.all(np.isfinite(raw), axis=1)
-    dropped = int(len(raw) - finite.sum())
+    keep = has_return(raw[:, :3])
+    dropped = int(len(raw) - keep.sum())
     if dropped:
-        log.warning("%s: dropped %d non-finite points", path, dropped)
-        raw = raw[finite]
+        log.warning("%s: dropped %d points without a return (non-finite or exactly at the origin)", path, dropped)
+        raw = raw[keep]
     points = raw[:, :3].astype(np.float64)
     ring = None
     if ring_indexer is not None and not len(points):
@@ -210,17 +215,17 @@ def read_velodyne_scan(path: str | Path, point_format: str = "xyzi", ring_indexe
         if method != "storage_order":
             log.warning("%s: rings by %s (%s)%s", path, method, problem,
                         "; approximate: per-point elevation" if method == "elevation" else "")
-    return points, raw[:, 3].copy(), ring, dropped
+    return points, finite_intensity(raw[:, 3].copy(), str(path)), ring, keep
 
 
 def probe_points(files: list[Path], k: int, point_format: str = "xyzi") -> np.ndarray | None:
-    """Finite points of the k-th of ``PROBE_FRAMES`` frames spread evenly over ``files`` (the ring
+    """Points with a return of the k-th of ``PROBE_FRAMES`` frames spread evenly over ``files`` (the ring
     reference probes of :class:`~gr_graph.datasets.channels.RingIndexer`); None past the last."""
     n = len(files)
     if k >= min(PROBE_FRAMES, n):
         return None
     raw = read_velodyne_bin(files[(k * n) // min(PROBE_FRAMES, n)], point_format)
-    return raw[np.all(np.isfinite(raw), axis=1)][:, :3].astype(np.float64)
+    return raw[has_return(raw[:, :3])][:, :3].astype(np.float64)
 
 
 class KittiSequence:
@@ -353,19 +358,20 @@ class KittiSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        points, intensity, ring, dropped = read_velodyne_scan(
+        points, intensity, ring, kept = read_velodyne_scan(
             self.files[i], self.point_format, self.ring_indexer if self.recover_ring_index else None)
         points = correct_vertical_angle(points, self.vertical_correction_deg)
+        dropped = int(len(kept) - len(points))
         time = None
         if self.time_files is not None:
             try:
                 time = np.asarray(np.load(self.time_files[i], allow_pickle=False), np.float64).reshape(-1)
             except (OSError, ValueError, EOFError) as exc:
                 raise DatasetError(f"{self.time_files[i]}: unreadable per-point times ({exc})") from None
-            if dropped or len(time) != len(points):
-                raise DatasetError(f"{self.time_files[i]}: {len(time)} per-point times for the {len(points) + dropped} "
-                                   f"points of {self.files[i].name}" + (f" ({dropped} of them non-finite)" if dropped
-                                                                        else ""))
+            if len(time) != len(kept):
+                raise DatasetError(f"{self.time_files[i]}: {len(time)} per-point times for the {len(kept)} "
+                                   f"points of {self.files[i].name}")
+            time = time[kept]  # the times of the points with a return
         return LidarFrame(
             index=i,
             timestamp=float(self.timestamps[i]),

@@ -220,10 +220,10 @@ class KittiRawSequence:
 
     def __getitem__(self, index: int) -> LidarFrame:
         i = check_index(index, len(self), self.name)
-        points, intensity, ring, dropped = read_velodyne_scan(
+        points, intensity, ring, kept = read_velodyne_scan(
             self.files[i], self.point_format, self.ring_indexer if self.recover_ring_index else None)
         return LidarFrame(index=i, timestamp=float(self.timestamps[i]), points=points, intensity=intensity,
-                          ring=ring, n_rings=self.n_rings, dropped_nonfinite=dropped)
+                          ring=ring, n_rings=self.n_rings, dropped_nonfinite=int(len(kept) - len(points)))
 
     def __iter__(self) -> Iterator[LidarFrame]:
         for i in range(len(self)):

@@ -103,6 +103,17 @@ def has_return(xyz: np.ndarray) -> np.ndarray:
     return np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
 
 
+def finite_intensity(intensity: np.ndarray, source: str, field: str = "intensity") -> np.ndarray:
+    """``intensity`` (of points with a return) with its non-finite values replaced by 0, the count logged
+    naming ``source`` and the ``field`` (SLAM does not use intensity; the point is kept). The same array
+    when every value is finite."""
+    bad = ~np.isfinite(intensity)
+    if not bad.any():
+        return intensity
+    log.warning("%s: %d non-finite %s values at finite points replaced by 0", source, int(bad.sum()), field)
+    return np.where(bad, np.zeros((), intensity.dtype), intensity)
+
+
 def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     """Read x, y, z (+ intensity, time, ring) from a structured array of points.
 
@@ -139,11 +150,8 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     time = flat[time_field].astype(np.float64) if time_field else None
     ring_field = next((n for n in RING_FIELDS if n in names), None)
     ring = flat[ring_field].astype(np.int64) if ring_field else None
-    if intensity is not None and not np.all(np.isfinite(intensity)):
-        bad = ~np.isfinite(intensity)
-        intensity = np.where(bad, np.float32(0), intensity)
-        log.warning("%s: %d non-finite %s values at finite points replaced by 0", source, int(bad.sum()),
-                    intensity_field)
+    if intensity is not None:
+        intensity = finite_intensity(intensity, source, intensity_field)
     if time is not None and not np.all(np.isfinite(time)):
         raise DatasetError(f"{source}: non-finite per-point times ({time_field!r}) at finite points")
     if ring is not None and len(ring) and ring.min() < 0:

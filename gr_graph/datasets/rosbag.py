@@ -35,7 +35,7 @@ import numpy as np
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index, increasing_stamps
 from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
 from gr_graph.datasets.pointcloud2 import decode_pointcloud2
-from gr_graph.datasets.stamp_shift import stamps_at_sweep_middle
+from gr_graph.datasets.stamp_shift import stamps_moved_by_conventions
 from gr_graph.sensors import SensorConfig
 
 log = logging.getLogger(__name__)
@@ -171,10 +171,8 @@ class RosbagSequence:
             self.gt_poses, pose_times = read_pose_file(Path(poses), len(self))
             if pose_times is not None:  # a TUM file: its times must follow the messages' (up to an offset)
                 check_pose_times(pose_times, self.timestamps, Path(poses), self.path)
-        self.timestamps, self.gt_poses = stamps_at_sweep_middle(
-            self.timestamps, self.gt_poses, self.conventions.stamp_to_sweep_middle, f"{self.path}: topic {self.topic}",
-            self.conventions.stamp_to_sweep_middle_source)
-        self.stamps_moved_by_s = float(self.conventions.stamp_to_sweep_middle or 0.0)
+        self.timestamps, self.gt_poses, self.stamps_moved_by_s = stamps_moved_by_conventions(
+            self.timestamps, self.gt_poses, self.conventions, f"{self.path}: topic {self.topic}")
 
     def _source(self, k: int) -> str:
         return f"{self.path}: topic {self.topic} message {k}"

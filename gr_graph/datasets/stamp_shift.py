@@ -16,12 +16,16 @@ unchanged, so the odometry's velocity and the deskewing are too.
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from factors.se3 import exp_se3_batch, log_se3
 
-__all__ = ["poses_at_times", "stamps_at_sweep_middle"]
+if TYPE_CHECKING:
+    from gr_graph.datasets.frame_fields import FieldConventions
+
+__all__ = ["poses_at_times", "stamps_at_sweep_middle", "stamps_moved_by_conventions"]
 
 log = logging.getLogger(__name__)
 
@@ -99,3 +103,25 @@ def stamps_at_sweep_middle(timestamps: np.ndarray, gt_poses: np.ndarray | None, 
         return moved, None
     gt = poses_at_times(ts, gt_poses, moved)
     return moved, np.linalg.inv(gt[0]) @ gt  # anchored at the first frame, as the loaders read it
+
+
+def stamps_moved_by_conventions(timestamps: np.ndarray, gt_poses: np.ndarray | None, conventions: FieldConventions,
+                                source: str) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """:func:`stamps_at_sweep_middle` with the offset the loader's field conventions found or were given.
+
+    Parameters
+    ----------
+    timestamps, gt_poses, source
+        As for :func:`stamps_at_sweep_middle`.
+    conventions : FieldConventions
+        Its ``stamp_to_sweep_middle`` (None: nothing moves) and ``stamp_to_sweep_middle_source``.
+
+    Returns
+    -------
+    tuple
+        The new timestamps, the moved ground truth and the seconds the stamps moved by (the
+        loaders' ``stamps_moved_by_s``; 0.0 when nothing moved).
+    """
+    shift = conventions.stamp_to_sweep_middle
+    moved, gt = stamps_at_sweep_middle(timestamps, gt_poses, shift, source, conventions.stamp_to_sweep_middle_source)
+    return moved, gt, float(shift or 0.0)

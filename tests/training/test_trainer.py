@@ -92,7 +92,8 @@ def test_edges_whose_registration_failed_are_not_trained_on(memory_dir):
     mem = load_memory(memory_dir)
     net = NetConfig(**SMALL_NET)
     every = PairDataset(mem, net, max_corr=300, seed=0)
-    flagged = dataclasses.replace(mem, info={**mem.info, "flagged_edges": [1, 3]})
+    flagged = dataclasses.replace(mem, info={**mem.info, "flagged_edges": [1, 3, 5, -1]})  # 5, -1: no such edge
+    assert flagged.flagged_edges == {1, 3} and mem.flagged_edges == frozenset()
     ds = PairDataset(flagged, net, max_corr=300, seed=0)
     assert len(every) == mem.n_edges == 5 and len(ds) == 3
     assert [ds.sample(i).edge for i in range(len(ds))] == [0, 2, 4]

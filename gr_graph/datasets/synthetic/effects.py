@@ -84,6 +84,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from factors.se3 import exp_se3_batch, log_se3
+from gr_graph.datasets.stamp_shift import poses_at_times
 from gr_graph.datasets.synthetic.meshes import MATERIAL, MATERIAL_NAMES
 
 PRESETS = ("clean", "kitti", "raw")
@@ -279,26 +280,13 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, t: np.ndarray, i: in
     """Poses ``(len(t), 4, 4)`` at times ``t`` near frame ``i``, on SE(3).
 
     Interpolates along the constant-twist segment between the path's poses around ``i``
-    (``i-1 .. i`` before ``times[i]``, ``i .. i+1`` after; the end segments extrapolate).
+    (``i-1 .. i`` before ``times[i]``, ``i .. i+1`` after; the end segments extrapolate):
+    :func:`gr_graph.datasets.stamp_shift.poses_at_times` on the path's frames ``i-1 .. i+1``, which
+    raises ``ValueError`` when their times do not strictly increase (the trajectory readers refuse
+    such files, naming them).
     """
-    n = len(poses)
-    out = np.empty((len(t), 4, 4))
-    before = t < times[i]
-    for seg, mask in (((i - 1, i), before), ((i, i + 1), ~before)):
-        if not mask.any():
-            continue
-        a, b = seg
-        if a < 0:
-            a, b = 0, 1
-        if b >= n:
-            a, b = n - 2, n - 1
-        if n < 2 or times[b] <= times[a]:
-            out[mask] = poses[i]
-            continue
-        xi = log_se3(np.linalg.inv(poses[a]) @ poses[b])
-        u = (t[mask] - times[a]) / (times[b] - times[a])
-        out[mask] = poses[a] @ exp_se3_batch(u[:, None] * xi)
-    return out
+    lo, hi = max(i - 1, 0), min(i + 2, len(poses))
+    return poses_at_times(times[lo:hi], poses[lo:hi], t)
 
 
 @dataclass(frozen=True)
