@@ -50,6 +50,7 @@ import json
 import logging
 import shutil
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -116,7 +117,7 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
 _GUESSED_SENSOR_DEFAULTS: dict[str, str] = {"time_unit": "s", "time_reference": "sweep_start"}
 
 
-def round_fingerprint(cfg: SlamConfig, r: int) -> str:
+def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None = None) -> str:
     """Hash of the options round ``r``'s result depends on.
 
     Round 0 does not depend on the ``training`` section or the device; no round depends on
@@ -129,8 +130,11 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
     ``learned_noise_outlier_alpha``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
-    and ``time_reference``, whose default became None (guessed), hash None as their former
-    defaults (``s``, ``sweep_start``).
+    and ``time_reference``, whose default became None (guessed), hash None as what the data's
+    conventions guessed (``guessed``, :func:`guessed_sensor_options`: a recording's time unit),
+    else as their former defaults (``s``, ``sweep_start``). So a unit guessed as ``ns`` and one set
+    to ``s`` do not hash alike (a run fixed by removing a wrong ``time_unit`` recomputes), while a
+    guessed ``s`` hashes as before.
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": READ_OPTIONS, "training": True,
@@ -151,10 +155,25 @@ def round_fingerprint(cfg: SlamConfig, r: int) -> str:
             node = node.get(section, {})
         if key in node and node[key] == default:
             node.pop(key)
-    for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed) hashes as the former default
+    for key, before in _GUESSED_SENSOR_DEFAULTS.items():  # None (guessed): what was guessed, or the former default
         if d.get("sensor", {}).get(key, before) is None:
-            d["sensor"][key] = before
+            d["sensor"][key] = (guessed or {}).get(key, before)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def guessed_sensor_options(sequence: Any) -> dict[str, str]:
+    """The ``sensor`` options the data's field conventions guessed where the section left them None,
+    for :func:`round_fingerprint`: ``time_unit`` of a recording whose per-point times are used
+    (:class:`~gr_graph.datasets.frame_fields.FieldConventions`); empty for data without them (KITTI,
+    the synthetic world). ``time_reference`` is guessed frame by frame and is left out."""
+    from gr_graph.datasets.frame_fields import FieldConventions
+    from gr_graph.sensors import TIME_UNITS
+
+    owner = find_in_chain(sequence, "conventions", accept=lambda v: isinstance(v, FieldConventions))
+    if owner is None or not (owner.conventions.has_time and owner.conventions.use_time):
+        return {}
+    unit = next((name for name, s in TIME_UNITS.items() if s == owner.conventions.time_unit_s), None)
+    return {} if unit is None else {"time_unit": unit}
 
 
 #: files of a ROS2 bag folder that hold its data (storage and metadata)
@@ -308,6 +327,7 @@ class SlamPipeline:
                                                                     sensor=cfg.sensor)
         self.sequence: LidarSequence = sequence
         self.data_fingerprint = data_fingerprint(sequence)
+        self.guessed_sensor = guessed_sensor_options(sequence)  # hashed for options left None
         self.frame_cache = self._open_frame_cache(sequence)
         if self.frame_cache is not None:
             self.sequence = self.frame_cache
@@ -316,6 +336,10 @@ class SlamPipeline:
         self.source_description = source_description or sequence.name
         self.gt = self._anchored_gt()
         self._raw_scans: list[np.ndarray] | None = None  # round 0's scans (memory-mapped), for the acceptance test
+
+    def round_fingerprint(self, r: int) -> str:
+        """:func:`round_fingerprint` of round ``r`` under this run's configuration and data."""
+        return round_fingerprint(self.cfg, r, self.guessed_sensor)
 
     def _open_frame_cache(self, sequence: LidarSequence) -> CachedFrames | None:
         """The on-disk frame cache ``<out>/frames`` (``data.frame_cache``,
@@ -444,7 +468,7 @@ class SlamPipeline:
             return
         for r in range(self.cfg.training.rounds + 1):
             summary = read_round_summary(self.round_dir(r))
-            if summary is None or summary.get("config_fingerprint") != round_fingerprint(self.cfg, r):
+            if summary is None or summary.get("config_fingerprint") != self.round_fingerprint(r):
                 return  # recomputed, with every round after it
             self.check_round_data(r, summary)
 
@@ -491,7 +515,7 @@ class SlamPipeline:
         summary = read_round_summary(self.round_dir(r))
         if summary is None:
             return None
-        if summary.get("config_fingerprint") != round_fingerprint(self.cfg, r):
+        if summary.get("config_fingerprint") != self.round_fingerprint(r):
             log.info("round %d: existing results were made with another configuration; recomputing", r)
             return None
         self.check_round_data(r, summary)
@@ -521,7 +545,7 @@ class SlamPipeline:
     def _finished_as_configured(self, r: int) -> bool:
         """Whether round ``r`` has a summary made with the current configuration (resume)."""
         summary = read_round_summary(self.round_dir(r))
-        return summary is not None and summary.get("config_fingerprint") == round_fingerprint(self.cfg, r)
+        return summary is not None and summary.get("config_fingerprint") == self.round_fingerprint(r)
 
     def trains(self, r: int) -> bool:
         """Whether learning round ``r`` trains a network (on round r − 1's memory): not with PCA
@@ -710,7 +734,8 @@ class SlamPipeline:
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
-        summary = round_summary(r, res, round_fingerprint(cfg, r), mean_points, self.data_fingerprint)
+        summary = round_summary(r, res, round_fingerprint(cfg, r, self.guessed_sensor), mean_points,
+                                self.data_fingerprint)
         if map_counts is not None:
             summary["map"] = map_counts
         if densified is not None:

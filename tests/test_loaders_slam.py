@@ -61,3 +61,27 @@ def test_slam_on_a_ros2_bag_recovers_the_rendered_trajectory(tmp_path: Path, cap
     # measured: 0.1 mm moved, 0.12 m as given (both anchored at their first pose, so the lag shows on the curve)
     assert np.abs(moved_gt[:, :3, 3] - gt[:, :3, 3]).max() < 0.002
     assert np.abs(stale_gt[:, :3, 3] - gt[:, :3, 3]).max() > 0.05
+
+
+def test_a_guessed_time_unit_fingerprints_as_what_was_guessed(tmp_path: Path) -> None:
+    """``sensor.time_unit`` left unset hashes as the unit the data's conventions guessed: a bag whose
+    times are in nanoseconds gives the same round fingerprint as ``time_unit: ns`` said, and another than
+    ``time_unit: s`` said (before, unset hashed as ``s``: a run fixed by removing a wrong unit resumed the
+    wrong rounds). Data without per-point times (and a guessed ``s``) hash as before."""
+    from gr_graph.config import SlamConfig, load_config
+    from gr_graph.datasets.registry import open_sequence
+    from gr_graph.pipeline import SlamPipeline, guessed_sensor_options, round_fingerprint
+
+    seq = drive("raw", 6, str(tmp_path / "drive"))
+    bag = write_bag(tmp_path / "ns_bag", {"/lidar/points": [cloud_array(seq[i], CloudLayout(with_time=True))
+                                                            for i in range(6)]})
+    in_ns, _ = open_sequence(path=str(bag))
+    assert guessed_sensor_options(in_ns) == {"time_unit": "ns"}
+    assert guessed_sensor_options(seq) == {}  # the synthetic world: nothing guessed
+    unset = load_config(None, {"output": {"out_dir": str(tmp_path / "run")}})
+    said = {u: load_config(None, {"sensor": {"time_unit": u}}) for u in ("s", "ns")}
+    for r in (0, 1):
+        guessed = round_fingerprint(unset, r, guessed_sensor_options(in_ns))
+        assert guessed == round_fingerprint(said["ns"], r) != round_fingerprint(said["s"], r)
+        assert round_fingerprint(unset, r, {"time_unit": "s"}) == round_fingerprint(SlamConfig(), r)
+    assert SlamPipeline(unset, in_ns).round_fingerprint(0) == round_fingerprint(said["ns"], 0)
