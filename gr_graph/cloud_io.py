@@ -12,12 +12,17 @@ intensity; ``.ply`` files can also carry one covariance per point as six float64
 KITTI float32 ``x,y,z,intensity`` (intensity 0 without one), ``.npy`` as float32 ``(N, 3)`` or
 ``(N, 4)``. :func:`read_ply_covariances` reads the covariance properties back.
 
-Every error names the file (:class:`gr_graph.datasets.base.DatasetError`).
+Every error names the file: a :class:`gr_graph.datasets.base.DatasetError` for what is read, a
+``ValueError`` (bad arguments) or ``OSError`` (the disk) for what is written. Points without a
+return (non-finite, or exactly at the origin) are dropped when read, logged with their count.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +31,10 @@ from gr_graph.atomic import atomic_path
 from gr_graph.datasets.base import DatasetError
 from gr_graph.datasets.pointcloud2 import has_return
 
-__all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "check_suffix", "read_cloud", "write_cloud", "write_ply",
-           "read_ply_covariances"]
+__all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "check_suffix", "read_cloud", "read_cloud_counted",
+           "write_cloud", "write_ply", "read_ply_covariances", "written"]
+
+log = logging.getLogger(__name__)
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".bin", ".pcd", ".ply", ".npy")
 #: PLY property names of the upper triangle of a covariance, and their (row, column).
@@ -47,8 +54,16 @@ def check_suffix(path: Path) -> str:
 
 
 def read_cloud(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, np.ndarray | None]:
-    """Points ``(N, 3)`` float64 and intensity ``(N,)`` float32 (or None) of one cloud file,
-    read by :func:`gr_graph.datasets.point_files.read_point_file` (non-finite points dropped).
+    """Points ``(N, 3)`` float64 and intensity ``(N,)`` float32 (or None) of one cloud file:
+    :func:`read_cloud_counted` without the count of dropped points."""
+    points, intensity, _ = read_cloud_counted(path, point_format)
+    return points, intensity
+
+
+def read_cloud_counted(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, np.ndarray | None, int]:
+    """Points ``(N, 3)`` float64, intensity ``(N,)`` float32 (or None) and the number of points dropped
+    (no return: non-finite, or exactly at the origin; logged) of one cloud file, read by
+    :func:`gr_graph.datasets.point_files.read_point_file`.
 
     Parameters
     ----------
@@ -69,8 +84,24 @@ def read_cloud(path: PathLike, point_format: str = "xyzi") -> tuple[np.ndarray, 
     cloud = read_point_file(p, point_format)
     if len(cloud.points) == 0:
         raise DatasetError(f"{p}: the file holds no (finite) points")
+    if cloud.dropped_nonfinite:
+        log.warning("%s: dropped %d points without a return (non-finite, or exactly at the origin) of %d",
+                    p, cloud.dropped_nonfinite, cloud.dropped_nonfinite + len(cloud.points))
     intensity = None if cloud.intensity is None else np.asarray(cloud.intensity, np.float32).reshape(-1)
-    return np.asarray(cloud.points, np.float64), intensity
+    return np.asarray(cloud.points, np.float64), intensity, int(cloud.dropped_nonfinite)
+
+
+@contextmanager
+def written(path: PathLike) -> Iterator[Path]:
+    """:func:`gr_graph.atomic.atomic_path` whose ``OSError`` (a full disk, a file size limit) names
+    ``path``: the temporary path to write, renamed to ``path`` when the block ends without error."""
+    try:
+        with atomic_path(path) as tmp:
+            yield tmp
+    except OSError as exc:
+        if str(path) in str(exc):
+            raise
+        raise OSError(f"{path}: could not be written ({exc})") from exc
 
 
 def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None = None,
@@ -96,7 +127,7 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
         raise ValueError(f"{p}: per-point covariances can be stored in .ply files only (or separately as .npy)")
     if suffix == ".ply":
         return write_ply(p, xyz, inten, covariances)
-    with atomic_path(p) as tmp:
+    with written(p) as tmp:
         if suffix == ".bin":
             np.column_stack([xyz, np.zeros(len(xyz), np.float32) if inten is None else inten]).tofile(tmp)
         elif suffix == ".npy":
@@ -143,30 +174,32 @@ def write_ply(path: PathLike, points: np.ndarray, intensity: np.ndarray | None =
     header = ["ply", "format binary_little_endian 1.0", "comment written by gr_graph", f"element vertex {n}"]
     header += [f"property {ply_types[v.dtype.str[1:]]} {name}" for name, v in fields]
     header.append("end_header")
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+    with written(path) as tmp, open(tmp, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rows.tobytes())
     return Path(path)
 
 
 def read_ply_covariances(path: PathLike) -> np.ndarray:
-    """The ``(N, 3, 3)`` covariances stored as ``cov_*`` properties in a PLY file (open3d reads it),
-    one a point that :func:`read_cloud` returns: rows of points it drops (a non-finite coordinate, or
-    exactly the origin) are dropped here too, so the two stay row-aligned."""
-    import open3d as o3d
+    """The ``(N, 3, 3)`` covariances stored as ``cov_*`` properties in a PLY file, one a point that
+    :func:`read_cloud` returns: rows of points it drops (a non-finite coordinate, or exactly the
+    origin) are dropped here too, so the two stay row-aligned. Read with the same reader (a
+    truncated file is an error naming it, as for :func:`read_cloud`)."""
+    from gr_graph.datasets.point_files import read_ply_vertices
 
     p = Path(path)
     if not p.is_file():
         raise DatasetError(f"{p}: point file not found")
     if p.suffix.lower() != ".ply":
         raise DatasetError(f"{p}: not a PLY file (covariances are stored as PLY properties)")
-    cloud = o3d.t.io.read_point_cloud(str(p))
-    missing = [k for k in COVARIANCE_PROPERTIES if k not in cloud.point]
+    vertices = read_ply_vertices(p)
+    names = vertices.dtype.names or ()
+    missing = [k for k in (*COVARIANCE_PROPERTIES, "x", "y", "z") if k not in names]
     if missing:
-        raise DatasetError(f"{p}: no covariance properties {missing}")
-    xyz = cloud.point.positions.numpy().astype(np.float64)
+        raise DatasetError(f"{p}: no properties {missing}")
+    xyz = np.stack([vertices[c].astype(np.float64) for c in "xyz"], axis=1)
     kept = has_return(xyz)  # the rows read_cloud keeps
     C = np.empty((len(xyz), 3, 3), np.float64)
     for name, (i, j) in COVARIANCE_PROPERTIES.items():
-        C[:, i, j] = C[:, j, i] = cloud.point[name].numpy().reshape(-1)
+        C[:, i, j] = C[:, j, i] = vertices[name].astype(np.float64)
     return C[kept]

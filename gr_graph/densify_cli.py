@@ -69,12 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the (M, 3, 3) covariance of every output point [m^2]")
     p.add_argument("--ply-covariances", action="store_true",
                    help="OUT is .ply: store the covariances as properties cov_xx, cov_xy, cov_xz, cov_yy, cov_yz, cov_zz")
-    p.add_argument("--voxel-size", type=float, default=None, metavar="M",
+    p.add_argument("--voxel-size", type=number_in(float, 0.0, low_open=True), default=None, metavar="M",
                    help=f"voxel downsampling before the network; must match the network's training data "
                         f"(default: {pre.voxel_size})")
-    p.add_argument("--min-range", type=float, default=None, metavar="M",
+    p.add_argument("--min-range", type=number_in(float, 0.0), default=None, metavar="M",
                    help=f"drop points closer than this to the origin (default: {pre.min_range})")
-    p.add_argument("--max-range", type=float, default=None, metavar="M",
+    p.add_argument("--max-range", type=number_in(float, 0.0, low_open=True), default=None, metavar="M",
                    help=f"drop points farther than this from the origin (default: {pre.max_range})")
     add_point_format(p, help="layout of an IN .bin file: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)")
     add_seed(p, "seed of the network's input split and of the sampling")
@@ -87,19 +87,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Densify ``args.input`` into ``args.output``; return the counts printed by :func:`main`."""
     import numpy as np
 
-    from gr_graph.atomic import atomic_path
-    from gr_graph.cloud_io import check_suffix, read_cloud, write_cloud
+    from gr_graph.cloud_io import check_suffix, read_cloud_counted, write_cloud, written
     from gr_graph.densify import densify_cloud
 
     out = Path(args.output)
     check_suffix(out)  # before the network runs: an OUT of unknown format fails at once
     if args.ply_covariances and out.suffix.lower() != ".ply":
         raise ValueError(f"{out}: --ply-covariances needs a .ply OUT")
-    if args.covariances is not None and Path(args.covariances).suffix.lower() != ".npy":
-        raise ValueError(f"{args.covariances}: --covariances writes a .npy file")
+    if args.covariances is not None:
+        if Path(args.covariances).suffix.lower() != ".npy":
+            raise ValueError(f"{args.covariances}: --covariances writes a .npy file")
+        for other, what in ((out, "OUT"), (Path(args.input), "IN")):
+            if Path(args.covariances).resolve() == other.resolve():
+                raise ValueError(f"{args.covariances}: --covariances is {what}; it would be overwritten")
     pre = PreprocessConfig(**{k: v for k, v in (("voxel_size", args.voxel_size), ("min_range", args.min_range),
                                                  ("max_range", args.max_range)) if v is not None})
-    points, intensity = read_cloud(args.input, args.point_format)
+    if pre.min_range >= pre.max_range:
+        raise ValueError(f"--min-range {pre.min_range:g} m is not below --max-range {pre.max_range:g} m: no point "
+                         "would be left")
+    points, intensity, dropped = read_cloud_counted(args.input, args.point_format)
     try:
         res = densify_cloud(points, args.weights, intensity=intensity, tau_ani=args.tau_ani,
                             samples_per_point=args.samples, keep_original=args.keep_original,
@@ -107,11 +113,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except (ValueError, FloatingPointError) as exc:
         raise ValueError(f"{args.input}: {exc}") from None
     C = res.covariances
-    if args.covariances is not None:  # first: OUT beside covariances of another run is never left behind
-        with atomic_path(args.covariances) as tmp, open(tmp, "wb") as fh:  # a handle: np.save appends ".npy"
+    if args.covariances is not None:  # first, so that a finished OUT always has its covariances beside it
+        with written(args.covariances) as tmp, open(tmp, "wb") as fh:  # a handle: np.save appends ".npy"
             np.save(fh, C)  # to a name that ends otherwise (".NPY")
     write_cloud(out, res.points, res.intensity, C if args.ply_covariances else None)
-    return {"input": str(args.input), "output": str(out), "input_points": len(points),
+    return {"input": str(args.input), "output": str(out), "input_points": len(points), "dropped_points": dropped,
             "network_points": len(res.network_input), "kept_points": res.n_kept, "output_points": len(res.points),
             "fallback": res.fallback, "covariances": args.covariances}
 

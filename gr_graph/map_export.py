@@ -17,6 +17,7 @@ scan); the pipeline writes ``round_<r>/map.ply`` with it (``output.map``).
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -26,6 +27,8 @@ import numpy as np
 from gr_graph.cloud_io import write_ply
 
 __all__ = ["VoxelMap", "write_map", "MAP_NAME"]
+
+log = logging.getLogger(__name__)
 
 MAP_NAME = "map.ply"
 _BITS = 21
@@ -109,7 +112,8 @@ class VoxelMap:
 def write_map(path: str | os.PathLike[str], scans: Iterable[np.ndarray], poses: np.ndarray,
               voxel_size: float) -> dict[str, float | int]:
     """Place every scan with its pose, voxel-downsample, write a PLY (``x, y, z`` float32 and
-    ``count`` int32: points merged into the voxel; open3d reads no unsigned PLY properties) atomically; return ``{"points", "voxels", "voxel_size"}``.
+    ``count`` int32: points merged into the voxel; open3d reads no unsigned PLY properties) atomically; return ``{"points", "voxels", "voxel_size"}``,
+    and ``scans_left_out`` when scans whose pose is not finite were left out (logged with their numbers).
 
     Parameters
     ----------
@@ -120,18 +124,29 @@ def write_map(path: str | os.PathLike[str], scans: Iterable[np.ndarray], poses: 
     """
     vmap = VoxelMap(voxel_size)
     n = 0
+    left_out: list[int] = []
     for k, scan in enumerate(scans):
         if k >= len(poses):
             raise ValueError(f"{path}: more scans than the {len(poses)} poses")
+        n += 1
         T = np.asarray(poses[k], np.float64)
+        if not np.isfinite(T).all():
+            left_out.append(k)
+            continue
         s = np.asarray(scan, np.float64).reshape(-1, 3)
         vmap.add(s @ T[:3, :3].T + T[:3, 3])
-        n += 1
     if n != len(poses):
         raise ValueError(f"{path}: {n} scans for {len(poses)} poses")
+    if left_out:
+        log.warning("%s: %d scans left out of the map, their poses are not finite (scans %s%s)", path,
+                    len(left_out), ", ".join(map(str, left_out[:10])), ", ..." if len(left_out) > 10 else "")
     centroids, counts = vmap.points()
     write_ply(path, centroids, extra={"count": np.minimum(counts, np.iinfo(np.int32).max).astype(np.int32)})
-    return {"points": int(vmap.n_added), "voxels": int(len(centroids)), "voxel_size": float(voxel_size)}
+    out: dict[str, float | int] = {"points": int(vmap.n_added), "voxels": int(len(centroids)),
+                                   "voxel_size": float(voxel_size)}
+    if left_out:
+        out["scans_left_out"] = len(left_out)
+    return out
 
 
 def map_path(round_dir: str | os.PathLike[str]) -> Path:

@@ -190,8 +190,11 @@ def test_gr_densify_keep_dropped_and_original_adds_samples_to_every_point(model_
     samples = back[n_kept: n_kept + 2 * n_kept]
     np.testing.assert_allclose(samples, plain.points.astype(np.float32), atol=1e-6)
     originals = np.vstack([back[:n_kept], back[3 * n_kept:]])
-    np.testing.assert_allclose(np.sort(originals, axis=0), np.sort(plain.network_input, axis=0).astype(np.float32),
-                               atol=1e-5)
+    def rows_sorted(a: np.ndarray) -> np.ndarray:  # whole points in lexicographic order (not column by column)
+        a = np.asarray(a, np.float32)
+        return a[np.lexsort(a.T[::-1])]
+
+    np.testing.assert_allclose(rows_sorted(originals), rows_sorted(plain.network_input), atol=1e-5)
 
 
 @pytest.mark.parametrize("suffix", [".pcd", ".bin", ".npy"])
@@ -254,6 +257,13 @@ def test_gr_densify_errors_name_the_file(model_path: Path, pcd_file: Path, tmp_p
     bad = tmp_path / "bad.npy"
     np.save(bad, np.zeros((10, 2)))
     cases.append(([str(bad), str(tmp_path / "o.ply"), "--weights", str(model_path)], "bad.npy"))
+    # --covariances that would overwrite OUT or IN, and a range crop that leaves nothing, are refused at once
+    cases.append(([str(pcd_file), str(tmp_path / "o.npy"), "--weights", str(model_path), "--covariances",
+                   str(tmp_path / "o.npy")], "o.npy: --covariances is OUT"))
+    cases.append(([str(bad), str(tmp_path / "o.ply"), "--weights", str(model_path), "--covariances", str(bad)],
+                  "bad.npy: --covariances is IN"))
+    cases.append(([str(tmp_path / "missing.pcd"), str(tmp_path / "o.ply"), "--min-range", "50", "--max-range", "10"],
+                  "--min-range 50 m is not below --max-range 10 m"))
     # an OUT of unknown format is refused before anything is read (the input does not even exist)
     cases.append(([str(tmp_path / "missing.pcd"), str(tmp_path / "o.xyz"), "--weights", str(model_path)],
                   "o.xyz: unknown point cloud format"))
@@ -264,10 +274,13 @@ def test_gr_densify_errors_name_the_file(model_path: Path, pcd_file: Path, tmp_p
         err = capsys.readouterr().err
         assert err.startswith("error: ") and name in err, err
     assert not list(tmp_path.glob("o.*"))  # nothing written
+    np.testing.assert_array_equal(np.load(bad), np.zeros((10, 2)))  # IN untouched
 
     # bad option values are named by their option, before anything is read (the input does not exist)
     for option, value, message in (("--tau-ani", "1.0", "argument --tau-ani: 1.0 is not in [0, 1)"),
-                                   ("--samples", "0", "argument --samples: 0 is below 1")):
+                                   ("--samples", "0", "argument --samples: 0 is below 1"),
+                                   ("--voxel-size", "0", "argument --voxel-size: 0 is not a finite number > 0"),
+                                   ("--min-range", "-1", "argument --min-range: -1 is below 0")):
         with pytest.raises(SystemExit):
             densify_main([str(tmp_path / "missing.pcd"), str(tmp_path / "o.ply"), option, value])
         assert message in capsys.readouterr().err
@@ -375,3 +388,49 @@ def test_densified_frames_keep_the_sensor_times_of_their_source_points() -> None
     out_rows, s_rows = np.array(originals).T
     np.testing.assert_array_equal(frame.time[out_rows], time[rows][s_rows])
     np.testing.assert_array_equal(frame.intensity[out_rows], inten[rows][s_rows])
+
+
+def test_gr_densify_counts_the_points_it_drops(model_path: Path, tmp_path: Path, capsys, caplog) -> None:
+    """Points without a return (NaN, or exactly the origin) are dropped on reading: logged and counted in the
+    summary (``input_points`` are those kept)."""
+    pts, inten = street_cloud()
+    cloud = np.column_stack([pts, inten])
+    cloud[::50, :3] = np.nan
+    cloud[1, :3] = 0.0
+    n_bad = len(cloud[::50]) + 1
+    np.save(tmp_path / "in.npy", cloud)
+    with caplog.at_level("WARNING", logger="gr_graph.cloud_io"):
+        assert densify_main([str(tmp_path / "in.npy"), str(tmp_path / "o.ply"), "--weights", str(model_path)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["dropped_points"] == n_bad and summary["input_points"] == len(cloud) - n_bad
+    assert f"in.npy: dropped {n_bad} points without a return" in caplog.text
+
+
+def test_cloud_files_truncated_or_not_written_are_errors_naming_them(tmp_path: Path, monkeypatch) -> None:
+    """A truncated PLY is an error for its covariances too (open3d returned uninitialised rows); a write that
+    fails (a full disk) names the file and leaves nothing behind."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-10, 10, (50, 3))
+    p = write_cloud(tmp_path / "t.ply", x, None, np.tile(np.eye(3), (50, 1, 1)))
+    data = p.read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[: len(data) // 2])
+    for read in (read_cloud, read_ply_covariances):
+        with pytest.raises(DatasetError, match=r"cut.ply: .* truncated"):
+            read(tmp_path / "cut.ply")
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "save", full_disk)
+    with pytest.raises(OSError, match=r"full.npy: could not be written .*No space left"):
+        write_cloud(tmp_path / "full.npy", x)
+    assert not list(tmp_path.glob("full*")) and not list(tmp_path.glob(".*"))
+
+
+def test_cloudcompare_intensity_is_read_whatever_its_case(tmp_path: Path) -> None:
+    from gr_graph.cloud_io import write_ply
+
+    rng = np.random.default_rng(1)
+    x, i = rng.uniform(-10, 10, (40, 3)), rng.random(40).astype(np.float32)
+    write_ply(tmp_path / "cc.ply", x, extra={"scalar_Intensity": i})
+    np.testing.assert_array_equal(read_cloud(tmp_path / "cc.ply")[1], i)

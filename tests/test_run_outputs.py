@@ -4,6 +4,7 @@ readable covariance ellipses, the RPE-per-round figure, ``--viz`` without a disp
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,7 @@ def test_voxel_map_streams_to_the_same_centroids_as_a_dict() -> None:
         VoxelMap(0.2, flush_points=1).add(np.array([[1e6, 0.0, 0.0]]))
 
 
-def test_write_map_places_scans_with_their_poses(tmp_path: Path) -> None:
+def test_write_map_places_scans_with_their_poses(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     import open3d as o3d
 
     rng = np.random.default_rng(1)
@@ -73,6 +74,14 @@ def test_write_map_places_scans_with_their_poses(tmp_path: Path) -> None:
     assert set(cloud.point["count"].numpy().ravel()) == {5}
     with pytest.raises(ValueError, match="4 scans for 5 poses"):
         write_map(tmp_path / "bad.ply", scans[:4], np.array(poses), 0.1)
+
+    # a scan whose pose is not finite is left out, logged and counted (before: silently, point by point)
+    broken = np.array(poses)
+    broken[2, 0, 3] = np.nan
+    with caplog.at_level(logging.WARNING, logger="gr_graph.map_export"):
+        counts = write_map(tmp_path / "nan.ply", iter(scans), broken, voxel_size=0.01)
+    assert counts == {"points": 12000, "voxels": 3000, "voxel_size": 0.01, "scans_left_out": 1}
+    assert "1 scans left out of the map, their poses are not finite (scans 2)" in caplog.text
 
 
 def test_ellipse_axes_and_scale_closed_form() -> None:

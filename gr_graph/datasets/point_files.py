@@ -225,6 +225,13 @@ def _read_with_open3d(path: Path) -> DecodedCloud:
 def read_ply(path: str | Path) -> DecodedCloud:
     """Read the ``vertex`` element of a PLY file (ASCII or binary), every scalar property
     (``element vertex 0``: an empty cloud)."""
+    return decode_structured(read_ply_vertices(path), str(Path(path)))
+
+
+def read_ply_vertices(path: str | Path) -> np.ndarray:
+    """The ``vertex`` element of a PLY file (ASCII or binary) as a structured array with every scalar
+    property, as stored (ASCII values as float64); a DatasetError naming the file when the header is
+    malformed or the data are fewer than the header promises."""
     path = Path(path)
     with path.open("rb") as fh:
         if fh.read(3) != b"ply":
@@ -254,7 +261,7 @@ def read_ply(path: str | Path) -> DecodedCloud:
                 raise DatasetError(f"{path}: vertex property {parts[2]!r} has unknown type {parts[1]!r}")
             props.append((parts[2], _PLY_TYPES[parts[1]]))
     if n_points == 0:  # element vertex 0: an empty cloud (its properties are still checked)
-        return decode_structured(np.zeros(0, dtype=[(name, "<" + code) for name, code in props]), str(path))
+        return np.zeros(0, dtype=[(name, "<" + code) for name, code in props])
     if fmt == "ascii":
         with path.open("rb") as fh:
             fh.seek(offset)
@@ -264,7 +271,7 @@ def read_ply(path: str | Path) -> DecodedCloud:
                 raise DatasetError(f"{path}: unreadable ASCII PLY data ({exc})") from exc
         if table.shape != (n_points, len(props)):
             raise DatasetError(f"{path}: ASCII vertices are {table.shape}, header says {n_points} x {len(props)}")
-        return decode_structured(_columns(table, [p[0] for p in props]), str(path))
+        return _columns(table, [p[0] for p in props])
     order = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(name, order + code) for name, code in props])
     data = np.fromfile(path, dtype=np.uint8, offset=offset)
@@ -272,7 +279,7 @@ def read_ply(path: str | Path) -> DecodedCloud:
     if len(data) < need:
         raise DatasetError(f"{path}: {len(data)} data bytes, header promises {n_points} vertices x "
                            f"{dtype.itemsize} bytes = {need}: truncated or wrong field layout")
-    return decode_structured(data[:need].view(dtype), str(path))
+    return data[:need].view(dtype)
 
 
 def read_npy(path: str | Path) -> DecodedCloud:
