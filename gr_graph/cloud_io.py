@@ -99,9 +99,10 @@ def written(path: PathLike) -> Iterator[Path]:
         with atomic_path(path) as tmp:
             yield tmp
     except OSError as exc:
-        if str(path) in str(exc):
+        if str(Path(path)) in str(exc):
             raise
-        raise OSError(f"{path}: could not be written ({exc})") from exc
+        # the same kind of error (PermissionError, ENOSPC's errno), now naming the file
+        raise type(exc)(exc.errno, f"{path}: could not be written ({exc.strerror or exc})") from exc
 
 
 def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None = None,

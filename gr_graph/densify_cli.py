@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {pre.voxel_size})")
     p.add_argument("--min-range", type=number_in(float, 0.0), default=None, metavar="M",
                    help=f"drop points closer than this to the origin (default: {pre.min_range})")
-    p.add_argument("--max-range", type=number_in(float, 0.0, low_open=True), default=None, metavar="M",
+    p.add_argument("--max-range", type=number_in(float, 0.0), default=None, metavar="M",
                    help=f"drop points farther than this from the origin (default: {pre.max_range})")
     add_point_format(p, help="layout of an IN .bin file: float32 x,y,z,intensity (16 bytes a point) or x,y,z (12 bytes)")
     add_seed(p, "seed of the network's input split and of the sampling")

@@ -133,8 +133,10 @@ def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None
     and ``time_reference``, whose default became None (guessed), hash None as what the data's
     conventions guessed (``guessed``, :func:`guessed_sensor_options`: a recording's time unit),
     else as their former defaults (``s``, ``sweep_start``). So a unit guessed as ``ns`` and one set
-    to ``s`` do not hash alike (a run fixed by removing a wrong ``time_unit`` recomputes), while a
-    guessed ``s`` hashes as before.
+    to ``ns`` hash alike, and one set to ``s`` does not, while a guessed ``s`` hashes as before.
+    ``time_reference`` is judged frame by frame when unset, so it has no one guessed value: unset
+    still hashes as ``sweep_start`` (a given reference also turns times beyond the sweep into
+    errors, so a wrong one rarely finishes a round).
     """
     if r == 0:
         d = cfg.model_dump(mode="json", exclude={"output": True, "data": READ_OPTIONS, "training": True,

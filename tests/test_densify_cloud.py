@@ -422,8 +422,9 @@ def test_cloud_files_truncated_or_not_written_are_errors_naming_them(tmp_path: P
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(np, "save", full_disk)
-    with pytest.raises(OSError, match=r"full.npy: could not be written .*No space left"):
+    with pytest.raises(OSError, match=r"full.npy: could not be written .*No space left") as err:
         write_cloud(tmp_path / "full.npy", x)
+    assert err.value.errno == 28  # the same kind of error, now naming the file
     assert not list(tmp_path.glob("full*")) and not list(tmp_path.glob(".*"))
 
 
@@ -434,3 +435,7 @@ def test_cloudcompare_intensity_is_read_whatever_its_case(tmp_path: Path) -> Non
     x, i = rng.uniform(-10, 10, (40, 3)), rng.random(40).astype(np.float32)
     write_ply(tmp_path / "cc.ply", x, extra={"scalar_Intensity": i})
     np.testing.assert_array_equal(read_cloud(tmp_path / "cc.ply")[1], i)
+    # a name as written wins over one in another case, and over a preferred name in another case
+    for extra, wanted in (({"Intensity": i + 1, "intensity": i}, i), ({"reflectance": i, "scalar_Intensity": i + 1}, i)):
+        write_ply(tmp_path / "two.ply", x, extra={k: v.astype(np.float32) for k, v in extra.items()})
+        np.testing.assert_array_equal(read_cloud(tmp_path / "two.ply")[1], wanted)

@@ -33,8 +33,8 @@ TIME_FIELDS = ("t", "time", "timestamp")
 Hesai/Livox ``timestamp``)."""
 RING_FIELDS = ("ring",)
 INTENSITY_FIELDS = ("intensity", "scalar_intensity", "reflectance")
-"""Names of the intensity field, in order of preference, matched regardless of case (CloudCompare writes
-``scalar_Intensity``, PCL ``intensity``, some exporters ``Intensity``)."""
+"""Names of the intensity field, in order of preference; when none is there as written, matched
+regardless of case (CloudCompare writes ``scalar_Intensity``, some exporters ``Intensity``)."""
 
 
 @dataclass(frozen=True)
@@ -145,8 +145,10 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     if dropped:
         xyz = xyz[finite]
         flat = flat[finite]
-    by_lower = {n.lower(): n for n in reversed(names)}  # the first of names differing only in case wins
-    intensity_field = next((by_lower[n] for n in INTENSITY_FIELDS if n in by_lower), None)
+    intensity_field = next((n for n in INTENSITY_FIELDS if n in names), None)  # an exact name first
+    if intensity_field is None:  # then in any case (the first of names differing only in case)
+        by_lower = {n.lower(): n for n in reversed(names)}
+        intensity_field = next((by_lower[n] for n in INTENSITY_FIELDS if n in by_lower), None)
     intensity = flat[intensity_field].astype(np.float32) if intensity_field else None
     time_field = next((n for n in TIME_FIELDS if n in names), None)
     time = flat[time_field].astype(np.float64) if time_field else None
