@@ -71,13 +71,17 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
     a plain ``open()`` would give it. ``fsync=False`` skips flushing the file to the disk
     before the rename (for caches whose readers check what they read: after a power loss the
     file may be empty, never half-replaced by another).
+
+    An ``OSError`` while the file is made, written or renamed (a full disk, a file size limit, no
+    permission) is raised as the same kind of error (type and ``errno``) naming ``path``; one about
+    another file (``filename`` set to it) passes unchanged.
     """
     target = Path(path)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
-    except OSError as exc:  # the temporary name means nothing to the user: name the file asked for
-        raise type(exc)(exc.errno, f"cannot write {target}: {exc.strerror}") from exc
+    except OSError as exc:
+        raise _naming(exc, target) from exc
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -88,9 +92,25 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
         os.replace(tmp, target)
         if fsync:
             fsync_directory(target.parent)  # the rename itself survives a power loss
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.filename not in (None, str(tmp), tmp_name) or str(target) in str(exc):
+            raise  # about another file (an input read while writing), or naming the target already
+        raise _naming(exc, target) from exc
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _naming(exc: OSError, target: Path) -> OSError:
+    """``exc`` (a full disk, a file size limit, a folder that is a file) as the same kind of error, naming
+    ``target``: the temporary sibling written in its place means nothing to the user."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    message = f"cannot write {target}: {reason}"
+    try:
+        return type(exc)(exc.errno, message) if exc.errno is not None else type(exc)(message)
+    except TypeError:  # a subclass with its own constructor
+        return OSError(exc.errno, message)
 
 
 def atomic_write_bytes(path: PathLike, data: bytes) -> Path:

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +30,7 @@ from gr_graph.datasets.base import DatasetError
 from gr_graph.datasets.pointcloud2 import has_return
 
 __all__ = ["CLOUD_SUFFIXES", "COVARIANCE_PROPERTIES", "check_suffix", "read_cloud", "read_cloud_counted",
-           "write_cloud", "write_ply", "read_ply_covariances", "written"]
+           "write_cloud", "write_ply", "read_ply_covariances"]
 
 log = logging.getLogger(__name__)
 
@@ -91,20 +89,6 @@ def read_cloud_counted(path: PathLike, point_format: str = "xyzi") -> tuple[np.n
     return np.asarray(cloud.points, np.float64), intensity, int(cloud.dropped_nonfinite)
 
 
-@contextmanager
-def written(path: PathLike) -> Iterator[Path]:
-    """:func:`gr_graph.atomic.atomic_path` whose ``OSError`` (a full disk, a file size limit) names
-    ``path``: the temporary path to write, renamed to ``path`` when the block ends without error."""
-    try:
-        with atomic_path(path) as tmp:
-            yield tmp
-    except OSError as exc:
-        if str(Path(path)) in str(exc):
-            raise
-        # the same kind of error (PermissionError, ENOSPC's errno), now naming the file
-        raise type(exc)(exc.errno, f"{path}: could not be written ({exc.strerror or exc})") from exc
-
-
 def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None = None,
                 covariances: np.ndarray | None = None) -> Path:
     """Write a cloud in the format of ``path``'s extension, atomically; return the path.
@@ -128,7 +112,7 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
         raise ValueError(f"{p}: per-point covariances can be stored in .ply files only (or separately as .npy)")
     if suffix == ".ply":
         return write_ply(p, xyz, inten, covariances)
-    with written(p) as tmp:
+    with atomic_path(p) as tmp:
         if suffix == ".bin":
             np.column_stack([xyz, np.zeros(len(xyz), np.float32) if inten is None else inten]).tofile(tmp)
         elif suffix == ".npy":
@@ -175,7 +159,7 @@ def write_ply(path: PathLike, points: np.ndarray, intensity: np.ndarray | None =
     header = ["ply", "format binary_little_endian 1.0", "comment written by gr_graph", f"element vertex {n}"]
     header += [f"property {ply_types[v.dtype.str[1:]]} {name}" for name, v in fields]
     header.append("end_header")
-    with written(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(rows.tobytes())
     return Path(path)

@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Densify ``args.input`` into ``args.output``; return the counts printed by :func:`main`."""
     import numpy as np
 
-    from gr_graph.cloud_io import check_suffix, read_cloud_counted, write_cloud, written
+    from gr_graph.atomic import atomic_path
+    from gr_graph.cloud_io import check_suffix, read_cloud_counted, write_cloud
     from gr_graph.densify import densify_cloud
 
     out = Path(args.output)
@@ -114,7 +115,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"{args.input}: {exc}") from None
     C = res.covariances
     if args.covariances is not None:  # first, so that a finished OUT always has its covariances beside it
-        with written(args.covariances) as tmp, open(tmp, "wb") as fh:  # a handle: np.save appends ".npy"
+        with atomic_path(args.covariances) as tmp, open(tmp, "wb") as fh:  # a handle: np.save appends ".npy"
             np.save(fh, C)  # to a name that ends otherwise (".NPY")
     write_cloud(out, res.points, res.intensity, C if args.ply_covariances else None)
     return {"input": str(args.input), "output": str(out), "input_points": len(points), "dropped_points": dropped,

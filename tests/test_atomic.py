@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from pathlib import Path
@@ -62,3 +63,27 @@ def test_a_file_that_cannot_be_written_is_named_not_its_temporary(tmp_path: Path
     target = tmp_path / "a_file" / "out.json"  # a folder that is a file
     with pytest.raises(OSError, match=f"cannot write {target}"):
         atomic_write_json(target, {"a": 1})
+
+
+def test_errors_while_writing_name_the_file_and_keep_their_kind(tmp_path: Path) -> None:
+    """A full disk or a refused write inside the block is raised as the same error type and errno, naming
+    the file asked for (not its temporary sibling); an error about another file passes unchanged."""
+    target = tmp_path / "out.ply"
+    with pytest.raises(OSError, match=f"cannot write {target}: No space left") as err:
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert err.value.errno == errno.ENOSPC and type(err.value) is OSError
+    with pytest.raises(PermissionError, match=f"cannot write {target}: Permission denied") as err:
+        with atomic_path(target) as tmp:
+            raise PermissionError(errno.EACCES, "Permission denied", str(tmp))
+    assert err.value.errno == errno.EACCES
+    with pytest.raises(OSError, match="cannot write .*out.ply: file too large"):
+        with atomic_path(target):
+            raise OSError("file too large")  # no errno (some writers raise so)
+    other = tmp_path / "input.pcd"
+    with pytest.raises(FileNotFoundError) as err:
+        with atomic_path(target):
+            open(other)
+    assert err.value.filename == str(other) and "cannot write" not in str(err.value)
+    assert not list(tmp_path.iterdir())  # no target, no temporary left behind
