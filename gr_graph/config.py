@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from gr_graph.atomic import atomic_write_text
 from gr_graph.config_errors import describe_validation_error
-from gr_graph.config_yaml import read_config_yaml
+from gr_graph.config_yaml import read_config_file
 from gr_graph.sensors import SensorConfig, SensorError, loop_rmse_threshold
 from training.config import RUN_KEYS, TrainConfig, TrainOptions
 
@@ -493,19 +493,9 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str,
     written_since_given_keys = False
     if path is not None:
         p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"config file not found: {p}")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except UnicodeDecodeError as exc:
-            raise ValueError(f"{p}: not a UTF-8 text file ({exc.reason} at byte {exc.start}): not a config file") from None
-        except OSError as exc:  # e.g. not readable
-            raise ValueError(f"{p}: cannot be read ({exc.strerror or exc})") from None
+        text, loaded = read_config_file(p)
+        loaded = loaded or {}
         written_since_given_keys = text.startswith(GIVEN_SENSOR_KEYS_MARK)
-        try:
-            loaded = read_config_yaml(text) or {}
-        except yaml.YAMLError as exc:  # e.g. a tab in the indentation
-            raise ValueError(f"{p}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
             raise ValueError(f"{p}: a config file must hold a mapping of sections")
         data = loaded

@@ -9,11 +9,13 @@ integers keep their base. Used by the SLAM and training configs.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import yaml
 
-__all__ = ["read_config_yaml"]
+__all__ = ["read_config_yaml", "read_config_file"]
 
 
 class _ConfigLoader(yaml.SafeLoader):
@@ -44,3 +46,28 @@ def read_config_yaml(text: str) -> Any:
         Text that is not valid YAML.
     """
     return yaml.load(text, Loader=_ConfigLoader)  # noqa: S506 (a SafeLoader)
+
+
+def read_config_file(path: str | os.PathLike[str], what: str = "config file") -> tuple[str, Any]:
+    """The text of the YAML/JSON file ``path`` and its objects (:func:`read_config_yaml`).
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is no file at ``path`` (the message starts with ``what``).
+    ValueError
+        Naming the file: not UTF-8 text, not readable, or not valid YAML.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{what} not found: {p}")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{p}: not a UTF-8 text file ({exc.reason} at byte {exc.start}): not a config file") from None
+    except OSError as exc:  # e.g. not readable
+        raise ValueError(f"{p}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        return text, read_config_yaml(text)
+    except yaml.YAMLError as exc:  # e.g. a tab in the indentation, an unclosed bracket
+        raise ValueError(f"{p}: not valid YAML: {exc}") from None

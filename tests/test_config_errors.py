@@ -122,3 +122,31 @@ def test_yaml_on_off_and_sequence_numbers_are_read_as_meant(tmp_path):
     assert (cfg.training.rounds, cfg.data.route_seed) == (10, 16)
     path.write_text("data: {frames: 10:50}\n")  # a frame range, not YAML 1.1's base 60 (650)
     assert load_config(path, {}).data.frames == (10, 50)
+
+
+@pytest.mark.parametrize("content, want", [
+    (b"epochs: [1\n", "not valid YAML"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00", "not a UTF-8 text file"),
+])
+def test_train_cli_names_a_config_that_is_not_yaml(tmp_path, capsys, content, want):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_bytes(content)
+    rc = train_main(["--memory", str(tmp_path / "unused"), "--out", str(tmp_path / "out"), "--config", str(cfg)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith(f"error: {cfg}: {want}")
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_cli_refuses_a_slam_rounds_own_training_folder(tmp_path, capsys):
+    """Default --out beside the memory is not round_<r>/training, which holds the model round r used; that
+    folder given as --out is refused before anything is read or written."""
+    from training.train import DEFAULT_OUT_NAME, build_parser
+
+    run = tmp_path / "runs" / "slam"
+    rc = train_main(["--memory", str(run / "round_1" / "memory"), "--out", str(run / "round_1" / "training")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "the training folder of a gr-slam round" in err and not run.exists()
+    assert DEFAULT_OUT_NAME != "training" and f"<memory>/../{DEFAULT_OUT_NAME}" in build_parser().format_help()
+    # a folder merely called training elsewhere is the user's to choose
+    rc = train_main(["--memory", str(tmp_path / "missing"), "--out", str(tmp_path / "training")])
+    assert rc == 2 and "gr-slam round" not in capsys.readouterr().err

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -302,3 +303,32 @@ def test_pretrain_install_ships_nothing_when_the_card_cannot_be_made(tmp_path: P
     with pytest.raises(FileNotFoundError, match="summary.json"):  # killed before the summary was written
         pretrain.install(root)
     assert weights.read_bytes() == b"the weights that ship now" and not card_path.exists()
+    # an evaluation of other weights (train rerun after evaluate, or of before the hash was kept) is refused
+    summary = {"dataset": {"n_edges": 1}, "epochs_done": 1, "config": {"seed": 0, "net": SMALL_NET},
+               "skip_counts": {}, "runtime_s": {"total": 1.0}, "provenance": {}}
+    (root / "training" / "summary.json").write_text(json.dumps(summary))
+    sha = pretrain.weights_sha256(root / "training" / "model.pt")
+    for recorded in ("0" * 64, None):
+        (root / "evaluation.json").write_text(json.dumps({"weights_sha256": recorded, "summary": {}}))
+        with pytest.raises(ValueError, match=r"evaluation.json: made with other weights .*rerun"):
+            pretrain.install(root)
+        assert weights.read_bytes() == b"the weights that ship now" and not card_path.exists()
+    (root / "evaluation.json").write_text(json.dumps({"weights_sha256": sha, "summary": {}}))
+    (root / "per_count_32.json").write_text(json.dumps({"weights_sha256": "1" * 64, "summary": {}}))
+    with pytest.raises(ValueError, match=r"per_count_32.json: made with other weights"):  # any channel count's
+        pretrain.card(root)
+    (root / "per_count_32.json").write_text(json.dumps({"weights_sha256": sha, "summary": {"channels": 32}}))
+    doc = pretrain.card(root)
+    assert doc["one_model_for_all_channel_counts"]["summary"]["channels"] == 32 and doc["evaluation"] is not None
+
+
+def test_resume_key_holds_the_starting_weights_content_not_their_path(tmp_path: Path) -> None:
+    """The same file named relative or absolute, or copied to a moved run folder, is the same start."""
+    (tmp_path / "a").mkdir()
+    path = tmp_path / "a" / "init.pt"
+    path.write_bytes(b"one")
+    copy = tmp_path / "b.pt"
+    copy.write_bytes(b"one")
+    keys = [TrainConfig.from_dict(dict(init_checkpoint=str(p), net=SMALL_NET)).resume_key()
+            for p in (path, copy, Path(os.path.relpath(path)))]
+    assert keys[0] == keys[1] == keys[2] and "init_checkpoint" not in keys[0]

@@ -168,8 +168,8 @@ class TrainConfig(TrainOptions):
         for k, default in ADDED_TRAIN_OPTIONS.items():  # count only when set: older checkpoints stay resumable
             if d.get(k) == default:
                 d.pop(k)
-        if d.get("init_checkpoint"):  # the starting weights' content, not only their path
-            p = Path(d["init_checkpoint"])
+        if d.get("init_checkpoint"):  # the starting weights' content, not their path (relative or absolute,
+            p = Path(d.pop("init_checkpoint"))  # a moved run folder, a harness cell's copy: the same weights)
             d["init_checkpoint_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
         return d
 
@@ -182,18 +182,19 @@ def load_train_config(path: str | os.PathLike[str] | None = None, overrides: Map
     FileNotFoundError
         If ``path`` does not exist.
     TrainConfigError
-        If the file is not a mapping, or a key is unknown (message: the key, the file and the
+        If the file is not UTF-8 text or valid YAML, not a mapping, or a key is unknown (message: the key, the file and the
         valid keys) or a value out of range.
     """
     data: dict[str, Any] = {}
     what = "training config"
     if path is not None:
-        from gr_graph.config_yaml import read_config_yaml
+        from gr_graph.config_yaml import read_config_file
 
         p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"training config file not found: {p}")
-        loaded = read_config_yaml(p.read_text()) or {}
+        try:
+            loaded = read_config_file(p, "training config file")[1] or {}
+        except ValueError as exc:  # not text, not readable, not YAML: named
+            raise TrainConfigError(str(exc)) from None
         if not isinstance(loaded, dict):
             raise TrainConfigError(f"{p}: a training config file must hold a mapping of TrainConfig keys")
         data = loaded

@@ -35,6 +35,7 @@ import numpy as np
 
 from gr_graph.atomic import atomic_write_json, atomic_write_text, read_json_or_none
 from gr_graph.cli_common import add_log_level, make_parser, setup_logging
+from gr_graph.pretrained import weights_sha256
 
 log = logging.getLogger(__name__)
 
@@ -153,8 +154,9 @@ def evaluate(root: Path, weights: Path | None = None, jobs: int = 1) -> dict[str
         return {"window": asdict(w), "round0": _figures(m, 0), "pretrained": _figures(m, 1),
                 "final_round": m.get("final_round")}
 
+    sha = weights_sha256(weights)  # before the runs: weights replaced meanwhile make the card refuse them
     rows = _parallel(jobs, one, EVAL_WINDOWS)
-    res = {"weights": str(weights), "rows": rows, "summary": summarize(rows)}
+    res = {"weights": str(weights), "weights_sha256": sha, "rows": rows, "summary": summarize(rows)}
     atomic_write_json(root / "evaluation.json", res)
     return res
 
@@ -202,21 +204,40 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
         return {"window": asdict(w), "round0": _figures(m, 0), "per_count": _figures(m, 1),
                 "all_counts": _figures(shared, 1)}
 
+    shared_sha = read_json_or_none(root / "evaluation.json") or {}  # the all-counts figures are evaluate's
     rows = _parallel(jobs, one, evals)
     summary: dict[str, Any] = {"channels": channels, "n_seeds": len(rows)}
     for k in METRICS:
         a = np.array([r["all_counts"].get(k) for r in rows], float)
         b = np.array([r["per_count"].get(k) for r in rows], float)
         summary[k] = {"all_counts": _mean_std(a), "per_count": _mean_std(b), "per_count_better_in": int(np.sum(b < a))}
-    res = {"weights_per_count": str(weights), "rows": rows, "summary": summary}
+    res = {"weights_per_count": str(weights), "weights_sha256": shared_sha.get("weights_sha256"), "rows": rows,
+           "summary": summary}
     atomic_write_json(root / f"per_count_{channels}.json", res)
     return res
+
+
+def _of_these_weights(path: Path, sha: str) -> dict[str, Any] | None:
+    """The record in ``path`` (None when missing), refused when it was made with other weights than ``sha``'s
+    (``train`` rerun after ``evaluate``, or a record of before the hash was kept): a card's figures describe the
+    weights it ships."""
+    record = read_json_or_none(path)
+    if record is None:
+        return None
+    if record.get("weights_sha256") != sha:
+        made_with = record.get("weights_sha256") or "weights not recorded"
+        raise ValueError(f"{path}: made with other weights ({made_with}) than training/model.pt ({sha[:12]}...); "
+                         "rerun `python -m training.pretrain evaluate` (and `per-count`) before `install`")
+    return record
 
 
 def card(root: Path) -> dict[str, Any]:
     """The model card: data, sensors, channels, epochs, seeds, evaluation (``pretrained.json``)."""
     tsum = json.loads((root / "training" / "summary.json").read_text())
-    ev = read_json_or_none(root / "evaluation.json")
+    sha = weights_sha256(root / "training" / "model.pt")
+    ev = _of_these_weights(root / "evaluation.json", sha)
+    per_count_files = sorted(root.glob("per_count_*.json"), key=lambda f: (f.name != "per_count_16.json", f.name))
+    pc = _of_these_weights(per_count_files[0], sha) if per_count_files else None
     return {
         "name": "gr_graph pretrained covariance network",
         "format": "training checkpoint (training.trainer.CHECKPOINT_FORMAT), loaded by training.trainer.load_model",
@@ -230,7 +251,7 @@ def card(root: Path) -> dict[str, Any]:
         "net": tsum["config"]["net"], "corr_likelihood": tsum["config"].get("corr_likelihood", "gaussian"),
         "skip_counts": tsum["skip_counts"],
         "training_runtime_s": tsum["runtime_s"]["total"], "provenance": tsum["provenance"],
-        "one_model_for_all_channel_counts": read_json_or_none(root / "per_count_16.json"),
+        "one_model_for_all_channel_counts": pc,
         "evaluation": None if ev is None else {
             "what": "held-out world seeds (never in training): round 0 against one learning round that densifies "
                     "with these weights without training (gr-slam --weights pretrained --densify), "

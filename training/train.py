@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 from collections.abc import Sequence
@@ -97,6 +98,20 @@ def load_training_memory(memory_dir: str | os.PathLike[str]) -> Memory:
     return memory
 
 
+#: Default output folder's name, beside the memory's folder: not ``training``, which in a gr-slam run's
+#: ``round_<r>`` folder holds the model that round used.
+DEFAULT_OUT_NAME = "gr_train"
+
+
+def refuse_pipeline_training_folder(out: str | os.PathLike[str]) -> None:
+    """Raise ValueError when ``out`` is a gr-slam round's ``round_<r>/training`` folder: training into it
+    would replace (or, on a checkpoint mismatch, refuse) the model that round used and the next warm-starts from."""
+    p = Path(out).resolve()
+    if p.name == "training" and re.fullmatch(r"round_\d+", p.parent.name):
+        raise ValueError(f"{out}: the training folder of a gr-slam round (its model.pt is what {p.parent.name} "
+                         "used); use another --out")
+
+
 EXAMPLES = (
     "python -m training.train --memory runs/slam/round_0/memory --out runs/train --epochs 2",
     "python -m training.train --memory runs/slam/round_0/memory --out runs/train --config train.yaml --device cuda",
@@ -111,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = make_parser("python -m training.train", __doc__.split("\n\n")[0] + " Options override --config.", EXAMPLES)
     ap.add_argument("--memory", required=True, nargs="+", metavar="DIR",
                     help="memory directory (written by gr_graph.slam); several: trained on together")
-    add_out(ap, "output directory (default: <memory>/../training)")
+    add_out(ap, f"output directory (default: <memory>/../{DEFAULT_OUT_NAME}; a gr-slam round's own "
+                "round_<r>/training folder is refused)")
     add_config(ap, "YAML/JSON file with TrainConfig keys (an unknown key is an error)")
     ap.add_argument("--epochs", type=int, default=None, metavar="N", help=f"epochs (default: {d.epochs})")
     add_seed(ap, f"seed of the weights and of all sampling (default: {d.seed})", default=None)
@@ -137,9 +153,13 @@ def main(argv: list[str] | None = None) -> int:
             overrides[key] = val
     if args.no_progress:
         overrides["progress"] = False
-    out = Path(args.out) if args.out else Path(args.memory[0]).resolve().parent / "training"
+    out = Path(args.out) if args.out else Path(args.memory[0]).resolve().parent / DEFAULT_OUT_NAME
     try:
+        refuse_pipeline_training_folder(out)
         cfg = load_train_config(args.config, overrides)
+        if cfg.epochs == 0 and not cfg.init_checkpoint:
+            log.warning("--epochs 0 without an init_checkpoint: %s will hold the untrained network's random "
+                        "weights", out / "model.pt")
         path = train_from_memory(args.memory, out, cfg, resume=not args.no_resume)
     except (ValueError, RuntimeError, OSError) as exc:  # OSError: a full disk, a file where a folder goes
         print(f"error: {exc}", file=sys.stderr)

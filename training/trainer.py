@@ -305,6 +305,7 @@ class Trainer:
             "epoch_skipped": epoch_skipped,
             "torch_rng": torch.get_rng_state(),
             "threads_used": sorted(self.threads_used),
+            "device": self.device.type,
         }
 
     def save_checkpoint(self) -> Path:
@@ -337,7 +338,7 @@ class Trainer:
         path = self.out_dir / CHECKPOINT_NAME
         if not path.is_file():
             return False
-        hint = "use another --out directory or delete the checkpoint"
+        hint = "use another --out directory, --no-resume, or delete the checkpoint"
         try:  # tensors onto the CPU first: torch.set_rng_state takes a CPU tensor only
             st = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # truncated or foreign file: pickle, zip and runtime errors
@@ -345,6 +346,10 @@ class Trainer:
         needed = ("model_state", "optimizer_state", "epoch", "step", "skip_counts", "torch_rng")
         if not isinstance(st, dict) or any(k not in st for k in needed):
             raise CheckpointMismatch(f"{path}: not a training checkpoint (needs {', '.join(needed)}); {hint}")
+        version = int(st.get("format_version", 0))
+        if version > CHECKPOINT_FORMAT:
+            raise CheckpointMismatch(f"{path}: checkpoint format version {version} is newer than this gr_graph "
+                                     f"reads ({CHECKPOINT_FORMAT}); {hint}")
         now = self.dataset.describe()
         stored = st.get("dataset", now)
         if stored != now and _without_edge_hashes(stored) == stored:  # written before the hash was kept:
@@ -352,19 +357,35 @@ class Trainer:
         if stored != now:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration (other "
                                      f"training data: {st['dataset']}, now {self.dataset.describe()}); {hint}")
-        if st.get("resume_key") != self.config.resume_key() or st.get("world_size") != self.world_size:
+        stored_key = dict(st.get("resume_key") or {})
+        if "init_checkpoint_sha256" in stored_key:  # checkpoints of before the path left the key: its content counts
+            stored_key.pop("init_checkpoint", None)
+        if stored_key != self.config.resume_key() or st.get("world_size") != self.world_size:
             raise CheckpointMismatch(
                 f"{path}: checkpoint was written with a different configuration or world size; {hint}")
         if int(st["epoch"]) > self.config.epochs:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration ({st['epoch']} "
                                      f"epochs trained, {self.config.epochs} asked for); {hint}")
-        self.model.load_state_dict(st["model_state"])
-        self.optimizer.load_state_dict(st["optimizer_state"])
-        self.epoch, self.step = int(st["epoch"]), int(st["step"])
-        self.skip_counts = Counter(st["skip_counts"])
+        model_before = {k: v.clone() for k, v in self.model.state_dict().items()}
+        optimizer_before = self.optimizer.state_dict()
+        try:  # a damaged state (weights of another shape, a broken RNG state) is a checkpoint not to continue
+            self.model.load_state_dict(st["model_state"])
+            self.optimizer.load_state_dict(st["optimizer_state"])
+            epoch, step = int(st["epoch"]), int(st["step"])
+            skip_counts = Counter(st["skip_counts"])
+            torch.set_rng_state(st["torch_rng"].cpu())
+        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            self.model.load_state_dict(model_before)  # a retrain after the refusal starts from where it was
+            self.optimizer.load_state_dict(optimizer_before)
+            first_line = (str(exc).splitlines() or [""])[0]
+            raise CheckpointMismatch(f"{path}: damaged checkpoint ({type(exc).__name__}: {first_line}); {hint}") from None
+        self.epoch, self.step, self.skip_counts = epoch, step, skip_counts
         # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
         self.epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
-        torch.set_rng_state(st["torch_rng"].cpu())
+        device_before = st.get("device")  # checkpoints before it was kept: unknown
+        if device_before is not None and torch.device(device_before).type != self.device.type:
+            log.warning("%s: resumed on %s, the steps before ran on %s: the weights will differ from an "
+                        "uninterrupted run", path, self.device.type, device_before)
         before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
         if before and before != {torch.get_num_threads()}:
             log.warning("%s: resumed with %d torch thread(s), the steps before ran with %s: the weights may differ "

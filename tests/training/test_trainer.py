@@ -229,6 +229,13 @@ def test_train_cli_names_a_path_that_cannot_be_a_folder(memory_dir, tmp_path, ca
     assert err.startswith("error:") and "afile" in err
 
 
+def test_train_cli_warns_that_zero_epochs_write_an_untrained_network(memory_dir, tmp_path, caplog):
+    with caplog.at_level("WARNING", logger="training.train"):
+        assert train_main(["--memory", str(memory_dir), "--out", str(tmp_path / "t"), "--epochs", "0",
+                           "--no-progress"]) == 0
+    assert "--epochs 0 without an init_checkpoint" in caplog.text and (tmp_path / "t" / "model.pt").is_file()
+
+
 @pytest.mark.slow
 def test_train_from_memory_cli_and_predict(memory_dir, tmp_path):
     cfg = {"epochs": 1, "progress": False, "max_corr": 200, "net": SMALL_NET}
@@ -387,6 +394,30 @@ def test_checkpoints_that_cannot_be_continued_are_refused_by_name(memory_dir, tm
     torch.save(st, ck)
     Trainer(mem, tmp_path, _cfg(epochs=2)).fit(resume=True)
     assert torch.load(tmp_path / "model.pt", weights_only=True)["epochs_done"] == 2
+
+
+def test_damaged_or_newer_checkpoints_are_refused_by_name_and_leave_the_start_alone(memory_dir, tmp_path):
+    """A readable checkpoint of bad content (weights of another shape, a broken RNG state) or of a newer
+    format is a CheckpointMismatch naming it (the pipeline retrains on it), not a bare error; the
+    trainer's weights stay its starting weights."""
+    mem = load_memory(memory_dir)
+    Trainer(mem, tmp_path, _cfg(epochs=1)).fit(resume=False)
+    ck = tmp_path / "checkpoint.pt"
+    good = torch.load(ck, weights_only=True)
+    damaged = {
+        "weights": {**good, "model_state": {k: v for k, v in good["model_state"].items() if not k.endswith("bias")}},
+        "rng": {**good, "torch_rng": torch.zeros(3, dtype=torch.uint8)},
+        "newer": {**good, "format_version": good["format_version"] + 1},
+    }
+    for name, st in damaged.items():
+        torch.save(st, ck)
+        tr = Trainer(mem, tmp_path, _cfg(epochs=2))
+        start = {k: v.clone() for k, v in tr.model.state_dict().items()}
+        want = "newer than this gr_graph reads" if name == "newer" else "damaged checkpoint"
+        with pytest.raises(CheckpointMismatch, match=rf"checkpoint.pt: .*{want}.*--no-resume"):
+            tr.try_resume()
+        assert all(torch.equal(start[k], v) for k, v in tr.model.state_dict().items()), name
+        assert tr.epoch == 0 and tr.step == 0
 
 
 def test_a_run_killed_before_its_first_checkpoint_leaves_no_log_lines_behind(memory_dir, tmp_path):
