@@ -95,6 +95,31 @@ def test_root_results_win_over_records_and_stale_records_are_ignored(tmp_path, m
     record_path(records, "paper", c0).write_text("{cut short")
     md = _report(monkeypatch, tmp_path / "c", {}, [c0], records_dir=records)
     assert f"unreadable records ignored: {c0.key}" in md
+    # valid JSON of another shape (hand-edited, an older layout): the same, not a KeyError of the report
+    for i, text in enumerate(("[]", json.dumps({"fingerprint": c0.fingerprint()}))):
+        record_path(records, "paper", c0).write_text(text)
+        md = _report(monkeypatch, tmp_path / f"shape{i}", {}, [c0], records_dir=records)
+        assert f"unreadable records ignored: {c0.key}" in md
+
+
+def test_a_damaged_cell_json_is_an_unfinished_cell_named_in_the_log(tmp_path, caplog, default_cells):
+    """cell.json cut short or of another shape: the cell counts as unfinished (recomputed, logged naming
+    the file), never an AttributeError of the harness."""
+    from gr_graph.experiments.run_cell import CELL_JSON, _start, cell_dir, read_cell_result
+
+    c0 = default_cells[0]
+    path = cell_dir(tmp_path, c0) / CELL_JSON
+    path.parent.mkdir(parents=True)
+    for text in ("[]", "{cut", json.dumps({"fingerprint": c0.fingerprint(), "definition": {}})):
+        path.write_text(text)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="gr_graph.experiments.records"):
+            assert read_cell_result(tmp_path, c0) is None
+        assert f"{path}: not" in caplog.text
+        _start(tmp_path, c0, "paper")  # no crash: the cell is started again
+    whole = _result(c0, [0.4, 0.3, 0.2], [True, True])
+    path.write_text(json.dumps(whole))
+    assert read_cell_result(tmp_path, c0) == whole
 
 
 def test_a_cell_shared_by_two_budgets_takes_the_other_budgets_record(tmp_path):
@@ -134,17 +159,19 @@ def test_table2_densified_cells_take_only_results_made_from_their_own_table1_mod
     for cell in (src_paper, paper[r0], paper[r1]):
         atomic = record_path(records, "paper", cell)
         atomic.parent.mkdir(parents=True, exist_ok=True)
-        atomic.write_text(json.dumps({"fingerprint": cell.fingerprint(), **figures}))
+        atomic.write_text(json.dumps({"fingerprint": cell.fingerprint(), "definition": cell.definition(), **figures}))
     got = read_records(records, "student-t", [t[r0], t[r1]])
     assert got.shared == {r0: "paper"} and r1 not in got.results  # the paper's models are not the t's
     assert set(read_records(records, "paper", [paper[r0], paper[r1]]).results) == {r0, r1}  # its own: kept
     # a record that names the t's Table I cell is shared; one of the budget itself naming another is stale
     record_path(records, "paper", paper[r1]).write_text(json.dumps(
-        {"fingerprint": paper[r1].fingerprint(), "source_fingerprint": src_t.fingerprint(), **figures}))
+        {"fingerprint": paper[r1].fingerprint(), "definition": paper[r1].definition(),
+         "source_fingerprint": src_t.fingerprint(), **figures}))
     assert read_records(records, "student-t", [t[r1]]).shared == {r1: "paper"}
     mine = record_path(records, "student-t", t[r1])
     mine.parent.mkdir(parents=True)
-    mine.write_text(json.dumps({"fingerprint": t[r1].fingerprint(), "source_fingerprint": "0" * 16, **figures}))
+    mine.write_text(json.dumps({"fingerprint": t[r1].fingerprint(), "definition": t[r1].definition(),
+                                "source_fingerprint": "0" * 16, **figures}))
     assert read_records(records, "student-t", [t[r1]]).stale == [r1]
     # in a root: a finished result made from the paper's Table I cell is not done for the t, and running it
     # on that source is refused naming both definitions
@@ -152,7 +179,8 @@ def test_table2_densified_cells_take_only_results_made_from_their_own_table1_mod
     for cell in (src_paper, paper[r1]):
         d = rc.cell_dir(root, cell)
         d.mkdir(parents=True)
-        (d / rc.CELL_JSON).write_text(json.dumps({"fingerprint": cell.fingerprint()}))
+        (d / rc.CELL_JSON).write_text(json.dumps({"fingerprint": cell.fingerprint(), "definition": cell.definition(),
+                                                  "rounds": {}}))
     assert rc.is_done(root, paper[r1]) and not rc.is_done(root, t[r1])
     with pytest.raises(rc.CellDependencyError, match=f"this root's was made with another definition "
                                                      f"\\({src_paper.fingerprint()}"):
@@ -221,6 +249,11 @@ def test_cells_refuse_to_run_on_a_kitti_root_found_on_the_machine(tmp_path, monk
     monkeypatch.setenv("GR_GRAPH_KITTI_ROOT", str(tmp_path / "kitti"))
     with pytest.raises(RuntimeError, match="run on the synthetic world"):
         rc._require_synthetic(cfg, cell)
+    # Table II's cells and the report reopen a finished cell's scans: the synthetic world, never the root found
+    with pytest.raises(registry.DatasetError, match="kitti/sequences/00/velodyne: no .bin scans"):  # auto reads it
+        registry.open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+    seq, desc = rc.open_cell_sequence(cfg)
+    assert "synthetic world" in desc and len(seq) == len(range(*cell.frames))
 
 
 def test_every_published_record_matches_its_cell_and_the_cells_pin_the_training_they_were_run_with():
@@ -270,7 +303,7 @@ def test_table2_raw_cells_refuse_a_table1_run_of_other_scans(tmp_path, monkeypat
     root = tmp_path / "root"
     src = root / str(smoke.source)
     (src / "slam").mkdir(parents=True)
-    (src / rc.CELL_JSON).write_text(json.dumps({"fingerprint": "another budget's"}))
+    (src / rc.CELL_JSON).write_text(json.dumps({"fingerprint": "another budget's", "definition": {}, "rounds": {}}))
     other = SlamConfig.model_validate({"seed": smoke.seed, "data": {"frames": [400, 1900], "channels": smoke.channels}})
     dump_config(other, src / "slam" / "config.yaml")
     with pytest.raises(rc.CellDependencyError, match=r"frames \(400, 1900\) \(the cell: \(\d+, \d+\)\)"):

@@ -375,6 +375,14 @@ def test_reuse_copies_round0_and_round1_training_from_a_finished_source(tmp_path
     (half / "partial").write_text("x")
     assert rc._reuse(tmp_path, dst, cells["edge-noise-off"])["copied"] == ["round_0", "round_1/training"]
     assert not half.exists() and (dst / "slam" / "round_1" / "training" / "checkpoint.pt").is_file()
+    # a source of another definition in a shared root (another budget's default cell) is not copied
+    shutil.rmtree(dst / "slam")
+    (dst / rc.REUSE_JSON).unlink()
+    other = dataclasses.replace(cells["edge-noise-off"], reuse_fingerprint="0" * 16)
+    verdict = rc._reuse(tmp_path, dst, other)
+    assert verdict["what"] is None and verdict["copied"] == [] and "another definition" in verdict["note"]
+    assert not (dst / "slam" / "round_0").exists()
+    assert cells["edge-noise-off"].reuse_fingerprint == cells["default"].fingerprint()
 
 
 def test_registration_cell_needs_its_table1_cell(tmp_path):
@@ -445,6 +453,7 @@ def test_missing_acceptance_counts_every_round_as_accepted():
     assert s["steps"]["2-step guarded"]["per_seed"][0]["round"] == 2
     rounds = {"0": {}, "1": {"accepted": False}, "2": {"accepted": True}}
     assert agg.select_round(rounds, "2-step guarded") == (0, "round 1 rejected")
+    assert agg.select_round({"0": {}, "2": {"accepted": True}}, "2-step guarded") == (0, "round 1 missing")
     r, note = agg.select_round({"0": {}, "1": {}}, "2-step")
     assert r == 1 and "round 2 not run" in note
 
@@ -479,9 +488,15 @@ def test_table2_success_mean_std_and_best_step():
     md = "\n".join(_table2_md(agg.table2_summary(res[:5])))
     assert "| 32 | raw | fpfh_ransac | 75.0 ± 7.1 | s0 80, s1 70 | raw 90 |" in md
     assert "| 32 | 2-step | fpfh_ransac | 85.0 (n=1) | s0 85 |" in md
-    assert "Steps measured on different seeds (cells missing): 32 channels: raw seeds 0, 1; 1-step seeds 0, 1; " \
-           "2-step seeds 0." in md
+    assert "Steps measured on different seeds (cells missing): 32 channels: raw (fpfh_ransac) seeds 0, 1; " \
+           "1-step (fpfh_ransac) seeds 0, 1; 2-step (fpfh_ransac) seeds 0." in md
     assert "different seeds" not in "\n".join(_table2_md(agg.table2_summary(res[:6])))
+    # per solver: a second solver's rows on all seeds do not hide the first one's missing seed
+    both = [{**r, "summary": {**r["summary"], "kiss_matcher": {"success_rate": 0.5, "n_pairs": 100}}} for r in res[:6]]
+    both[5] = {**both[5], "summary": {"fpfh_ransac": {"success_rate": None, "n_pairs": 0},
+                                      "kiss_matcher": {"success_rate": 0.5, "n_pairs": 100}}}
+    md = "\n".join(_table2_md(agg.table2_summary(both)))
+    assert "2-step (fpfh_ransac) seeds 0; 2-step (kiss_matcher) seeds 0, 1" in md
 
 
 def test_ablation_differences_and_the_consistency_rule():
@@ -941,3 +956,69 @@ def test_cell_cpu_time_counts_the_render_process():
     subprocess.run([sys.executable, "-c", "t = __import__('time'); e = t.process_time() + 0.3\n"
                     "while t.process_time() < e: pass"], check=True)
     assert rc.cpu_seconds() - before >= 0.25 and time.process_time() - own < 0.2
+
+
+def test_a_figure_that_cannot_be_drawn_is_left_out_not_the_report(tmp_path, monkeypatch, caplog):
+    """One cell's damaged marginals.npz (the trajectory figure reads it) must not cost the report: the figure
+    is logged and left out, the others are kept."""
+    import zipfile
+
+    from gr_graph.experiments import figures as fig
+
+    cells = cells_for("table1", "smoke")
+    results = {c.key: {} for c in cells}
+
+    def damaged(cell_path, path, title):
+        raise zipfile.BadZipFile("File is not a zip file")
+
+    monkeypatch.setattr(fig, "plot_rpe_over_rounds", lambda summary, path: path)
+    monkeypatch.setattr(fig, "plot_round_trajectories", damaged)
+    monkeypatch.setattr(report, "_raw_vs_densified", lambda *a: tmp_path / "raw_vs_dense.png")
+    with caplog.at_level("WARNING", logger="gr_graph.experiments.report"):
+        out = report._figures("table1", tmp_path, cells, results, {}, "cpu", "smoke")
+    assert "error over rounds (RPE-300, ATE)" in out and not any(k.startswith("trajectories") for k in out)
+    assert ("raw vs densified 32-channel scan" in out) == any(c.channels == 32 for c in cells)
+    assert "left out of the report: BadZipFile: File is not a zip file" in caplog.text
+
+
+def test_no_ablation_cell_reruns_its_budgets_default_cell():
+    """An ablation whose settings the budget already has would rerun the default cell under a misleading
+    name: it has no cell there; the paper's budget keeps every ablation."""
+    for name in BUDGETS:
+        cells = cells_for("ablations", name)
+        default = {c.seed: c.overrides for c in cells if c.key.startswith("default-")}
+        assert all(c.overrides != default[c.seed] for c in cells if not c.key.startswith("default-")), name
+    assert {c.key.rsplit("-s", 1)[0] for c in cells_for("ablations", "paper")} == set(ABLATIONS)
+    assert {c.key.rsplit("-s", 1)[0] for c in cells_for("ablations", "student-t-8ep-adds")} == \
+        set(ABLATIONS) - {"student-t", "student-t-8ep", "densify-adds"}
+
+
+def test_budget_help_describes_every_budget():
+    from gr_graph.experiments.cli import BUDGET_HELP, build_parser
+
+    assert set(BUDGET_HELP) == set(BUDGETS)
+    text = next(a.help for a in build_parser()._actions if a.dest == "budget")
+    assert all(f"{name}: {BUDGET_HELP[name]}" in text for name in BUDGETS)
+
+
+def test_a_killed_delete_of_a_cell_folder_leaves_no_results_to_resume(tmp_path, monkeypatch):
+    """A delete killed midway (a time limit) must not leave old round.json files without cell.json behind:
+    the folder is renamed away first, and the next delete removes what is left of it."""
+    d = tmp_path / "ablations" / "default-s0"
+    (d / "slam" / "round_0").mkdir(parents=True)
+    (d / "slam" / "round_0" / "round.json").write_text("{}")
+    (d / "cell.json").write_text("{}")
+    real_rmtree = shutil.rmtree
+
+    def killed(path, *a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shutil, "rmtree", killed)
+    with pytest.raises(KeyboardInterrupt):
+        rc.remove_tree(d)
+    assert not d.exists() and len(list(d.parent.glob(".trash-default-s0-*"))) == 1
+    monkeypatch.setattr(shutil, "rmtree", real_rmtree)
+    d.mkdir()
+    (d / "new").write_text("x")
+    rc.remove_tree(d)
+    assert list(d.parent.iterdir()) == []

@@ -80,8 +80,8 @@ def select_round(rounds: dict[str, Any], step: str) -> tuple[int | None, str | N
     if not have:
         return None, "no round finished"
     if step == "2-step guarded":
-        r, _ = guarded_round(accepted_flags(rounds), last=2)
-        return r, None if r == min(2, have[-1]) else f"round {r + 1} rejected"
+        r, why = guarded_round(accepted_flags(rounds), last=2)
+        return r, None if r == min(2, have[-1]) else why.split(":")[0]  # "round 2 rejected" or "round 2 missing"
     want = {"raw": 0, "1-step": 1, "2-step": 2}[step]
     if want in have:
         return want, None

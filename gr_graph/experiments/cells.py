@@ -214,13 +214,17 @@ class Cell:
     #: definition (the records published before it existed keep their fingerprints), but a result made
     #: from another source (another budget's models) is not this cell's: :func:`source_mismatch`.
     source_fingerprint: str | None = None
+    #: Ablation cells: the fingerprint of the default cell whose round 0 (and round-1 training) they copy;
+    #: a source of another definition in a shared root (another budget's) is not copied. Not in the definition.
+    reuse_fingerprint: str | None = None
 
     def definition(self) -> dict[str, Any]:
         """Everything that determines the cell's result (JSON-serialisable; no estimate), but for
-        ``source_fingerprint``, checked apart."""
+        ``source_fingerprint`` and ``reuse_fingerprint``, checked apart."""
         d = asdict(self)
         d.pop("est_minutes")
         d.pop("source_fingerprint")
+        d.pop("reuse_fingerprint")
         d["frames"] = list(self.frames)
         return d
 
@@ -325,11 +329,19 @@ def source_mismatch(cell: Cell, result: dict[str, Any], source_result: dict[str,
 
 def ablation_cells(budget: Budget) -> list[Cell]:
     """Every ablation x seed at 16 channels on the ablation window, 2 rounds; the default cell of
-    a seed comes first (the others reuse its round 0, and two of them its round-1 training)."""
+    a seed comes first (the others reuse its round 0, and two of them its round-1 training).
+
+    An ablation whose settings the budget already has (the Student t in the ``student-t`` budgets,
+    densification that only adds in the ``-adds`` ones) would rerun the default cell under another
+    name: it has no cell in that budget."""
     cells = []
     w = budget.ablation_window
     for s in budget.seeds:
+        default_overrides = _slam_overrides(budget, s, 16, w, 2, {})
+        default_fingerprint: str | None = None
         for name, (what, training, reuse) in ABLATIONS.items():
+            if name != "default" and _slam_overrides(budget, s, 16, w, 2, training) == default_overrides:
+                continue
             rounds = 2
             epochs = 0 if training.get("covariances") == "pca" else training.get("epochs", budget.epochs)
             est = estimate_slam_minutes(w[1] - w[0], 16, rounds, epochs, False)
@@ -341,7 +353,10 @@ def ablation_cells(budget: Budget) -> list[Cell]:
                               "slam", s, 16, w, name, _slam_overrides(budget, s, 16, w, rounds, training),
                               source=None if reuse is None else f"ablations/default-s{s}",
                               params={"kiss_icp": False, "rounds": rounds, "reuse": reuse},
-                              est_minutes=round(max(est, 0.1), 1)))
+                              est_minutes=round(max(est, 0.1), 1),
+                              reuse_fingerprint=None if reuse is None else default_fingerprint))
+            if name == "default":  # first of the seed's cells
+                default_fingerprint = cells[-1].fingerprint()
     return cells
 
 

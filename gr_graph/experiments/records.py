@@ -25,11 +25,36 @@ from gr_graph.provenance import format_machine
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RECORDS_DIR", "record_path", "write_records", "read_records", "RecordSet"]
+__all__ = ["RECORDS_DIR", "read_result", "record_path", "write_records", "read_records", "RecordSet"]
 
 RECORDS_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "cells"
 #: keys of a cell result that name files or paths of the machine it ran on; left out of a record
 _LOCAL_KEYS = ("command",)
+
+
+#: what every cell result (``cell.json``) and record holds; besides, ``rounds`` (SLAM cells) or ``summary``
+#: (registration cells)
+_RESULT_KEYS = ("fingerprint", "definition")
+
+
+def read_result(path: str | Path) -> dict[str, Any] | None:
+    """The cell result (``cell.json``) or record in ``path``; None when there is none.
+
+    A file that is not one (cut short, binary, hand-edited or of an older layout: not a mapping with a
+    fingerprint, a definition and rounds or a summary) is logged naming it and taken as no result, so
+    the cell counts as unfinished (recomputed in a root, missing from a report), never as a crash of
+    the report or of the cells after it."""
+    p = Path(path)
+    doc = read_json_or_none(p)
+    if doc is None:
+        if p.exists():
+            log.warning("%s: not valid JSON: not a cell result; ignored", p)
+        return None
+    missing = [k for k in _RESULT_KEYS if not isinstance(doc, dict) or k not in doc]
+    if missing or not ("rounds" in doc or "summary" in doc):
+        log.warning("%s: not a cell result (a mapping with %s and rounds or summary); ignored", p, ", ".join(_RESULT_KEYS))
+        return None
+    return doc
 
 
 def record_path(records_dir: str | Path, budget: str, cell: Cell) -> Path:
@@ -106,9 +131,8 @@ class RecordSet:
             if not p.exists():
                 self._share(records_dir, budget, c)
                 continue
-            rec = read_json_or_none(p)
-            if not isinstance(rec, dict):
-                log.warning("%s: not a readable cell record; ignored", p)
+            rec = read_result(p)
+            if rec is None:  # logged
                 self.unreadable.append(c.key)
             elif rec.get("fingerprint") != c.fingerprint():
                 log.warning("%s: made with another definition of cell %s (stale); ignored", p, c.key)
@@ -125,8 +149,8 @@ class RecordSet:
         of that budget's Table I being another budget's otherwise)."""
         for other in sorted(Path(records_dir).glob(f"*/{cell.table}/{cell.key}.json")):
             name = other.parent.parent.name
-            rec = read_json_or_none(other) if name != budget else None
-            if (isinstance(rec, dict) and rec.get("fingerprint") == cell.fingerprint()
+            rec = read_result(other) if name != budget else None
+            if (rec is not None and rec.get("fingerprint") == cell.fingerprint()
                     and source_mismatch(cell, rec, _source_record(records_dir, name, cell)) is None):
                 self.results[cell.key] = rec
                 self.shared[cell.key] = name
@@ -144,8 +168,7 @@ def _source_record(records_dir: str | Path, budget: str, cell: Cell) -> dict[str
     """The record of ``budget`` of the cell ``cell`` uses (``cell.source``, e.g. ``table1/16ch-s0``), or None."""
     if cell.source is None:
         return None
-    rec = read_json_or_none(Path(records_dir) / budget / f"{cell.source}.json")
-    return rec if isinstance(rec, dict) else None
+    return read_result(Path(records_dir) / budget / f"{cell.source}.json")
 
 
 def read_records(records_dir: str | Path, budget: str, cells: list[Cell]) -> RecordSet:

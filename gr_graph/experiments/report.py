@@ -9,7 +9,9 @@ and measured time), the machine, which cells are missing, and the conventions of
 
 from __future__ import annotations
 
+import logging
 import shutil
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -22,6 +24,8 @@ from gr_graph.provenance import machine_line
 from gr_graph.experiments.run_cell import (METRIC_KEYS, NEES_KEYS, SHORT_RANGE_KEYS, cell_dir, cell_wall_s,
                                           read_cell_result, reused_from_source, with_noise_consistency,
                                           with_short_range_rpe)
+
+log = logging.getLogger(__name__)
 
 __all__ = ["write_report", "published_name", "publish_records", "local_results", "RESULTS_DIR", "budget_lines", "machine_line"]
 
@@ -40,8 +44,9 @@ def budget_lines(table: str, budget: Budget, cells: list[Cell], results: dict[st
              f"{budget.epochs} training epochs per round"
              + (f", {budget.n_pairs} pairs per registration cell" if table == "table2" else ""),
              f"- estimated time of all cells: {est:.0f} min ({est / 60:.1f} h) on 2 cores (rough: per-frame "
-             f"costs measured on the Table I cells run alone); measured on the finished cells: CPU {cpu:.1f} min, "
-             f"wall {wall:.1f} min"]
+             f"costs measured on the Table I cells run alone); measured on the finished cells: wall {wall:.1f} min "
+             f"(with the time of resumed rounds), CPU {cpu:.1f} min (of each cell's last call only: a resumed "
+             "cell's earlier calls are not counted)"]
     missing = [f"{i} `{c.key}`" for i, c in enumerate(cells) if c.key not in results]
     if missing:
         lines.append(f"- **missing cells** (not finished): {', '.join(missing)}")
@@ -136,7 +141,9 @@ def _runtime_md(cells: list[Cell], results: dict[str, dict[str, Any]]) -> list[s
             "interruption, with the recorded time of the rounds finished in earlier calls): round 0 (rendering, SLAM, "
             "memory), each learning round's training and its SLAM (rendering again, the network on every frame, "
             "densification, SLAM; \"reused\": taken from another cell and timed there), the KISS-ICP "
-            "baseline (rendering again); the process's peak resident memory in GiB (recorded since 2026-12-03). "
+            "baseline (rendering again); the process's peak resident memory in GiB (recorded since 2026-12-03; the "
+            "peak of the whole process so far: with several cells run by one command, an upper bound that may be "
+            "an earlier cell's; `--cell K` gives each cell its own). "
             "Cells run beside other work are slower.", "",
             "| cell | frames | wall | round 0 | training (rounds 1, 2, ...) | learning-round SLAM (rounds 1, 2, ...) "
             "| KISS-ICP | peak memory [GiB] |", "|---|---|---|---|---|---|---|---|", *rows, ""]
@@ -163,7 +170,8 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
         for step, solvers in s["steps"].items():
             for solver, row in solvers.items():
                 pap = paper.get("raw") if step == "raw" else None
-                seeds[step] = sorted({q["seed"] for q in row["per_seed"] if q["success_percent"] is not None})
+                seeds[f"{step} ({solver})"] = sorted({q["seed"] for q in row["per_seed"]
+                                                      if q["success_percent"] is not None})
                 lines.append(f"| {ch} | {step} | {solver} | {agg.fmt_ms(row, '{:.1f}')} | "
                              f"{', '.join(_seed_percent(q) for q in row['per_seed'])} | "
                              f"{'' if pap is None else f'raw {pap:.0f}'} |")
@@ -171,8 +179,8 @@ def _table2_md(summary: dict[str, Any]) -> list[str]:
             lines.append(f"| {ch} | best densified step | {solver} | {b['mean']:.1f} ({b['step']}) | | "
                          f"{'best step %.0f' % paper['best_step'] if paper else ''} |")
         if len({tuple(v) for v in seeds.values()}) > 1:
-            unpaired.append(f"{ch} channels: " + "; ".join(f"{step} seeds {', '.join(map(str, v)) or 'none'}"
-                                                          for step, v in seeds.items()))
+            unpaired.append(f"{ch} channels: " + "; ".join(f"{row} seeds {', '.join(map(str, v)) or 'none'}"
+                                                          for row, v in seeds.items()))
     lines.append("")
     if unpaired:  # a step's mean over other seeds than another's: its difference is not the densification's alone
         lines += ["Steps measured on different seeds (cells missing): " + " / ".join(unpaired) + ".", ""]
@@ -285,30 +293,37 @@ def _figures(table: str, root: Path, cells: list[Cell], results: dict[str, dict[
 
     out: dict[str, Path] = {}
     fdir = root / table / "figures"
-    if table == "table1":
-        p = fig.plot_rpe_over_rounds(summary, fdir / f"{stem}_rpe_over_rounds.png")
+
+    def add(name: str, draw: Callable[[], Path | None]) -> None:
+        """A picture that cannot be drawn (a damaged file of one cell) is logged and left out, not the report."""
+        try:
+            p = draw()
+        except Exception as exc:  # noqa: BLE001 (any reader or plotting error)
+            log.warning("%s: figure %r left out of the report: %s: %s", table, name, type(exc).__name__, exc)
+            return
         if p is not None:
-            out["error over rounds (RPE-300, ATE)"] = p
+            out[name] = p
+
+    if table == "table1":
+        add("error over rounds (RPE-300, ATE)", lambda: fig.plot_rpe_over_rounds(summary, fdir / f"{stem}_rpe_over_rounds.png"))
         for c in cells:
             if c.key in results and c.seed == cells[0].seed:
-                p = fig.plot_round_trajectories(cell_dir(root, c), fdir / f"{stem}_trajectories_{c.key}.png",
-                                                title=f"{c.what}: each round against ground truth")
-                if p is not None:
-                    out[f"trajectories {c.key}"] = p
+                add(f"trajectories {c.key}", lambda c=c: fig.plot_round_trajectories(
+                    cell_dir(root, c), fdir / f"{stem}_trajectories_{c.key}.png",
+                    title=f"{c.what}: each round against ground truth"))
         c32 = next((c for c in cells if c.channels == 32 and c.key in results), None)
         if c32 is not None:
-            p = _raw_vs_densified(root, c32, fdir / f"{stem}_raw_vs_densified_32ch.png", device)
-            if p is not None:
-                out["raw vs densified 32-channel scan"] = p
+            add("raw vs densified 32-channel scan",
+                lambda: _raw_vs_densified(root, c32, fdir / f"{stem}_raw_vs_densified_32ch.png", device))
     return out
 
 
 def _raw_vs_densified(root: Path, cell: Cell, path: Path, device: str) -> Path | None:
     """One scan of a 32-channel cell (middle of the window), raw and densified with round 1's model."""
     from gr_graph.config import load_config
-    from gr_graph.datasets.registry import open_configured_sequence
     from gr_graph.densify import densified_sequence
     from gr_graph.experiments.figures import plot_raw_vs_densified
+    from gr_graph.experiments.run_cell import open_cell_sequence
 
     slam = cell_dir(root, cell) / "slam"
     model = slam / "round_1" / "training" / "model.pt"
@@ -317,7 +332,7 @@ def _raw_vs_densified(root: Path, cell: Cell, path: Path, device: str) -> Path |
     if path.is_file() and path.stat().st_mtime > model.stat().st_mtime:
         return path  # rendering a frame again is not free: keep a picture newer than the model
     cfg = load_config(slam / "config.yaml", {"device": device})
-    seq, _ = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+    seq, _ = open_cell_sequence(cfg)
     k = len(seq) // 2
     dense = densified_sequence(seq, model, cfg.training, device=device, preprocess=cfg.preprocess)
     return plot_raw_vs_densified(seq[k].points, dense[k].points, path,

@@ -30,6 +30,7 @@ in ``cell.json["reuse"]``). Training is deterministic given the seed, so both gi
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import time
 from collections.abc import Collection
@@ -42,6 +43,7 @@ import numpy as np
 from gr_graph.atomic import atomic_write_json, read_json_or_none
 from gr_graph.experiments.cell_lock import CellBusyError, cell_lock
 from gr_graph.experiments.cells import Cell, source_mismatch
+from gr_graph.experiments.records import read_result
 from gr_graph.provenance import git_state, machine_line
 
 log = logging.getLogger(__name__)
@@ -81,11 +83,11 @@ def cell_dir(root: str | Path, cell: Cell) -> Path:
 
 def read_cell_result(root: str | Path, cell: Cell) -> dict[str, Any] | None:
     """The cell's ``cell.json`` if it is finished with the current definition, else None."""
-    d = read_json_or_none(cell_dir(root, cell) / CELL_JSON)
+    d = read_result(cell_dir(root, cell) / CELL_JSON)
     if d is None or d.get("fingerprint") != cell.fingerprint():
         return None
     if cell.source_fingerprint is not None:  # Table II on densified scans: made with these models?
-        why = source_mismatch(cell, d, read_json_or_none(Path(root) / str(cell.source) / CELL_JSON))
+        why = source_mismatch(cell, d, read_result(Path(root) / str(cell.source) / CELL_JSON))
         if why is not None:
             log.info("%s/%s: %s; recomputed", cell.table, cell.key, why)
             return None
@@ -109,7 +111,9 @@ def _start(root: Path, cell: Cell, budget: str | None = None) -> Path:
     """
     d = cell_dir(root, cell)
     fp = cell.fingerprint()
-    started, finished = (read_json_or_none(d / n) for n in (DEFINITION_JSON, CELL_JSON))
+    started, finished = read_json_or_none(d / DEFINITION_JSON), read_result(d / CELL_JSON)
+    if started is not None and not isinstance(started, dict):  # damaged: as another definition
+        started = {"fingerprint": None}
     hint = (f"its results are kept: use another --root for {budget!r}, or delete that folder to recompute "
             "the cell")
     if finished is not None and finished.get("fingerprint") != fp:
@@ -128,7 +132,7 @@ def _start(root: Path, cell: Cell, budget: str | None = None) -> Path:
     if any(s is not None and s.get("fingerprint") != fp for s in (started, finished)):
         log.warning("%s/%s: the stored results were made with another definition; recomputing from scratch",
                     cell.table, cell.key)
-        shutil.rmtree(d)
+        remove_tree(d)
     d.mkdir(parents=True, exist_ok=True)
     started_doc: dict[str, Any] = {"fingerprint": fp, "definition": cell.definition()}
     if budget is not None:
@@ -242,14 +246,41 @@ def _require_synthetic(cfg: Any, cell: Cell) -> None:
                            "the pipeline would read instead: unset or move it for the experiments")
 
 
+def open_cell_sequence(cfg: Any) -> tuple[Any, str]:
+    """The scans of a cell's run (its ``slam/config.yaml`` loaded as ``cfg``) and their description: the
+    synthetic world the cells are defined on, even where a KITTI root has appeared since (``dataset:
+    auto`` would read it: Table II and the report's pictures would be of other scans)."""
+    from gr_graph.datasets.registry import open_configured_sequence
+
+    data = cfg.data
+    if data.dataset == "auto" and data.path is None:
+        data = data.model_copy(update={"dataset": "synthetic"})
+    return open_configured_sequence(data, synthetic_seed=cfg.seed)
+
+
+def remove_tree(path: Path) -> None:
+    """Delete the folder ``path`` whole or not at all: renamed to a hidden sibling first (one rename), then
+    deleted. A delete killed midway (a time limit, Ctrl-C) would otherwise leave some of the old results
+    (``round_*/round.json`` without ``cell.json``) for the next run to resume; a killed delete here leaves
+    only the hidden sibling, removed by the next call for the same folder."""
+    for stale in path.parent.glob(f".trash-{path.name}-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    if not path.exists():
+        return
+    trash = path.parent / f".trash-{path.name}-{os.getpid()}-{time.monotonic_ns()}"
+    path.rename(trash)
+    shutil.rmtree(trash)
+
+
 def _copy_tree_atomic(src: Path, dst: Path) -> None:
     """Copy the folder ``src`` to ``dst`` whole or not at all: into a hidden sibling, then renamed (an
-    interrupted copy leaves only the sibling, replaced by the next copy)."""
+    interrupted copy leaves only the sibling, replaced by the next copy; an old ``dst`` is removed whole
+    first, :func:`remove_tree`)."""
     tmp = dst.parent / f".copying-{dst.name}"
     shutil.rmtree(tmp, ignore_errors=True)
     dst.parent.mkdir(parents=True, exist_ok=True)
     shutil.copytree(src, tmp)
-    shutil.rmtree(dst, ignore_errors=True)
+    remove_tree(dst)
     tmp.rename(dst)
 
 
@@ -271,10 +302,16 @@ def _reuse(root: Path, d: Path, cell: Cell) -> dict[str, Any] | None:
         # a cell started before the verdict was kept: its round 0 taken as reused, as then
         return {"source": cell.source, "what": what, "note": "already in place"}
     src = Path(root) / cell.source / "slam"
-    if read_json_or_none(Path(root) / cell.source / CELL_JSON) is None or not (src / "round_0" / "memory").is_dir():
+    source_doc = read_result(Path(root) / cell.source / CELL_JSON)
+    if source_doc is None or not (src / "round_0" / "memory").is_dir():
         log.info("%s: source %s not finished (or pruned): computing round 0 itself", cell.key, cell.source)
         verdict = {"source": cell.source, "what": None, "copied": [],
                    "note": "source not available: everything computed here"}
+    elif cell.reuse_fingerprint is not None and source_doc.get("fingerprint") != cell.reuse_fingerprint:
+        log.info("%s: source %s was made with another definition (another budget's, in a shared root): computing "
+                 "round 0 itself", cell.key, cell.source)
+        verdict = {"source": cell.source, "what": None, "copied": [],
+                   "note": "source of another definition: everything computed here"}
     else:  # the verdict follows every copy: a kill between two leaves it saying what is in place
         verdict = {"source": cell.source, "what": what, "copied": []}
         atomic_write_json(verdict_path, verdict)
@@ -382,13 +419,12 @@ def _scans_mismatch(cell: Cell, cfg: Any) -> str | None:
 
 def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict[str, Any]:
     from gr_graph.config import load_config
-    from gr_graph.datasets.registry import open_configured_sequence
     from gr_graph.densify import densified_sequence
     from gr_graph.global_registration import evaluate_pairs, sample_pairs, save_pairs, write_results
 
     assert cell.source is not None
     src = Path(root) / cell.source
-    source_doc = read_json_or_none(src / CELL_JSON)
+    source_doc = read_result(src / CELL_JSON)
     table, key = cell.source.split("/")
     if source_doc is None:
         raise CellDependencyError(f"{cell.table}/{cell.key} needs {cell.source} finished in this root (its models; "
@@ -405,7 +441,7 @@ def _run_registration_cell(root: Path, d: Path, cell: Cell, device: str) -> dict
         raise CellDependencyError(f"{cell.table}/{cell.key} renders the scans of {cell.source}, whose run in this root "
                                   f"has {why}: another budget's or an older definition; run `python -m "
                                   f"gr_graph.experiments {table} --cell {key}` (same --root, --budget) first")
-    seq, desc = open_configured_sequence(cfg.data, synthetic_seed=cfg.seed)
+    seq, desc = open_cell_sequence(cfg)
     gt = np.asarray(seq.gt_poses, np.float64)[: len(seq)]
     pairs = sample_pairs(gt, cell.params["n_pairs"], cell.params["max_distance"], seed=cell.seed)
     save_pairs(d / "pairs.json", pairs, {"sequence": desc, "seed": cell.seed, "n_pairs": cell.params["n_pairs"],
