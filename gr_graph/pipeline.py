@@ -50,7 +50,7 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -435,13 +435,7 @@ class SlamPipeline:
         self.write_final(metrics)
         if not self.keep_frame_cache:
             self.remove_frame_cache()
-        if self.cfg.output.plot:
-            self.plot(metrics["final_round"])
-            if len(metrics["rounds"]) > 1:
-                plot_metrics_rounds(self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, "
-                                                             f"{len(self.sequence)} frames")
-            else:  # an earlier run's rounds are not this run's
-                (self.out / "rounds.png").unlink(missing_ok=True)
+        self.write_figures(metrics)
         return metrics
 
     # -------------------------------------------------------------- steps of run()
@@ -630,6 +624,34 @@ class SlamPipeline:
             log.info("round %d: trajectory moved %.4f m < delta: converged", r, change)
             return True
         return False
+
+    def write_figures(self, metrics: dict[str, Any]) -> None:
+        """``trajectory.png`` (the final round) and, with learning rounds, ``rounds.png`` (``output.plot``).
+
+        An earlier run's figure that this run does not draw is removed (it would be taken for this
+        run's). A figure that cannot be drawn is logged, removed, and named in ``metrics.json``
+        (``figures_failed``): the poses and metrics are written already, and a finished run does not
+        fail on a picture."""
+        figures: dict[str, Callable[[], Any]] = {}
+        if self.cfg.output.plot:
+            figures["trajectory.png"] = lambda: self.plot(metrics["final_round"])
+            if len(metrics["rounds"]) > 1:
+                figures["rounds.png"] = lambda: plot_metrics_rounds(
+                    self.out, metrics, title=f"gr_graph learning rounds: {self.sequence.name}, {len(self.sequence)} frames")
+        for name in {"trajectory.png", "rounds.png"} - set(figures):
+            (self.out / name).unlink(missing_ok=True)
+        failed: dict[str, str] = {}
+        for name, draw in figures.items():
+            try:
+                draw()
+            except Exception as exc:  # noqa: BLE001 (any plotting error)
+                log.warning("%s could not be drawn (%s: %s); the run's poses and metrics are written", self.out / name,
+                            type(exc).__name__, exc)
+                (self.out / name).unlink(missing_ok=True)
+                failed[name] = f"{type(exc).__name__}: {exc}"
+        if failed:
+            metrics["figures_failed"] = failed
+            write_metrics(self.out, metrics)
 
     def plot(self, r: int) -> None:
         """``trajectory.png``: round ``r`` against the ground truth, with its position ellipses."""

@@ -30,10 +30,16 @@ MAX_ELLIPSES = 60
 
 
 def pyplot() -> Any:
-    """matplotlib.pyplot on the Agg backend unless one is chosen (imported on first use)."""
-    import matplotlib
+    """matplotlib.pyplot, on the Agg backend unless one is chosen (imported on first use).
 
-    matplotlib.use("Agg", force=False)
+    A backend is taken as chosen when ``MPLBACKEND`` is set or pyplot is imported already (a notebook's
+    inline backend, an interactive session): switching it would break that session's figures."""
+    import sys
+
+    if "matplotlib.pyplot" not in sys.modules and not os.environ.get("MPLBACKEND"):
+        import matplotlib
+
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt
@@ -61,8 +67,8 @@ def ellipse_scale(major_axes: np.ndarray, extent: float, target_fraction: float 
     """Magnification (1, 2 or 5 x 10^k, at least 1) that makes the median ellipse's major axis
     about ``target_fraction`` of ``extent``."""
     positive = np.asarray(major_axes, np.float64)
-    positive = positive[positive > 0]
-    if not len(positive) or extent <= 0:
+    positive = positive[np.isfinite(positive) & (positive > 0)]
+    if not len(positive) or not np.isfinite(extent) or extent <= 0:
         return 1.0
     want = target_fraction * extent / float(np.median(positive))
     if want <= 1.0:
@@ -128,10 +134,15 @@ def _draw_trajectory(ax: Any, p: np.ndarray, gt: np.ndarray | None, loops: np.nd
             ax.plot([p[i, 0], p[j, 0]], [p[i, 1], p[j, 1]], color="tab:red", lw=0.6, alpha=0.6)
         ax.plot([], [], color="tab:red", lw=0.6, label=f"loop closures ({len(loops)})")
     if position_cov is not None and len(position_cov):
-        width, height, angle = ellipse_axes(np.asarray(position_cov)[:, :2, :2])
-        drawn = np.isfinite(width) & np.isfinite(height) & np.isfinite(angle)  # failed marginals: none
+        cov_xy = np.asarray(position_cov, np.float64)[:, :2, :2]
+        placed = np.isfinite(p[:, :2]).all(axis=1)
+        has_cov = np.isfinite(cov_xy).all(axis=(1, 2))  # failed marginals: none (eigh would raise on NaN)
+        width, height, angle = np.full(len(p), np.nan), np.full(len(p), np.nan), np.full(len(p), np.nan)
+        if has_cov.any():
+            width[has_cov], height[has_cov], angle[has_cov] = ellipse_axes(cov_xy[has_cov])
+        drawn = placed & np.isfinite(width) & np.isfinite(height) & np.isfinite(angle)
         if drawn.any():
-            extent = float(np.ptp(p[:, :2], axis=0).max()) if len(p) > 1 else 0.0
+            extent = float(np.ptp(p[placed, :2], axis=0).max()) if placed.sum() > 1 else 0.0
             scale = ellipse_scale(width[drawn], max(extent, 1.0))
             step = max(1, int(np.ceil(len(p) / MAX_ELLIPSES)))
             for k in range(0, len(p), step):
@@ -139,7 +150,7 @@ def _draw_trajectory(ax: Any, p: np.ndarray, gt: np.ndarray | None, loops: np.nd
                     ax.add_patch(Ellipse(tuple(p[k, :2]), scale * width[k], scale * height[k], angle=angle[k],
                                          fill=False, color="tab:purple", lw=0.8))
             size = "true size" if scale == 1.0 else f"magnified x{scale:g}"
-            missing = "" if drawn.all() else f"; {int((~drawn).sum())} poses without a finite covariance"
+            missing = "" if drawn.all() else f"; {int((~drawn).sum())} poses without a finite pose or covariance"
             ax.plot([], [], color="tab:purple", lw=0.8,
                     label=f"{ELLIPSE_SIGMA:g}σ position ellipses, {size} (median major axis "
                           f"{np.median(width[drawn]):.3g} m; one every {step} poses{missing})")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from pathlib import Path
@@ -44,6 +45,8 @@ from gr_graph.cli_common import (
 )
 from gr_graph.config import PAPER_TRAINING, SlamConfig, config_to_yaml, load_config, merge_config
 from gr_graph.datasets.registry import DATASETS, parse_frames
+
+log = logging.getLogger(__name__)
 
 
 EXAMPLES = (
@@ -259,6 +262,19 @@ def full_method_hint(argv: list[str]) -> str:
                                                           *extra]))
 
 
+def learning_flags_given(args: argparse.Namespace) -> list[str]:
+    """The options given that only act on learning rounds (the training, the acceptance test, the network's
+    device), spelled as on the command line."""
+    given = []
+    if args.paper_method:
+        given.append("--paper-method")
+    if args.long_baseline_guard is not None:
+        given.append("--long-baseline-guard")
+    if args.device is not None:
+        given.append(f"--device {args.device}")
+    return given
+
+
 def out_dir_problem(out: Path) -> str | None:
     """Why results cannot be written to ``out`` (a file, or a folder that cannot be written or
     created: the first existing one of it and its parents must be a writable folder), or None.
@@ -298,6 +314,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.dump_config:
         print(config_to_yaml(cfg), end="")
         return 0
+    idle = learning_flags_given(args)
+    if idle and cfg.training.rounds == 0:
+        log.warning("%s only act on learning rounds, and this run has none (--rounds 0): ignored", ", ".join(idle))
     from gr_graph.datasets.base import DatasetError
     from gr_graph.memory import MemoryFormatError
     from gr_graph.pipeline import ResumeDataError, SlamPipeline
@@ -327,7 +346,8 @@ def main(argv: list[str] | None = None) -> int:
              "accepted_rounds": metrics["accepted_rounds"], "rejected_rounds": metrics["rejected_rounds"],
              "frames": final["n_frames"], "loops": final["n_loops"],
              "flagged_odometry_edges": final["n_flagged_odometry_edges"],
-             "runtime_s": round(sum(s["runtime_s"]["total"] for s in metrics["rounds"].values()), 1)}
+             "runtime_s": round(sum(s["runtime_s"]["total"] for s in metrics["rounds"].values()), 1),
+             "resumed_rounds": pipe.resumed_rounds}
     if "slam" in final:
         s = final["slam"]
         brief.update({k: s.get(k) for k in ("rpe300_consecutive_mean", "ate_rmse", "kitti_t_err_percent")})

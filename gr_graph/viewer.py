@@ -1,6 +1,7 @@
 """``--viz``: an open3d window on a run's map, when the machine has a display.
 
-Without a display (no ``DISPLAY`` / ``WAYLAND_DISPLAY`` on Linux) :func:`show_map` prints one
+Without a display (no ``DISPLAY`` / ``WAYLAND_DISPLAY`` on Linux, or an X display that does not
+open) :func:`show_map` prints one
 message saying so and where the map is, and returns False; it never raises for a missing
 display or a window that cannot open.
 """
@@ -20,12 +21,43 @@ __all__ = ["display_available", "show_map"]
 
 
 def display_available() -> tuple[bool, str]:
-    """``(True, "")`` if a window can be opened, else ``(False, why)``."""
+    """``(True, "")`` if a window can be opened, else ``(False, why)``.
+
+    An X display named by ``DISPLAY`` alone is opened once to check it (a dead SSH forwarding or a
+    container that inherited ``DISPLAY``: open3d would fall back to offscreen rendering and block
+    with no window); where libX11 cannot be loaded the variable is trusted."""
     if sys.platform in ("darwin", "win32"):
         return True, ""
-    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+    if os.environ.get("WAYLAND_DISPLAY"):
         return True, ""
-    return False, "no display (neither DISPLAY nor WAYLAND_DISPLAY is set)"
+    display = os.environ.get("DISPLAY")
+    if not display:
+        return False, "no display (neither DISPLAY nor WAYLAND_DISPLAY is set)"
+    if _x_display_opens(display) is False:
+        return False, f"the X display DISPLAY={display} cannot be opened (X forwarding ended? no X server?)"
+    return True, ""
+
+
+def _x_display_opens(display: str) -> bool | None:
+    """Whether libX11 can open ``display``; None when libX11 is not there to ask."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("X11")
+    if name is None:
+        return None
+    try:
+        x11 = ctypes.CDLL(name)
+    except OSError:
+        return None
+    x11.XOpenDisplay.restype = ctypes.c_void_p
+    x11.XOpenDisplay.argtypes = [ctypes.c_char_p]
+    x11.XCloseDisplay.argtypes = [ctypes.c_void_p]
+    handle = x11.XOpenDisplay(display.encode())
+    if not handle:
+        return False
+    x11.XCloseDisplay(handle)
+    return True
 
 
 def show_map(path: str | os.PathLike[str], title: str = "gr_graph map") -> bool:

@@ -27,6 +27,8 @@ def test_marginal_covariances_notebook_executes(revisit_run, monkeypatch):
     line = [ln for ln in text.splitlines() if ln.startswith("SUMMARY ")][-1]
     s = json.loads(line[len("SUMMARY "):])
     assert s["run_dir"] == str(run_dir) and s["n_poses"] == 160 and s["n_loops"] >= 3
+    assert s["round"] == json.loads((run_dir / "metrics.json").read_text())["final_round"]  # the run's answer
+    assert s["nees_poses_left_out"] == 0
     # the loops tie the second stretch (after the flagged jump) to the first: big drop
     assert s["uncertainty_drop_at_loops_median"] > 10
     # NEES is computed against the renderer's ground truth, independently of the notebook

@@ -143,13 +143,22 @@ def test_trajectory_plot_leaves_out_poses_without_a_covariance_and_refuses_no_po
     plot_trajectory(tmp_path / "t.png", poses, position_cov=cov)
     assert len(captured["ellipses"]) == 5 and all(np.isfinite(e.width) for e in captured["ellipses"])
     label = next(t for t in captured["labels"] if "ellipses" in t)
-    assert "median major axis 0.12 m" in label and "5 poses without a finite covariance" in label
+    assert "median major axis 0.12 m" in label and "5 poses without a finite pose or covariance" in label
     plot_trajectory(tmp_path / "none.png", poses, position_cov=np.full((K, 3, 3), np.nan))
     assert not captured["ellipses"] and not any("ellipses" in t for t in captured["labels"])
+    # a pose that is not finite (the map leaves such scans out): no ellipse there, the others at their scale
+    captured["ellipses"].clear()
+    poses[3, :3, 3] = np.nan
+    cov[::2] = np.diag([0.02**2, 0.01**2, 1e-4])
+    plot_trajectory(tmp_path / "nan_pose.png", poses, position_cov=cov)
+    assert len(captured["ellipses"]) == K - 1 and all(np.isfinite(e.center).all() for e in captured["ellipses"])
+    assert ellipse_scale(np.full(3, 0.1), float("nan")) == 1.0
     open_before = plt.get_fignums()
     with pytest.raises(ValueError, match="empty.png: no poses to plot"):
         plot_trajectory(tmp_path / "empty.png", np.zeros((0, 4, 4)))
-    assert plt.get_fignums() == open_before
+    with pytest.raises(IndexError):  # drawing fails once the figure exists: the figure is closed all the same
+        plot_trajectory(tmp_path / "bad_loop.png", poses, loops=np.array([[0, K + 5]]))
+    assert plt.get_fignums() == open_before and not (tmp_path / "bad_loop.png").exists()
 
 
 def test_rounds_figure_from_metrics(tmp_path: Path) -> None:
@@ -203,6 +212,20 @@ def test_viz_without_display_is_a_message_not_a_crash(tmp_path: Path, monkeypatc
     assert "no map at" in capsys.readouterr().err
 
 
+def test_viz_with_a_display_that_does_not_open_is_a_message_not_a_hang(tmp_path: Path, monkeypatch, capsys) -> None:
+    """DISPLAY set but no X server behind it (an ended SSH forwarding): open3d would block offscreen."""
+    import ctypes.util
+
+    if ctypes.util.find_library("X11") is None:
+        pytest.skip("libX11 is not installed here: DISPLAY cannot be checked (and is trusted)")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setenv("DISPLAY", ":987")
+    write_map(tmp_path / "map.ply", [np.random.default_rng(0).normal(size=(100, 3))], np.eye(4)[None], 0.2)
+    assert show_map(tmp_path / "map.ply") is False
+    err = capsys.readouterr().err
+    assert "DISPLAY=:987 cannot be opened" in err and str(tmp_path / "map.ply") in err
+
+
 @pytest.mark.slow
 def test_learning_run_outputs_and_slam_viz(learning_run, monkeypatch, capsys) -> None:
     """With rounds: a map per round and the RPE-per-round figure; ``--viz`` on the finished run
@@ -237,3 +260,52 @@ def test_voxel_map_merge_memory_stays_near_the_map() -> None:
     map_bytes = n_voxels * (8 + 24 + 8)  # key, sum, count per voxel
     assert n_voxels > 1_000_000
     assert peak < 2.5 * map_bytes + 200 * 20_000, (peak, map_bytes)
+
+
+def test_a_figure_that_fails_never_fails_the_finished_run(kitti_root: Path, tmp_path: Path, monkeypatch,
+                                                          capsys) -> None:
+    """The poses and metrics are written before the figures: a plotting error is logged, named in
+    metrics.json and the stale figure removed; the run ends with its summary. Figures turned off remove an
+    earlier run's (they would be taken for this run's)."""
+    import json
+
+    import gr_graph.plots as plots
+    from gr_graph import slam
+
+    def broken(*args, **kwargs):
+        raise ValueError("max() arg is an empty sequence")
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "trajectory.png").write_bytes(b"an earlier run's figure")
+    monkeypatch.setattr(plots, "plot_trajectory", broken)
+    common = ["--data-root", str(kitti_root), "--frames", "0:4", "--no-loops", "--no-memory", "--no-progress",
+              "--out", str(out)]
+    assert slam.main(common) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["figures_failed"] == {"trajectory.png": "ValueError: max() arg is an empty sequence"}
+    assert not (out / "trajectory.png").exists() and (out / "poses_kitti.txt").is_file()
+    assert summary["final_round"] == 0
+    (out / "trajectory.png").write_bytes(b"an earlier run's figure")
+    cfg = tmp_path / "no_plot.yaml"
+    cfg.write_text("output:\n  plot: false\n")
+    assert slam.main(common + ["--config", str(cfg)]) == 0
+    assert not (out / "trajectory.png").exists() and "figures_failed" not in json.loads((out / "metrics.json").read_text())
+    assert summary["resumed_rounds"] == [] and json.loads(capsys.readouterr().out.strip().splitlines()[-1])[
+        "resumed_rounds"] == [0]  # the second call took round 0 from --out
+
+
+def test_options_of_learning_rounds_given_without_rounds_are_named_as_ignored(kitti_root: Path, tmp_path: Path,
+                                                                               caplog) -> None:
+    from gr_graph import slam
+
+    common = ["--data-root", str(kitti_root), "--frames", "0:3", "--no-loops", "--no-memory", "--no-progress",
+              "--out", str(tmp_path / "run")]
+    with caplog.at_level("WARNING", logger="gr_graph.slam"):
+        assert slam.main(common + ["--paper-method", "--device", "cpu", "--long-baseline-guard=0.05"]) == 0
+    assert "--paper-method, --long-baseline-guard, --device cpu only act on learning rounds" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="gr_graph.slam"):
+        assert slam.main(common) == 0
+    assert "only act on learning rounds" not in caplog.text
