@@ -101,6 +101,12 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
     intensity : (N,) array, optional
     covariances : (N, 3, 3) array, optional
         Only for ``.ply`` (six properties per point, see the module docstring).
+
+    Raises
+    ------
+    ValueError
+        Naming the file: no points, intensities or covariances not one per point, covariances
+        for another format than ``.ply``.
     """
     p = Path(path)
     suffix = check_suffix(p)
@@ -108,6 +114,8 @@ def write_cloud(path: PathLike, points: np.ndarray, intensity: np.ndarray | None
     inten = None if intensity is None else np.asarray(intensity, np.float32).reshape(-1)
     if inten is not None and len(inten) != len(xyz):
         raise ValueError(f"{p}: {len(inten)} intensities for {len(xyz)} points")
+    if len(xyz) == 0:  # read_cloud refuses such a file: not written in any format (open3d's PCD writer fails)
+        raise ValueError(f"{p}: no points to write")
     if covariances is not None and suffix != ".ply":
         raise ValueError(f"{p}: per-point covariances can be stored in .ply files only (or separately as .npy)")
     if suffix == ".ply":

@@ -325,6 +325,10 @@ def test_write_cloud_round_trips(tmp_path: Path) -> None:
         write_cloud(tmp_path / "c.pcd", x, covariances=C)
     with pytest.raises(DatasetError, match="unknown point cloud format"):
         read_cloud(tmp_path / "c.txt")
+    for suffix in (".ply", ".pcd", ".bin", ".npy"):  # read_cloud refuses an empty cloud: none is written
+        with pytest.raises(ValueError, match=rf"empty{suffix}: no points to write"):
+            write_cloud(tmp_path / f"empty{suffix}", np.zeros((0, 3)))
+    assert not list(tmp_path.glob("empty*"))
 
 
 def test_source_intensity_is_the_nearest_raw_points() -> None:

@@ -206,6 +206,9 @@ def test_broken_folders_name_the_file(tmp_path: Path, frames: list) -> None:
     np.save(wrong / "0.npy", np.zeros((5, 7)))
     with pytest.raises(DatasetError, match=r"wrong/0.npy: array of shape \(5, 7\)"):
         FolderSequence(wrong)
+    np.save(wrong / "0.npy", np.ones((5, 3)) * (1 + 1j))  # complex: its imaginary part would be lost
+    with pytest.raises(DatasetError, match=r"wrong/0.npy: array of shape \(5, 3\) and dtype complex128"):
+        FolderSequence(wrong)
 
     counted = tmp_path / "counted"
     counted.mkdir()

@@ -294,8 +294,9 @@ def read_npy(path: str | Path) -> DecodedCloud:
         return decode_structured(arr, str(path))  # an empty one gives an empty cloud
     if arr.size == 0 and np.issubdtype(arr.dtype, np.number) and (arr.ndim == 1 or arr.shape[1:] in ((3,), (4,))):
         return empty_cloud()
-    if arr.ndim != 2 or arr.shape[1] not in (3, 4) or not np.issubdtype(arr.dtype, np.number):
+    real = np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)
+    if arr.ndim != 2 or arr.shape[1] not in (3, 4) or not real:  # complex: its imaginary part would be lost
         raise DatasetError(f"{path}: array of shape {arr.shape} and dtype {arr.dtype}; expected (N, 3) x,y,z or "
-                           "(N, 4) x,y,z,intensity numbers, or a structured array with fields x, y, z")
+                           "(N, 4) x,y,z,intensity real numbers, or a structured array with fields x, y, z")
     return decode_structured(_columns(arr.astype(np.float64), ["x", "y", "z", "intensity"][: arr.shape[1]]),
                              str(path))
