@@ -132,6 +132,31 @@ def slam(route: str, root: Path | None, channels: int, out: Path) -> dict:
             "n_correct_loops": r0.get("loop_closure", {}).get("n_correct")}
 
 
+SYSTEMS = ("kiss_icp", "gr_graph", "vertical", "kiss_vertical")
+
+
+def check_systems(text: str) -> tuple[str, ...]:
+    """``--systems`` as a tuple; an unknown name or channel count is an error (it would be skipped after a
+    full reading pass, leaving a results file without its rows)."""
+    systems = tuple(s.strip() for s in text.split(",") if s.strip())
+    for entry in systems:
+        name, at, only = entry.partition("@")
+        if name not in SYSTEMS or (at and (not only.isdigit() or int(only) not in CHANNELS)):
+            raise SystemExit(f"--systems: unknown entry {entry!r}; use {', '.join(SYSTEMS)}, optionally NAME@C with "
+                             f"C one of {', '.join(map(str, CHANNELS))}")
+    if not systems:
+        raise SystemExit("--systems: no system given")
+    return systems
+
+
+def refuse_overwrite(path: Path, force: bool) -> Path:
+    """``path``, or an error when it exists and ``force`` is not set: a published pass (another ``--tag``'s
+    systems, another route) is not replaced by a mistyped command."""
+    if path.exists() and not force:
+        raise SystemExit(f"{path} exists (a published pass): add --force to replace it, or --tag NAME for another file")
+    return path
+
+
 def _f(x, fmt: str = "{:.2f}") -> str:
     return "n/a" if x is None else fmt.format(x)
 
@@ -159,11 +184,12 @@ def write_markdown() -> Path:
         if not rows:
             continue
         lines += [f"## {what}", ""]
-        for odo in passes:
+        for path, odo in zip(sorted(RESULTS.glob(f"drift_{route}_odometry*.json")), passes):
             where = "--render" if odo.get("render") else "--root DIR"
+            tag = path.stem[len(f"drift_{route}_odometry_"):] if path.stem != f"drift_{route}_odometry" else ""
             lines += [f"Odometry pass: `python benchmarks/bench_drift.py odometry --route {route} {where} "
-                      f"--systems {odo.get('systems', 'kiss_icp,gr_graph,vertical')}` — {odo['source']}; "
-                      f"{odo['n_frames']} frames, {odo['wall_s'] / 60:.0f} min.", ""]
+                      f"--systems {odo.get('systems', 'kiss_icp,gr_graph,vertical')}{f' --tag {tag}' if tag else ''}` "
+                      f"— {odo['source']}; {odo['n_frames']} frames, {odo['wall_s'] / 60:.0f} min.", ""]
         lines += [header, "|---|---|---|---|---|---|---|---|"]
         for name, ch, m in sorted(rows, key=lambda t: -t[1]):
             lines.append(f"| {name} | {ch} | {_f(m.get('rpe300_consecutive_mean'))} | "
@@ -191,18 +217,21 @@ def main() -> None:
                     help="odometry, slam: render the route on the fly instead of reading --root (no export)")
     ap.add_argument("--tag", default=None, help="odometry: suffix of the results file (a second pass)")
     ap.add_argument("--out", type=Path, default=None, help="slam: run directory (default: ROOT.slam_C)")
+    ap.add_argument("--force", action="store_true",
+                    help="odometry, slam: replace a published results file (without it, an existing one is an error)")
     a = ap.parse_args()
     root = a.root or Path(f"/tmp/drift/{a.route}")
     if a.step == "export":
         export(a.route, root, a.preset, a.frames)
     elif a.step == "odometry":
+        systems = check_systems(a.systems)
         tag = "" if a.tag is None else f"_{a.tag}"
-        atomic_write_json(RESULTS / f"drift_{a.route}_odometry{tag}.json",
-                          odometry(a.route, None if a.render else root, tuple(a.systems.split(","))))
+        target = refuse_overwrite(RESULTS / f"drift_{a.route}_odometry{tag}.json", a.force)
+        atomic_write_json(target, odometry(a.route, None if a.render else root, systems))
     elif a.step == "slam":
         out = a.out or Path(f"{root}.slam_{a.channels}")
-        atomic_write_json(RESULTS / f"drift_{a.route}_slam_{a.channels}.json",
-                          slam(a.route, None if a.render else root, a.channels, out))
+        target = refuse_overwrite(RESULTS / f"drift_{a.route}_slam_{a.channels}.json", a.force)
+        atomic_write_json(target, slam(a.route, None if a.render else root, a.channels, out))
     print(write_markdown())
 
 

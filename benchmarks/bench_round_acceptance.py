@@ -218,8 +218,12 @@ def corrupt(run: Path, out: Path, noise: float, seed: int = 0) -> int:
             return densified_sequence(self.sequence, bad, tc, device=self.cfg.device, preprocess=self.cfg.preprocess,
                                       keep_predictions=max(16, self.cfg.data.prefetch + 8))
 
+    # the corrupted model is not in the round's fingerprint: a round 1 left in OUT by another --noise or
+    # --seed would be resumed and its verdict printed for this one
+    shutil.rmtree(out / "round_1", ignore_errors=True)
     m = CorruptedModelPipeline(cfg).run()
-    print(json.dumps({"final_round": m["final_round"], "round_1_accepted": m["rounds"]["1"]["accepted"],
+    print(json.dumps({"run": str(run), "noise": noise, "seed": seed, "final_round": m["final_round"],
+                      "round_1_accepted": m["rounds"]["1"]["accepted"],
                       "reasons": m["rounds"]["1"]["acceptance"]["reasons"]}))
     return 0
 

@@ -99,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full-coverage", action="store_true", help="windows side by side over the whole run")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
-    cells = args.cells or sorted(p.name for p in (args.root / "table1").iterdir() if (p / "slam").is_dir())
+    if not (args.root / "table1").is_dir():
+        raise SystemExit(f"{args.root}: no table1/ folder (not a harness root of `python -m gr_graph.experiments table1`)")
+    all_cells = sorted(p.name for p in (args.root / "table1").iterdir() if (p / "slam").is_dir())
+    cells = args.cells or all_cells
     rows = []
     for cell in cells:
         cell_dir = args.root / "table1" / cell / "slam"
@@ -112,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     windows = "windows over the whole run" if args.full_coverage else "default windows"
     lines = [f"# Published learning rounds re-judged ({windows})",
              "", f"`python benchmarks/rejudge_acceptance.py --root ROOT --scratch DIR"
-             f"{' --full-coverage' if args.full_coverage else ''}` on {args.root.name} ({len(cells)} cells); "
+             f"{' --full-coverage' if args.full_coverage else ''}"
+             f"{' --cells ' + ' '.join(cells) if cells != all_cells else ''}` on {args.root.name} ({len(cells)} cells); "
              f"{changed} of {len(rows)} verdicts differ from the recorded ones.", "",
              "| cell | round (reference) | windows | recorded | now | entropies reproduced | mean / q0.9 entropy rise "
              "(nats) | mean entropy rise vs round 0 | worst window measurable share | worst creep vs round 0 (mm/frame) |",
@@ -125,7 +129,11 @@ def main(argv: list[str] | None = None) -> int:
                      f"{_nats(r['mean_entropy_increase_vs_round_0'])} | "
                      f"{r['worst_window_measurable_fraction']:.3f} | {_mm(r['worst_creep_vs_round_0_m'])} |")
     name = "acceptance_rejudge_full" if args.full_coverage else "acceptance_rejudge"
-    print_and_write(name, "\n".join(lines), {"root": args.root.name, "cells": cells, "rows": rows}, args.write)
+    settings = AcceptanceConfig().model_dump(mode="json")
+    if args.full_coverage:
+        settings["n_windows"] = "enough to cover each run (per cell)"
+    print_and_write(name, "\n".join(lines), {"root": args.root.name, "cells": cells, "full_coverage": args.full_coverage,
+                                              "acceptance_settings": settings, "rows": rows}, args.write)
     return 0
 
 

@@ -19,8 +19,10 @@ Cells run since then carry these figures in ``registration.json`` (``identity``,
 Run::
 
     python benchmarks/table2_nontrivial.py ROOT [--write NAME]
+    python benchmarks/table2_nontrivial.py benchmarks/results/NAME.json --from-json [--write NAME]
 
-``--write NAME`` writes ``benchmarks/results/NAME.md`` and ``.json``.
+``--write NAME`` writes ``benchmarks/results/NAME.md`` and ``.json``; ``--from-json`` rebuilds the tables
+from such a JSON (the per-cell figures) when the harness root is gone.
 """
 
 from __future__ import annotations
@@ -79,14 +81,43 @@ def study_cell(root: Path, cell_dir: Path, gt_cache: dict[str, np.ndarray]) -> d
     return out
 
 
-def mean_std(values: list[float]) -> str:
-    """``m ± s`` in percent (sample std; one value: no spread)."""
-    v = 100.0 * np.asarray(values, float)
+def mean_std(values: list[float | None]) -> str:
+    """``m ± s`` in percent (sample std; one value: no spread) of the values given (None: not measured)."""
+    v = 100.0 * np.asarray([x for x in values if x is not None], float)
+    if not len(v):
+        return "n/a"
     return f"{v.mean():.1f} ± {v.std(ddof=1):.1f}" if len(v) > 1 else f"{v[0]:.1f}"
 
 
-def report(root: Path, cells: dict[str, dict[str, Any]], command: str) -> str:
-    """The markdown table: per channel count, step and solver, over seeds."""
+def paired_changes(cells: dict[str, dict[str, Any]], solvers: list[str]) -> list[str]:
+    """Markdown rows: per channel count, densified step and solver, the change of the success on the
+    non-trivial pairs against the same seed's raw scans [points], mean ± sample std over the seeds
+    measured in both, and each seed's."""
+    by_key = {(c["channels"], c["seed"], c["round"]): c for c in cells.values()}
+    rows = []
+    for channels, r in sorted({(c["channels"], c["round"]) for c in cells.values() if c["round"] > 0},
+                              key=lambda k: (-k[0], k[1])):
+        for solver in solvers:
+            seeds, deltas = [], []
+            for (ch, seed, rr), c in sorted(by_key.items()):
+                raw = by_key.get((ch, seed, 0))
+                if ch != channels or rr != r or raw is None:
+                    continue
+                a, b = (x["solvers"].get(solver, {}).get("success_nontrivial") for x in (raw, c))
+                if a is not None and b is not None:
+                    seeds.append(seed)
+                    deltas.append(b - a)
+            per_seed = ", ".join(f"s{s} {100 * d:+.1f}" for s, d in zip(seeds, deltas)) or "n/a"
+            mean = mean_std(deltas)
+            signed = mean if mean == "n/a" or mean.startswith("-") else "+" + mean
+            rows.append(f"| {channels} | {STEPS.get(r, r)} | {solver} | {signed} | {per_seed} | "
+                        f"{sum(d > 0 for d in deltas)} of {len(deltas)} |")
+    return rows
+
+
+def report(root: Path, cells: dict[str, dict[str, Any]], command: str, machine: str) -> str:
+    """The markdown table: per channel count, step and solver, over seeds (``machine``: where the figures
+    were computed)."""
     groups: dict[tuple[int, int], list[dict[str, Any]]] = defaultdict(list)
     for c in cells.values():
         groups[(c["channels"], c["round"])].append(c)
@@ -94,7 +125,7 @@ def report(root: Path, cells: dict[str, dict[str, Any]], command: str) -> str:
     lines = [
         "# Table II against the pairs the identity already solves",
         "",
-        f"`{command}` ({machine_line()}): the per-pair rows of the Table II cells in `{root}`; success is "
+        f"`{command}` ({machine}): the per-pair rows of the Table II cells in `{root}`; success is "
         "rotation < 10° and translation < 2 m; mean ± std over seeds [%]. \"Non-trivial\": the pairs on which "
         "the identity (no registration) fails.",
         "",
@@ -103,15 +134,19 @@ def report(root: Path, cells: dict[str, dict[str, Any]], command: str) -> str:
         "|---|---|---|---|" + "---|---|---|" * len(solvers),
     ]
     for (channels, r), cs in sorted(groups.items(), key=lambda kv: (-kv[0][0], kv[0][1])):
-        cells_solvers = [[c["solvers"][s] for c in cs] for s in solvers]
+        cells_solvers = [[c["solvers"][s] for c in cs if s in c["solvers"]] for s in solvers]
         parts = []
         for per_seed in cells_solvers:
-            n_hard = "/".join(str(x["n_nontrivial"]) for x in per_seed)
+            n_hard = "/".join(str(x["n_nontrivial"]) for x in per_seed) or "none run"
             parts += [mean_std([x["success"] for x in per_seed]),
                       f"{mean_std([x['success_nontrivial'] for x in per_seed])} ({n_hard})",
                       f"{sum(x['n_invalid'] for x in per_seed)} ({sum(x['n_invalid_scored_success'] for x in per_seed)})"]
         lines.append(f"| {channels} | {STEPS.get(r, r)} | {len(cs)} | {mean_std([c['identity'] for c in cs])} | "
                      + " | ".join(parts) + " |")
+    lines += ["", "Paired by seed: the change of the success on the non-trivial pairs against the same seed's raw "
+              "scans [points], mean ± sample std over the seeds measured in both:", "",
+              "| channels | step | solver | change | per seed | better in |", "|---|---|---|---|---|---|",
+              *paired_changes(cells, solvers)]
     return "\n".join(lines)
 
 
@@ -119,16 +154,25 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("root", type=Path, help="an experiment harness root with finished Table II cells")
     ap.add_argument("--write", metavar="NAME", help="write benchmarks/results/NAME.md and .json")
+    ap.add_argument("--from-json", action="store_true",
+                    help="ROOT is a JSON this script wrote (its per-cell figures): rebuild the table from it")
     args = ap.parse_args(argv)
-    cell_dirs = sorted(d for d in (args.root / "table2").glob("*") if (d / "registration.json").is_file())
-    if not cell_dirs:
-        print(f"error: {args.root / 'table2'}: no finished Table II cell (registration.json)", file=sys.stderr)
-        return 2
-    gt_cache: dict[str, np.ndarray] = {}
-    cells = {d.name: study_cell(args.root, d, gt_cache) for d in cell_dirs}
     command = "python benchmarks/table2_nontrivial.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    print_and_write(args.write or "", report(args.root, cells, command), {"root": str(args.root), "cells": cells},
-                    bool(args.write))
+    if args.from_json:
+        stored = json.loads(args.root.read_text())
+        root, cells = Path(stored["root"]), stored["cells"]
+        machine = stored.get("machine", "machine not recorded")
+        command = stored.get("command", f"python benchmarks/table2_nontrivial.py {shlex.quote(stored['root'])}")
+    else:
+        cell_dirs = sorted(d for d in (args.root / "table2").glob("*") if (d / "registration.json").is_file())
+        if not cell_dirs:
+            print(f"error: {args.root / 'table2'}: no finished Table II cell (registration.json)", file=sys.stderr)
+            return 2
+        gt_cache: dict[str, np.ndarray] = {}
+        root, cells = args.root, {d.name: study_cell(args.root, d, gt_cache) for d in cell_dirs}
+        machine = machine_line()
+    print_and_write(args.write or "", report(root, cells, command, machine),
+                    {"root": str(root), "command": command, "machine": machine, "cells": cells}, bool(args.write))
     return 0
 
 
