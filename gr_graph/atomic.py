@@ -74,7 +74,7 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
 
     An ``OSError`` while the file is made, written or renamed (a full disk, a file size limit, no
     permission) is raised as the same kind of error (type and ``errno``) naming ``path``; one about
-    another file (``filename`` set to it) passes unchanged.
+    another file (``filename`` set to it) or of another kind (a network's, no errno) passes unchanged.
     """
     target = Path(path)
     try:
@@ -94,12 +94,25 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
             fsync_directory(target.parent)  # the rename itself survives a power loss
     except OSError as exc:
         tmp.unlink(missing_ok=True)
-        if exc.filename not in (None, str(tmp), tmp_name) or str(target) in str(exc):
-            raise  # about another file (an input read while writing), or naming the target already
+        if not _about_writing(exc, tmp) or str(target) in str(exc) or str(exc.strerror).startswith("cannot write "):
+            raise  # about another file or something else (an input, a network), or naming a file already
         raise _naming(exc, target) from exc
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+#: errno values of a write that failed for want of room, permission or a working disk
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS, errno.EIO,
+                           errno.ENAMETOOLONG, errno.EISDIR, errno.ENOTDIR, errno.ENOENT})
+
+
+def _about_writing(exc: OSError, tmp: Path) -> bool:
+    """Whether ``exc`` is about writing the temporary file: raised on it (``filename``), or with no file named
+    and an errno of a failed write (a full disk in ``write``). A network or another file's error is not."""
+    if exc.filename is not None:
+        return str(exc.filename) == str(tmp)
+    return exc.errno in _WRITE_ERRNOS
 
 
 def _naming(exc: OSError, target: Path) -> OSError:

@@ -19,8 +19,8 @@ import numpy as np
 
 from gr_graph.atomic import atomic_savefig
 
-__all__ = ["plot_trajectory", "plot_rounds", "pyplot", "save_figure", "ellipse_axes", "ellipse_scale", "ELLIPSE_SIGMA",
-           "ELLIPSE_TARGET_FRACTION", "MAX_ELLIPSES"]
+__all__ = ["plot_trajectory", "plot_rounds", "pyplot", "save_figure", "ellipse_axes", "ellipse_layout", "ellipse_scale",
+           "ELLIPSE_SIGMA", "ELLIPSE_TARGET_FRACTION", "MAX_ELLIPSES"]
 
 ELLIPSE_SIGMA = 3.0
 #: Drawn major axis of the median ellipse as a fraction of the plot's extent.
@@ -79,6 +79,38 @@ def ellipse_scale(major_axes: np.ndarray, extent: float, target_fraction: float 
     return float(nice * 10**exponent)
 
 
+def ellipse_layout(positions: np.ndarray, position_cov: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """The x-y position ellipses as ``trajectory.png`` draws them (the notebook too).
+
+    Parameters
+    ----------
+    positions : (K, 2+) array
+        Positions [m] (x, y first); non-finite ones get no ellipse.
+    position_cov : (K, 3, 3) or (K, 2, 2) array
+        World-frame position covariances; non-finite ones (failed marginals) get no ellipse.
+
+    Returns
+    -------
+    width, height, angle : (K,) arrays
+        :func:`ellipse_axes` (NaN where there is no covariance).
+    drawn : (K,) bool array
+        Poses with a finite position and ellipse.
+    scale : float
+        :func:`ellipse_scale` of the drawn ellipses on the extent of the finite positions (at least 1 m).
+    """
+    p = np.asarray(positions, np.float64)[:, :2]
+    cov_xy = np.asarray(position_cov, np.float64)[:, :2, :2]
+    placed = np.isfinite(p).all(axis=1)
+    has_cov = np.isfinite(cov_xy).all(axis=(1, 2))
+    width, height, angle = (np.full(len(p), np.nan) for _ in range(3))
+    if has_cov.any():
+        width[has_cov], height[has_cov], angle[has_cov] = ellipse_axes(cov_xy[has_cov])
+    drawn = placed & np.isfinite(width) & np.isfinite(height) & np.isfinite(angle)
+    extent = float(np.ptp(p[placed], axis=0).max()) if placed.sum() > 1 else 0.0
+    return width, height, angle, drawn, ellipse_scale(width[drawn], max(extent, 1.0))
+
+
 def plot_trajectory(
     path: str | os.PathLike[str],
     poses: np.ndarray,
@@ -134,16 +166,8 @@ def _draw_trajectory(ax: Any, p: np.ndarray, gt: np.ndarray | None, loops: np.nd
             ax.plot([p[i, 0], p[j, 0]], [p[i, 1], p[j, 1]], color="tab:red", lw=0.6, alpha=0.6)
         ax.plot([], [], color="tab:red", lw=0.6, label=f"loop closures ({len(loops)})")
     if position_cov is not None and len(position_cov):
-        cov_xy = np.asarray(position_cov, np.float64)[:, :2, :2]
-        placed = np.isfinite(p[:, :2]).all(axis=1)
-        has_cov = np.isfinite(cov_xy).all(axis=(1, 2))  # failed marginals: none (eigh would raise on NaN)
-        width, height, angle = np.full(len(p), np.nan), np.full(len(p), np.nan), np.full(len(p), np.nan)
-        if has_cov.any():
-            width[has_cov], height[has_cov], angle[has_cov] = ellipse_axes(cov_xy[has_cov])
-        drawn = placed & np.isfinite(width) & np.isfinite(height) & np.isfinite(angle)
+        width, height, angle, drawn, scale = ellipse_layout(p, position_cov)
         if drawn.any():
-            extent = float(np.ptp(p[placed, :2], axis=0).max()) if placed.sum() > 1 else 0.0
-            scale = ellipse_scale(width[drawn], max(extent, 1.0))
             step = max(1, int(np.ceil(len(p) / MAX_ELLIPSES)))
             for k in range(0, len(p), step):
                 if drawn[k]:

@@ -38,10 +38,18 @@ def display_available() -> tuple[bool, str]:
     return True, ""
 
 
-def _x_display_opens(display: str) -> bool | None:
-    """Whether libX11 can open ``display``; None when libX11 is not there to ask."""
+#: Seconds to wait for an X server to answer (a listener that never answers: a stalled forwarding).
+X_PROBE_TIMEOUT_S = 3.0
+
+
+def _x_display_opens(display: str, timeout_s: float | None = None) -> bool | None:
+    """Whether libX11 can open ``display`` within ``timeout_s`` (default :data:`X_PROBE_TIMEOUT_S`; no answer:
+    False); None when libX11 is not
+    there to ask. The call has no timeout of its own: it runs in a daemon thread (ctypes releases the GIL),
+    left behind blocked when the server never answers."""
     import ctypes
     import ctypes.util
+    import threading
 
     name = ctypes.util.find_library("X11")
     if name is None:
@@ -53,11 +61,18 @@ def _x_display_opens(display: str) -> bool | None:
     x11.XOpenDisplay.restype = ctypes.c_void_p
     x11.XOpenDisplay.argtypes = [ctypes.c_char_p]
     x11.XCloseDisplay.argtypes = [ctypes.c_void_p]
-    handle = x11.XOpenDisplay(display.encode())
-    if not handle:
-        return False
-    x11.XCloseDisplay(handle)
-    return True
+    opened: list[bool] = []
+
+    def probe() -> None:
+        handle = x11.XOpenDisplay(display.encode())
+        if handle:
+            x11.XCloseDisplay(handle)
+        opened.append(bool(handle))
+
+    thread = threading.Thread(target=probe, name="x-display-probe", daemon=True)
+    thread.start()
+    thread.join(X_PROBE_TIMEOUT_S if timeout_s is None else timeout_s)
+    return bool(opened and opened[0])
 
 
 def show_map(path: str | os.PathLike[str], title: str = "gr_graph map") -> bool:

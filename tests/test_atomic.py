@@ -78,9 +78,13 @@ def test_errors_while_writing_name_the_file_and_keep_their_kind(tmp_path: Path) 
         with atomic_path(target) as tmp:
             raise PermissionError(errno.EACCES, "Permission denied", str(tmp))
     assert err.value.errno == errno.EACCES
-    with pytest.raises(OSError, match="cannot write .*out.ply: file too large"):
-        with atomic_path(target):
-            raise OSError("file too large")  # no errno (some writers raise so)
+    with pytest.raises(ConnectionResetError, match=r"^\[Errno 104\] Connection reset by peer$"):
+        with atomic_path(target):  # not about the file: unchanged
+            raise ConnectionResetError(errno.ECONNRESET, "Connection reset by peer")
+    with pytest.raises(OSError, match=f"^\\[Errno {errno.ENOSPC}\\] cannot write {tmp_path / 'inner.json'}: No space"):
+        with atomic_path(target):  # nested: the inner file's name is kept
+            with atomic_path(tmp_path / "inner.json"):
+                raise OSError(errno.ENOSPC, "No space left on device")
     other = tmp_path / "input.pcd"
     with pytest.raises(FileNotFoundError) as err:
         with atomic_path(target):

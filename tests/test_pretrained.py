@@ -314,10 +314,12 @@ def test_pretrain_install_ships_nothing_when_the_card_cannot_be_made(tmp_path: P
             pretrain.install(root)
         assert weights.read_bytes() == b"the weights that ship now" and not card_path.exists()
     (root / "evaluation.json").write_text(json.dumps({"weights_sha256": sha, "summary": {}}))
-    (root / "per_count_32.json").write_text(json.dumps({"weights_sha256": "1" * 64, "summary": {}}))
+    (root / "per_count_32.json").write_text(json.dumps({"all_counts_weights_sha256": "1" * 64, "summary": {}}))
     with pytest.raises(ValueError, match=r"per_count_32.json: made with other weights"):  # any channel count's
         pretrain.card(root)
-    (root / "per_count_32.json").write_text(json.dumps({"weights_sha256": sha, "summary": {"channels": 32}}))
+    (root / "per_count_32.json").write_text(json.dumps({"all_counts_weights_sha256": sha,
+                                                        "weights_per_count_sha256": "2" * 64,
+                                                        "summary": {"channels": 32}}))
     doc = pretrain.card(root)
     assert doc["one_model_for_all_channel_counts"]["summary"]["channels"] == 32 and doc["evaluation"] is not None
 

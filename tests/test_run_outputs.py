@@ -224,6 +224,23 @@ def test_viz_with_a_display_that_does_not_open_is_a_message_not_a_hang(tmp_path:
     assert show_map(tmp_path / "map.ply") is False
     err = capsys.readouterr().err
     assert "DISPLAY=:987 cannot be opened" in err and str(tmp_path / "map.ply") in err
+    # a listener that never answers (a stalled forwarding): no answer within the timeout is no display
+    import socket
+    import time
+
+    import gr_graph.viewer as viewer
+
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        if port < 6000:
+            pytest.skip(f"the free port {port} is below X's 6000 + display number")
+        monkeypatch.setenv("DISPLAY", f"127.0.0.1:{port - 6000}")
+        monkeypatch.setattr(viewer, "X_PROBE_TIMEOUT_S", 0.5)
+        t0 = time.perf_counter()
+        assert viewer.display_available()[0] is False
+        assert time.perf_counter() - t0 < 5
 
 
 @pytest.mark.slow

@@ -211,21 +211,21 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
         a = np.array([r["all_counts"].get(k) for r in rows], float)
         b = np.array([r["per_count"].get(k) for r in rows], float)
         summary[k] = {"all_counts": _mean_std(a), "per_count": _mean_std(b), "per_count_better_in": int(np.sum(b < a))}
-    res = {"weights_per_count": str(weights), "weights_sha256": shared_sha.get("weights_sha256"), "rows": rows,
-           "summary": summary}
+    res = {"weights_per_count": str(weights), "weights_per_count_sha256": weights_sha256(weights),
+           "all_counts_weights_sha256": shared_sha.get("weights_sha256"), "rows": rows, "summary": summary}
     atomic_write_json(root / f"per_count_{channels}.json", res)
     return res
 
 
-def _of_these_weights(path: Path, sha: str) -> dict[str, Any] | None:
-    """The record in ``path`` (None when missing), refused when it was made with other weights than ``sha``'s
-    (``train`` rerun after ``evaluate``, or a record of before the hash was kept): a card's figures describe the
-    weights it ships."""
+def _of_these_weights(path: Path, sha: str, key: str = "weights_sha256") -> dict[str, Any] | None:
+    """The record in ``path`` (None when missing), refused when the weights it names under ``key`` are not
+    ``sha``'s (``train`` rerun after ``evaluate``, or a record of before the hash was kept): a card's
+    figures describe the weights it ships."""
     record = read_json_or_none(path)
     if record is None:
         return None
-    if record.get("weights_sha256") != sha:
-        made_with = record.get("weights_sha256") or "weights not recorded"
+    if record.get(key) != sha:
+        made_with = record.get(key) or "weights not recorded"
         raise ValueError(f"{path}: made with other weights ({made_with}) than training/model.pt ({sha[:12]}...); "
                          "rerun `python -m training.pretrain evaluate` (and `per-count`) before `install`")
     return record
@@ -237,7 +237,7 @@ def card(root: Path) -> dict[str, Any]:
     sha = weights_sha256(root / "training" / "model.pt")
     ev = _of_these_weights(root / "evaluation.json", sha)
     per_count_files = sorted(root.glob("per_count_*.json"), key=lambda f: (f.name != "per_count_16.json", f.name))
-    pc = _of_these_weights(per_count_files[0], sha) if per_count_files else None
+    pc = _of_these_weights(per_count_files[0], sha, "all_counts_weights_sha256") if per_count_files else None
     return {
         "name": "gr_graph pretrained covariance network",
         "format": "training checkpoint (training.trainer.CHECKPOINT_FORMAT), loaded by training.trainer.load_model",

@@ -126,6 +126,15 @@ def deterministic_algorithms() -> Iterator[None]:
         torch.use_deterministic_algorithms(previous, warn_only=previous_warn)
 
 
+def newer_format(state: dict[str, Any], path: Path) -> str | None:
+    """Why the checkpoint ``state`` (read from ``path``) is of a newer layout than this gr_graph reads, or
+    None (files without ``format_version`` are version 0). A version that is not an integer raises."""
+    version = int(state.get("format_version", 0))
+    if version > CHECKPOINT_FORMAT:
+        return f"{path}: checkpoint format version {version} is newer than this gr_graph reads ({CHECKPOINT_FORMAT})"
+    return None
+
+
 def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str = "cpu") -> CovarianceNet:
     """A :class:`CovarianceNet` from a ``model.pt`` / ``checkpoint.pt`` path (or pass-through).
 
@@ -157,10 +166,12 @@ def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str =
     if not isinstance(state, dict) or "model_state" not in state or "net_config" not in state:
         raise TrainingError(f"{path}: not a training checkpoint (missing model_state / net_config); "
                             "use a model.pt written by `python -m training.train` or a gr_graph.slam --rounds run")
-    version = int(state.get("format_version", 0))
-    if version > CHECKPOINT_FORMAT:
-        raise TrainingError(f"{path}: checkpoint format version {version} is newer than this gr_graph reads "
-                            f"({CHECKPOINT_FORMAT}); update gr_graph")
+    try:
+        newer = newer_format(state, path)
+    except (TypeError, ValueError) as exc:
+        raise TrainingError(f"{path}: damaged checkpoint (format_version: {exc})") from None
+    if newer:
+        raise TrainingError(f"{newer}; update gr_graph")
     try:
         net_config = NetConfig(**state["net_config"])
     except (TypeError, ValueError) as exc:
@@ -346,10 +357,27 @@ class Trainer:
         needed = ("model_state", "optimizer_state", "epoch", "step", "skip_counts", "torch_rng")
         if not isinstance(st, dict) or any(k not in st for k in needed):
             raise CheckpointMismatch(f"{path}: not a training checkpoint (needs {', '.join(needed)}); {hint}")
-        version = int(st.get("format_version", 0))
-        if version > CHECKPOINT_FORMAT:
-            raise CheckpointMismatch(f"{path}: checkpoint format version {version} is newer than this gr_graph "
-                                     f"reads ({CHECKPOINT_FORMAT}); {hint}")
+        model_before = {k: v.clone() for k, v in self.model.state_dict().items()}
+        optimizer_before = self.optimizer.state_dict()
+        try:  # a damaged file (fields of the wrong type, weights of another shape, a broken RNG state) is a
+            self._continue_from(st, path, hint)  # checkpoint not to continue, refused as the others are
+        except CheckpointMismatch:
+            raise
+        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            self.model.load_state_dict(model_before)  # a retrain after the refusal starts from where it was
+            self.optimizer.load_state_dict(optimizer_before)
+            first_line = (str(exc).splitlines() or [""])[0]
+            raise CheckpointMismatch(f"{path}: damaged checkpoint ({type(exc).__name__}: {first_line}); {hint}") from None
+        log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
+        self._truncate_log()
+        return True
+
+    def _continue_from(self, st: dict[str, Any], path: Path, hint: str) -> None:
+        """:meth:`try_resume`'s checks of the checkpoint ``st`` (CheckpointMismatch naming ``path``) and its
+        loading; the trainer's counters change only once everything is read."""
+        newer = newer_format(st, path)
+        if newer:
+            raise CheckpointMismatch(f"{newer}; {hint}")
         now = self.dataset.describe()
         stored = st.get("dataset", now)
         if stored != now and _without_edge_hashes(stored) == stored:  # written before the hash was kept:
@@ -363,37 +391,27 @@ class Trainer:
         if stored_key != self.config.resume_key() or st.get("world_size") != self.world_size:
             raise CheckpointMismatch(
                 f"{path}: checkpoint was written with a different configuration or world size; {hint}")
-        if int(st["epoch"]) > self.config.epochs:
-            raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration ({st['epoch']} "
+        epoch, step = int(st["epoch"]), int(st["step"])
+        if epoch > self.config.epochs:
+            raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration ({epoch} "
                                      f"epochs trained, {self.config.epochs} asked for); {hint}")
-        model_before = {k: v.clone() for k, v in self.model.state_dict().items()}
-        optimizer_before = self.optimizer.state_dict()
-        try:  # a damaged state (weights of another shape, a broken RNG state) is a checkpoint not to continue
-            self.model.load_state_dict(st["model_state"])
-            self.optimizer.load_state_dict(st["optimizer_state"])
-            epoch, step = int(st["epoch"]), int(st["step"])
-            skip_counts = Counter(st["skip_counts"])
-            torch.set_rng_state(st["torch_rng"].cpu())
-        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
-            self.model.load_state_dict(model_before)  # a retrain after the refusal starts from where it was
-            self.optimizer.load_state_dict(optimizer_before)
-            first_line = (str(exc).splitlines() or [""])[0]
-            raise CheckpointMismatch(f"{path}: damaged checkpoint ({type(exc).__name__}: {first_line}); {hint}") from None
-        self.epoch, self.step, self.skip_counts = epoch, step, skip_counts
+        skip_counts = Counter(st["skip_counts"])
         # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
-        self.epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
+        epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
         device_before = st.get("device")  # checkpoints before it was kept: unknown
-        if device_before is not None and torch.device(device_before).type != self.device.type:
+        device_type_before = None if device_before is None else torch.device(device_before).type
+        before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
+        self.model.load_state_dict(st["model_state"])
+        self.optimizer.load_state_dict(st["optimizer_state"])
+        torch.set_rng_state(st["torch_rng"].cpu())
+        self.epoch, self.step, self.skip_counts, self.epoch_skipped = epoch, step, skip_counts, epoch_skipped
+        if device_type_before is not None and device_type_before != self.device.type:
             log.warning("%s: resumed on %s, the steps before ran on %s: the weights will differ from an "
                         "uninterrupted run", path, self.device.type, device_before)
-        before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
         if before and before != {torch.get_num_threads()}:
             log.warning("%s: resumed with %d torch thread(s), the steps before ran with %s: the weights may differ "
                         "in the last bits from an uninterrupted run", path, torch.get_num_threads(), sorted(before))
         self.threads_used |= before
-        log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
-        self._truncate_log()
-        return True
 
     def _log_path(self) -> Path:
         return self.out_dir / (LOG_NAME if self.rank == 0 else f"train_log.rank{self.rank}.jsonl")

@@ -140,6 +140,8 @@ class Budget:
     training: dict[str, Any] = field(default_factory=dict)
     #: how many of ``seeds`` (the first ones) run Table I's 64-channel cell (the protocol: 1)
     seeds_64ch: int = 1
+    #: what the budget runs, in a few words (``--budget``'s help); not part of any cell's definition
+    description: str = ""
 
     def __post_init__(self) -> None:
         if not 1 <= self.seeds_64ch <= len(self.seeds):
@@ -149,24 +151,33 @@ class Budget:
 
 _STUDENT_T_ADDS = Budget("student-t-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3,
                          n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
-                                                "keep_original": True, "keep_dropped": True}, seeds_64ch=3)
+                                                "keep_original": True, "keep_dropped": True}, seeds_64ch=3,
+                         description="the library's training defaults (since 2026-12-05: the Student t, "
+                                     "densification that only adds) on frames 0:1500, which hold no revisit, "
+                                     "only a stop")
 
 BUDGETS: dict[str, Budget] = {
-    "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100),
+    "paper": Budget("paper", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100,
+                    description="the issue's protocol with the paper's method (Gaussian likelihood, the paper's "
+                                "densification)"),
     "student-t": Budget("student-t", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=3, n_pairs=100,
-                        training={"trainer": {"corr_likelihood": "student_t"}}),
+                        training={"trainer": {"corr_likelihood": "student_t"}},
+                        description="the same protocol with a Student-t correspondence likelihood"),
     "student-t-8ep": Budget("student-t-8ep", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2), epochs=8,
-                            n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"}}),
+                            n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"}},
+                            description="the Student t, 8 training epochs a round instead of 3"),
     "student-t-8ep-adds": Budget("student-t-8ep-adds", TABLE1_WINDOW, ABLATION_WINDOW, FULL_SEQUENCE, (0, 1, 2),
                                  epochs=8, n_pairs=100, training={"trainer": {"corr_likelihood": "student_t"},
-                                                                  "keep_original": True, "keep_dropped": True}),
+                                                                  "keep_original": True, "keep_dropped": True},
+                                 description="the Student t, 8 epochs, densification that only adds"),
     "student-t-adds": _STUDENT_T_ADDS,
-    # the same, Table I on a window with a revisit
-    "student-t-adds-revisit": replace(_STUDENT_T_ADDS, name="student-t-adds-revisit", window=REVISIT_WINDOW),
+    "student-t-adds-revisit": replace(_STUDENT_T_ADDS, name="student-t-adds-revisit", window=REVISIT_WINDOW,
+                                      description="the same on 400:1900, the first window with a revisit"),
     "smoke": Budget("smoke", (740, 800), (740, 800), (740, 820), (0, 1), epochs=1, n_pairs=6,
                     training={"trainer": {"max_corr": 200, "num_threads": 1,
                                           "net": {"n_points": 256, "k0": 8, "k1": 8, "k2": 8, "c0": 8, "c1": 16,
-                                                  "c2": 16, "kw": 8}}}),
+                                                  "c2": 16, "kw": 8}}},
+                    description="tiny sizes to test the machinery"),
 }
 
 ABLATIONS: dict[str, tuple[str, dict[str, Any], str | None]] = {

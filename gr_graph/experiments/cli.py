@@ -38,19 +38,6 @@ def default_root(budget: str) -> Path:
     return Path("runs/experiments" if budget == "paper" else f"runs/experiments-{budget}")
 
 
-#: what each budget of :data:`gr_graph.experiments.cells.BUDGETS` runs (``--budget``'s help)
-BUDGET_HELP = {
-    "paper": "the issue's protocol with the paper's method (Gaussian likelihood, the paper's densification)",
-    "student-t": "the same protocol with a Student-t correspondence likelihood",
-    "student-t-8ep": "the Student t, 8 training epochs a round instead of 3",
-    "student-t-8ep-adds": "the Student t, 8 epochs, densification that only adds",
-    "student-t-adds": "the library's training defaults (since 2026-12-05: the Student t, densification that only "
-                      "adds) on frames 0:1500, which hold no revisit, only a stop",
-    "student-t-adds-revisit": "the same on 400:1900, the first window with a revisit",
-    "smoke": "tiny sizes to test the machinery",
-}
-
-
 def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     """The argument parser of ``python -m gr_graph.experiments``."""
     ap = make_parser("python -m gr_graph.experiments", __doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1],
@@ -59,7 +46,7 @@ def build_parser():  # noqa: ANN201 (argparse.ArgumentParser)
     ap.add_argument("--root", default=None, metavar="DIR",
                     help="results root; cells go to DIR/<table>/<key> (default: runs/experiments[-<budget>])")
     ap.add_argument("--budget", choices=tuple(BUDGETS), default="paper",
-                    help="; ".join(f"{name}: {BUDGET_HELP[name]}" for name in BUDGETS))
+                    help="; ".join(f"{name}: {b.description}" for name, b in BUDGETS.items()))
     ap.add_argument("--list", action="store_true", help="print the cells (index, key, estimated wall minutes on 2 cores, what)")
     ap.add_argument("--cell", default=None, metavar="K", help="run only cell K (index or key)")
     ap.add_argument("--report", action="store_true", help="only write the report of the finished cells")

@@ -110,6 +110,7 @@ def _start(root: Path, cell: Cell, budget: str | None = None) -> Path:
     the cell stops. An unfinished cell is cleared unless its ``definition.json`` names another budget.
     """
     d = cell_dir(root, cell)
+    sweep_trash(d)  # a delete killed in an earlier call (under the cell's lock, as this one)
     fp = cell.fingerprint()
     started, finished = read_json_or_none(d / DEFINITION_JSON), read_result(d / CELL_JSON)
     if started is not None and not isinstance(started, dict):  # damaged: as another definition
@@ -258,13 +259,18 @@ def open_cell_sequence(cfg: Any) -> tuple[Any, str]:
     return open_configured_sequence(data, synthetic_seed=cfg.seed)
 
 
+def sweep_trash(path: Path) -> None:
+    """Delete what a killed :func:`remove_tree` of ``path`` left (its hidden ``.trash-`` siblings)."""
+    for stale in path.parent.glob(f".trash-{path.name}-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
 def remove_tree(path: Path) -> None:
     """Delete the folder ``path`` whole or not at all: renamed to a hidden sibling first (one rename), then
     deleted. A delete killed midway (a time limit, Ctrl-C) would otherwise leave some of the old results
     (``round_*/round.json`` without ``cell.json``) for the next run to resume; a killed delete here leaves
-    only the hidden sibling, removed by the next call for the same folder."""
-    for stale in path.parent.glob(f".trash-{path.name}-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    only the hidden sibling, removed by the next start of the cell (:func:`sweep_trash`)."""
+    sweep_trash(path)
     if not path.exists():
         return
     trash = path.parent / f".trash-{path.name}-{os.getpid()}-{time.monotonic_ns()}"

@@ -408,15 +408,20 @@ def test_damaged_or_newer_checkpoints_are_refused_by_name_and_leave_the_start_al
         "weights": {**good, "model_state": {k: v for k, v in good["model_state"].items() if not k.endswith("bias")}},
         "rng": {**good, "torch_rng": torch.zeros(3, dtype=torch.uint8)},
         "newer": {**good, "format_version": good["format_version"] + 1},
+        "version": {**good, "format_version": "x"},
+        "epoch": {**good, "epoch": "one"},
+        "device": {**good, "device": "no-such-device"},
     }
     for name, st in damaged.items():
         torch.save(st, ck)
         tr = Trainer(mem, tmp_path, _cfg(epochs=2))
         start = {k: v.clone() for k, v in tr.model.state_dict().items()}
+        lr = tr.optimizer.param_groups[0]["lr"]
         want = "newer than this gr_graph reads" if name == "newer" else "damaged checkpoint"
         with pytest.raises(CheckpointMismatch, match=rf"checkpoint.pt: .*{want}.*--no-resume"):
             tr.try_resume()
         assert all(torch.equal(start[k], v) for k, v in tr.model.state_dict().items()), name
+        assert tr.optimizer.state_dict()["state"] == {} and tr.optimizer.param_groups[0]["lr"] == lr, name
         assert tr.epoch == 0 and tr.step == 0
 
 
