@@ -73,8 +73,8 @@ def open_root(root: Path | None, route: str = "generated"):
     from gr_graph.datasets.registry import open_sequence
 
     if root is None:
-        trajectory = str(KITTI00_GT) if route == "kitti00" else None
-        return open_sequence("00", trajectory=trajectory, synthetic_preset="kitti")
+        trajectory = str(KITTI00_GT) if route == "kitti00" else None  # rendered, never a KITTI root found
+        return open_sequence("00", trajectory=trajectory, synthetic_preset="kitti", dataset="synthetic")
     return open_sequence("00", str(root))
 
 
@@ -116,7 +116,7 @@ def odometry(route: str, root: Path | None, systems: tuple[str, ...]) -> dict:
 def slam(route: str, root: Path | None, channels: int, out: Path) -> dict:
     """``python -m gr_graph.slam`` on the exported folder (``root`` None: rendered on the fly); round 0."""
     if root is None:  # no export: the command renders the kitti preset along the route itself
-        where = ["--trajectory", str(KITTI00_GT)] if route == "kitti00" else []
+        where = ["--dataset", "synthetic"] + (["--trajectory", str(KITTI00_GT)] if route == "kitti00" else [])
     else:
         where = ["--data-root", str(root)]
     cmd = [sys.executable, "-m", "gr_graph.slam", "--seq", "00", *where,
@@ -141,9 +141,10 @@ def check_systems(text: str) -> tuple[str, ...]:
     systems = tuple(s.strip() for s in text.split(",") if s.strip())
     for entry in systems:
         name, at, only = entry.partition("@")
-        if name not in SYSTEMS or (at and (not only.isdigit() or int(only) not in CHANNELS)):
+        allowed = (64,) if name in ("vertical", "kiss_vertical") else CHANNELS  # the corrections: 64 channels only
+        if name not in SYSTEMS or (at and (not only.isdigit() or int(only) not in allowed)):
             raise SystemExit(f"--systems: unknown entry {entry!r}; use {', '.join(SYSTEMS)}, optionally NAME@C with "
-                             f"C one of {', '.join(map(str, CHANNELS))}")
+                             f"C one of {', '.join(map(str, CHANNELS))} (vertical, kiss_vertical: 64 only)")
     if not systems:
         raise SystemExit("--systems: no system given")
     return systems
@@ -170,10 +171,12 @@ def write_markdown() -> Path:
               "RMSE (all pairs) | ATE RMSE [m] | KITTI % |")
     for route, what in ROUTES.items():
         rows = []
-        passes = [json.loads(p.read_text()) for p in sorted(RESULTS.glob(f"drift_{route}_odometry*.json"))]
-        for odo in passes:
+        paths = sorted(RESULTS.glob(f"drift_{route}_odometry*.json"))
+        passes = [json.loads(p.read_text()) for p in paths]
+        tags = [p.stem[len(f"drift_{route}_odometry_"):] if p.stem != f"drift_{route}_odometry" else "" for p in paths]
+        for odo, tag in zip(passes, tags):
             for r in sorted(odo["rows"], key=lambda r: (-r["channels"], r["system"])):
-                rows.append((r["system"] + " (odometry)", r["channels"], r))
+                rows.append((r["system"] + (f" (odometry, pass {tag})" if tag else " (odometry)"), r["channels"], r))
         for ch in CHANNELS:
             p = RESULTS / f"drift_{route}_slam_{ch}.json"
             if p.exists():
@@ -184,9 +187,8 @@ def write_markdown() -> Path:
         if not rows:
             continue
         lines += [f"## {what}", ""]
-        for path, odo in zip(sorted(RESULTS.glob(f"drift_{route}_odometry*.json")), passes):
+        for tag, odo in zip(tags, passes):
             where = "--render" if odo.get("render") else "--root DIR"
-            tag = path.stem[len(f"drift_{route}_odometry_"):] if path.stem != f"drift_{route}_odometry" else ""
             lines += [f"Odometry pass: `python benchmarks/bench_drift.py odometry --route {route} {where} "
                       f"--systems {odo.get('systems', 'kiss_icp,gr_graph,vertical')}{f' --tag {tag}' if tag else ''}` "
                       f"— {odo['source']}; {odo['n_frames']} frames, {odo['wall_s'] / 60:.0f} min.", ""]

@@ -199,6 +199,8 @@ def corrupt(run: Path, out: Path, noise: float, seed: int = 0) -> int:
     from gr_graph.pipeline import SlamPipeline
 
     model = run / "round_1" / "training" / "model.pt"
+    if out.resolve() == run.resolve():
+        raise SystemExit(f"{out}: OUT must not be RUN (its round 1 is redone with the corrupted model)")
     out.mkdir(parents=True, exist_ok=True)
     if not (out / "round_0").exists():
         shutil.copytree(run / "round_0", out / "round_0")

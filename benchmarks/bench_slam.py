@@ -225,7 +225,8 @@ def write_markdown() -> Path:
     if p.exists():
         d = json.loads(p.read_text())
         lines += ["## Odometry throughput vs KISS-ICP", "",
-                  f"`python benchmarks/bench_slam.py throughput --frames {d['frames']}` — {d['source']}; "
+                  f"`python benchmarks/bench_slam.py throughput --frames {d['frames']} --preset "
+                  f"{d.get('preset', DEFAULT_PRESET)} --write` — {d['source']}; "
                   f"{d['n_frames']} frames held in RAM (rendering excluded), 1 thread each.", "",
                   *([f"Note: {d['note']}", ""] if d.get("note") else []),
                   "| channels | points/scan | gr_graph [frames/s] | KISS-ICP [frames/s] | ratio (target ≥ 1) |",
@@ -238,7 +239,8 @@ def write_markdown() -> Path:
     if p.exists():
         d = json.loads(p.read_text())
         lines += ["## Odometry RPE over 300 frames (translation, m), per channel count", "",
-                  f"`python benchmarks/bench_slam.py rpe --frames {d['frames']}` — {d['source']}; "
+                  f"`python benchmarks/bench_slam.py rpe --frames {d['frames']} --preset {d.get('preset', DEFAULT_PRESET)} "
+                  f"--write` — {d['source']}; "
                   f"{d['n_frames']} frames rendered once at 64 rings, 32/16 by ring subsampling (gr_graph.datasets.channels), one pass feeding all six front ends. "
                   "gr_graph = its VGICP front end (odometry only, no loop closures). "
                   "Camera frame, evo, consecutive and all pairs.", "",

@@ -39,6 +39,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from gr_graph.atomic import atomic_write_text  # noqa: E402
 from gr_graph.correspondences import nearest_correspondences, target_tree  # noqa: E402
 from gr_graph.memory import Memory  # noqa: E402
 from training.trainer import TrainConfig, Trainer  # noqa: E402
@@ -187,7 +188,7 @@ def learning(args) -> dict:
 
 def write_report(sp: dict, le: dict | None, path: Path, argv: list[str]) -> None:
     L = ["# Training benchmark", "",
-         f"Reproduce: `python benchmarks/bench_training.py {' '.join(argv)}`", "",
+         f"Reproduce: `python benchmarks/bench_training.py {' '.join(a for a in argv if a != '--write')} --write`", "",
          f"Machine: {platform.processor() or platform.machine()}, 2 cores shared with other jobs while measured, "
          f"torch {torch.__version__}, {sp['threads']} torch thread(s) (2 threads were slower under contention).", "",
          "## Speed (synthetic KITTI 00, preprocessed like the SLAM memory)", "",
@@ -223,10 +224,7 @@ def write_report(sp: dict, le: dict | None, path: Path, argv: list[str]) -> None
             L.append(f"| {est} | {g} | {m['angle_median_deg']:.1f} | {m['angle_p75_deg']:.1f} | "
                      f"{m['frac_below_10deg'] * 100:.0f}% | {m['lambda_min_ratio_median']:.2f} |")
         L.append(NOTES)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(L) + "\n")
-    tmp.replace(path)
+    atomic_write_text(path, "\n".join(L) + "\n")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -115,9 +115,9 @@ def paired_changes(cells: dict[str, dict[str, Any]], solvers: list[str]) -> list
     return rows
 
 
-def report(root: Path, cells: dict[str, dict[str, Any]], command: str, machine: str) -> str:
+def report(root: Path, cells: dict[str, dict[str, Any]], command: str, machine: str, rebuilt_with: str = "") -> str:
     """The markdown table: per channel count, step and solver, over seeds (``machine``: where the figures
-    were computed)."""
+    were computed; ``rebuilt_with``: the command that rebuilt the tables from their JSON, if one did)."""
     groups: dict[tuple[int, int], list[dict[str, Any]]] = defaultdict(list)
     for c in cells.values():
         groups[(c["channels"], c["round"])].append(c)
@@ -125,7 +125,7 @@ def report(root: Path, cells: dict[str, dict[str, Any]], command: str, machine: 
     lines = [
         "# Table II against the pairs the identity already solves",
         "",
-        f"`{command}` ({machine}): the per-pair rows of the Table II cells in `{root}`; success is "
+        f"`{command}` ({machine}{f'; tables rebuilt from its JSON with `{rebuilt_with}`' if rebuilt_with else ''}): the per-pair rows of the Table II cells in `{root}`; success is "
         "rotation < 10° and translation < 2 m; mean ± std over seeds [%]. \"Non-trivial\": the pairs on which "
         "the identity (no registration) fails.",
         "",
@@ -162,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         stored = json.loads(args.root.read_text())
         root, cells = Path(stored["root"]), stored["cells"]
         machine = stored.get("machine", "machine not recorded")
+        rebuilt_with = command  # the figures are the stored run's, the tables this call's
         command = stored.get("command", f"python benchmarks/table2_nontrivial.py {shlex.quote(stored['root'])}")
     else:
         cell_dirs = sorted(d for d in (args.root / "table2").glob("*") if (d / "registration.json").is_file())
@@ -170,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         gt_cache: dict[str, np.ndarray] = {}
         root, cells = args.root, {d.name: study_cell(args.root, d, gt_cache) for d in cell_dirs}
-        machine = machine_line()
-    print_and_write(args.write or "", report(root, cells, command, machine),
+        machine, rebuilt_with = machine_line(), ""
+    print_and_write(args.write or "", report(root, cells, command, machine, rebuilt_with),
                     {"root": str(root), "command": command, "machine": machine, "cells": cells}, bool(args.write))
     return 0
 

@@ -74,7 +74,7 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
 
     An ``OSError`` while the file is made, written or renamed (a full disk, a file size limit, no
     permission) is raised as the same kind of error (type and ``errno``) naming ``path``; one about
-    another file (``filename`` set to it) or of another kind (a network's, no errno) passes unchanged.
+    another file (``filename`` set to it) or of another kind (a network's) passes unchanged.
     """
     target = Path(path)
     try:
@@ -102,16 +102,20 @@ def atomic_path(path: PathLike, fsync: bool = True) -> Iterator[Path]:
         raise
 
 
-#: errno values of a write that failed for want of room, permission or a working disk
-_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS, errno.EIO,
-                           errno.ENAMETOOLONG, errno.EISDIR, errno.ENOTDIR, errno.ENOENT})
+#: errno values of a ``write`` that failed for want of room, permission or a working disk (path errors such
+#: as ENOENT come with a file name, and are about the file they name)
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS, errno.EIO})
 
 
 def _about_writing(exc: OSError, tmp: Path) -> bool:
-    """Whether ``exc`` is about writing the temporary file: raised on it (``filename``), or with no file named
-    and an errno of a failed write (a full disk in ``write``). A network or another file's error is not."""
+    """Whether ``exc`` is about writing the temporary file: raised on it (``filename``); with no file named,
+    an errno of a failed write (a full disk in ``write``), or a plain ``OSError`` without errno (a writer's
+    own, e.g. an image encoder's). A network's error (an errno of its own, or a subclass such as URLError)
+    or another file's is not."""
     if exc.filename is not None:
         return str(exc.filename) == str(tmp)
+    if exc.errno is None:
+        return type(exc) is OSError
     return exc.errno in _WRITE_ERRNOS
 
 

@@ -78,6 +78,18 @@ def test_errors_while_writing_name_the_file_and_keep_their_kind(tmp_path: Path) 
         with atomic_path(target) as tmp:
             raise PermissionError(errno.EACCES, "Permission denied", str(tmp))
     assert err.value.errno == errno.EACCES
+    with pytest.raises(OSError, match="cannot write .*out.ply: encoder error -2 when writing image file"):
+        with atomic_path(target):  # a writer's own error, no errno (PIL raises so)
+            raise OSError("encoder error -2 when writing image file")
+    with pytest.raises(FileNotFoundError, match=r"^\[Errno 2\] calibration /data/calib.txt not found$"):
+        with atomic_path(target):  # an input's error that names no file attribute: not the output's
+            raise FileNotFoundError(errno.ENOENT, "calibration /data/calib.txt not found")
+    from urllib.error import URLError
+
+    with pytest.raises(URLError, match="timed out") as net:
+        with atomic_path(target):  # a network's error (an OSError subclass without errno): unchanged
+            raise URLError("timed out")
+    assert "cannot write" not in str(net.value)
     with pytest.raises(ConnectionResetError, match=r"^\[Errno 104\] Connection reset by peer$"):
         with atomic_path(target):  # not about the file: unchanged
             raise ConnectionResetError(errno.ECONNRESET, "Connection reset by peer")

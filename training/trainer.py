@@ -357,25 +357,34 @@ class Trainer:
         needed = ("model_state", "optimizer_state", "epoch", "step", "skip_counts", "torch_rng")
         if not isinstance(st, dict) or any(k not in st for k in needed):
             raise CheckpointMismatch(f"{path}: not a training checkpoint (needs {', '.join(needed)}); {hint}")
-        model_before = {k: v.clone() for k, v in self.model.state_dict().items()}
-        optimizer_before = self.optimizer.state_dict()
-        try:  # a damaged file (fields of the wrong type, weights of another shape, a broken RNG state) is a
-            self._continue_from(st, path, hint)  # checkpoint not to continue, refused as the others are
-        except CheckpointMismatch:
-            raise
-        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
-            self.model.load_state_dict(model_before)  # a retrain after the refusal starts from where it was
-            self.optimizer.load_state_dict(optimizer_before)
-            first_line = (str(exc).splitlines() or [""])[0]
-            raise CheckpointMismatch(f"{path}: damaged checkpoint ({type(exc).__name__}: {first_line}); {hint}") from None
+        self._continue_from(st, path, hint)
         log.info("resumed from %s at epoch %d step %d", path, self.epoch, self.step)
         self._truncate_log()
         return True
 
     def _continue_from(self, st: dict[str, Any], path: Path, hint: str) -> None:
         """:meth:`try_resume`'s checks of the checkpoint ``st`` (CheckpointMismatch naming ``path``) and its
-        loading; the trainer's counters change only once everything is read."""
-        newer = newer_format(st, path)
+        loading. A field of the wrong type, weights of another shape or a broken RNG state is a damaged
+        checkpoint (refused as the others; the model and optimizer are left as they were); the trainer's
+        counters change only once everything is loaded."""
+
+        def damaged(exc: Exception) -> CheckpointMismatch:
+            first_line = (str(exc).splitlines() or [""])[0]
+            return CheckpointMismatch(f"{path}: damaged checkpoint ({type(exc).__name__}: {first_line}); {hint}")
+
+        fields_errors = (ValueError, KeyError, TypeError, AttributeError, RuntimeError)
+        try:  # the checkpoint's fields, read before anything is compared or loaded
+            newer = newer_format(st, path)
+            stored_key = dict(st.get("resume_key") or {})
+            epoch, step = int(st["epoch"]), int(st["step"])
+            skip_counts = Counter(st["skip_counts"])
+            # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
+            epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
+            device_before = st.get("device")  # checkpoints before it was kept: unknown
+            device_type_before = None if device_before is None else torch.device(device_before).type
+            before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
+        except fields_errors as exc:
+            raise damaged(exc) from None
         if newer:
             raise CheckpointMismatch(f"{newer}; {hint}")
         now = self.dataset.describe()
@@ -385,25 +394,24 @@ class Trainer:
         if stored != now:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration (other "
                                      f"training data: {st['dataset']}, now {self.dataset.describe()}); {hint}")
-        stored_key = dict(st.get("resume_key") or {})
         if "init_checkpoint_sha256" in stored_key:  # checkpoints of before the path left the key: its content counts
             stored_key.pop("init_checkpoint", None)
         if stored_key != self.config.resume_key() or st.get("world_size") != self.world_size:
             raise CheckpointMismatch(
                 f"{path}: checkpoint was written with a different configuration or world size; {hint}")
-        epoch, step = int(st["epoch"]), int(st["step"])
         if epoch > self.config.epochs:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration ({epoch} "
                                      f"epochs trained, {self.config.epochs} asked for); {hint}")
-        skip_counts = Counter(st["skip_counts"])
-        # the ranks' sum (rank 0 carries it); checkpoints before the count was kept: the skips before are unknown
-        epoch_skipped = int(st.get("epoch_skipped", 0)) if self.rank == 0 else 0
-        device_before = st.get("device")  # checkpoints before it was kept: unknown
-        device_type_before = None if device_before is None else torch.device(device_before).type
-        before = {int(n) for n in st.get("threads_used", [])}  # checkpoints before the count was kept: unknown
-        self.model.load_state_dict(st["model_state"])
-        self.optimizer.load_state_dict(st["optimizer_state"])
-        torch.set_rng_state(st["torch_rng"].cpu())
+        model_before = {k: v.clone() for k, v in self.model.state_dict().items()}
+        optimizer_before = self.optimizer.state_dict()
+        try:
+            self.model.load_state_dict(st["model_state"])
+            self.optimizer.load_state_dict(st["optimizer_state"])
+            torch.set_rng_state(st["torch_rng"].cpu())
+        except fields_errors as exc:
+            self.model.load_state_dict(model_before)  # a retrain after the refusal starts from where it was
+            self.optimizer.load_state_dict(optimizer_before)
+            raise damaged(exc) from None
         self.epoch, self.step, self.skip_counts, self.epoch_skipped = epoch, step, skip_counts, epoch_skipped
         if device_type_before is not None and device_type_before != self.device.type:
             log.warning("%s: resumed on %s, the steps before ran on %s: the weights will differ from an "

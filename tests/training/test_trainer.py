@@ -416,12 +416,11 @@ def test_damaged_or_newer_checkpoints_are_refused_by_name_and_leave_the_start_al
         torch.save(st, ck)
         tr = Trainer(mem, tmp_path, _cfg(epochs=2))
         start = {k: v.clone() for k, v in tr.model.state_dict().items()}
-        lr = tr.optimizer.param_groups[0]["lr"]
         want = "newer than this gr_graph reads" if name == "newer" else "damaged checkpoint"
         with pytest.raises(CheckpointMismatch, match=rf"checkpoint.pt: .*{want}.*--no-resume"):
             tr.try_resume()
         assert all(torch.equal(start[k], v) for k, v in tr.model.state_dict().items()), name
-        assert tr.optimizer.state_dict()["state"] == {} and tr.optimizer.param_groups[0]["lr"] == lr, name
+        assert tr.optimizer.state_dict()["state"] == {}, name  # the checkpoint's Adam moments not kept
         assert tr.epoch == 0 and tr.step == 0
 
 

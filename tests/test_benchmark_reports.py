@@ -1,0 +1,52 @@
+"""Published benchmark reports are what their scripts make of their stored results: rebuilding one from the
+JSON beside it changes nothing (a script edited since, or a report edited by hand, would show here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _script(name: str):
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location(f"_report_{name}", BENCHMARKS / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
+
+
+@pytest.mark.parametrize("name, report, inputs", [
+    ("bench_slam", "slam.md", "slam_*.json"),
+    ("bench_drift", "drift.md", "drift_*.json"),
+])
+def test_a_rebuilt_report_equals_the_published_one(tmp_path: Path, monkeypatch, name: str, report: str,
+                                                   inputs: str) -> None:
+    results = BENCHMARKS / "results"
+    for f in [results / report, *results.glob(inputs)]:
+        shutil.copy(f, tmp_path / f.name)
+    module = _script(name)
+    monkeypatch.setattr(module, "RESULTS", tmp_path)
+    published_machine = re.search(r"Machine: (.*?Python \d+\.\d+\.\d+)", (results / report).read_text())
+    monkeypatch.setattr(module, "machine", lambda: published_machine.group(1))  # where it ran, not this machine
+    module.write_markdown()
+    assert (tmp_path / report).read_text() == (results / report).read_text()
+
+
+def test_table2_nontrivial_rebuilds_from_its_json(tmp_path: Path, monkeypatch, capsys) -> None:
+    module = _script("table2_nontrivial")
+    published = BENCHMARKS / "results" / "table2_nontrivial.md"
+    monkeypatch.setattr(module, "print_and_write", lambda name, text, document, write: print(text))
+    argv = ["benchmarks/results/table2_nontrivial.json", "--from-json", "--write", "table2_nontrivial"]
+    monkeypatch.chdir(BENCHMARKS.parent)
+    assert module.main(argv) == 0
+    assert capsys.readouterr().out == published.read_text()
