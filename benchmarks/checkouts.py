@@ -42,7 +42,11 @@ def run_alternating(script: Path, trees: dict[str, Path], repeats: int, child_ar
                                  text=True)
             if res.returncode:
                 raise SystemExit(f"the {name} checkout ({tree}) failed:\n{res.stderr[-2000:]}")
-            out[name].append(res.stdout.strip().splitlines()[-1])
+            lines = res.stdout.strip().splitlines()
+            if not lines:
+                raise SystemExit(f"the {name} checkout ({tree}) printed nothing (its last line is the result):\n"
+                                 f"{res.stderr[-2000:]}")
+            out[name].append(lines[-1])
             if report is not None:
                 report(name, rep, out[name][-1])
     return out

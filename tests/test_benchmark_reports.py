@@ -50,3 +50,16 @@ def test_table2_nontrivial_rebuilds_from_its_json(tmp_path: Path, monkeypatch, c
     monkeypatch.chdir(BENCHMARKS.parent)
     assert module.main(argv) == 0
     assert capsys.readouterr().out == published.read_text()
+
+
+def test_a_checkout_run_that_prints_nothing_is_named(tmp_path: Path) -> None:
+    """``checkouts.run_alternating`` takes a run's last output line as its result: a run that prints none is an
+    error naming the checkout, not an IndexError."""
+    module = _script("checkouts")
+    silent = tmp_path / "silent.py"
+    silent.write_text("import sys\nprint('the cause', file=sys.stderr)\n")
+    with pytest.raises(SystemExit, match=r"(?s)the a checkout \(.*\) printed nothing.*the cause"):
+        module.run_alternating(silent, {"a": tmp_path}, 1, lambda name, rep: [])
+    talker = tmp_path / "talker.py"
+    talker.write_text("print('progress')\nprint('{\"result\": 1}')\n")
+    assert module.run_alternating(talker, {"a": tmp_path}, 2, lambda name, rep: []) == {"a": ['{"result": 1}'] * 2}

@@ -10,13 +10,12 @@ and measured time), the machine, which cells are missing, and the conventions of
 from __future__ import annotations
 
 import logging
-import shutil
 from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from gr_graph.atomic import atomic_write_json, atomic_write_text, read_json_or_none
+from gr_graph.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text, read_json_or_none
 from gr_graph.experiments import aggregate as agg
 from gr_graph.experiments.cells import ABLATIONS, PAPER_REDUCTIONS, Budget, Cell
 from gr_graph.experiments.records import RecordSet, read_records, write_records
@@ -405,7 +404,7 @@ def write_report(table: str, root: str | Path, budget: Budget, cells: list[Cell]
         pub_header = _header(table, TITLES[table], budget, "ROOT", cells, results, pub_command)[:-1] + provenance_md + [""]
         (pub_dir / "figures").mkdir(parents=True, exist_ok=True)
         for _, p in fig_lines:
-            shutil.copyfile(p, pub_dir / "figures" / p.name)
+            atomic_write_bytes(pub_dir / "figures" / p.name, p.read_bytes())
         atomic_write_text(pub_dir / f"{name}.md", "\n".join(pub_header + lines + fig_md) + "\n")
         atomic_write_json(pub_dir / f"{name}.json",
                           document(pub_command, {k: f"figures/{v.name}" for k, v in figs.items()}))
