@@ -758,8 +758,7 @@ class SlamPipeline:
         if cfg.output.write_memory:
             with timer("memory"):
                 self.write_memory(r, res)
-        summary = round_summary(r, res, round_fingerprint(cfg, r, self.guessed_sensor), mean_points,
-                                self.data_fingerprint)
+        summary = round_summary(r, res, self.round_fingerprint(r), mean_points, self.data_fingerprint)
         if map_counts is not None:
             summary["map"] = map_counts
         if densified is not None:

@@ -42,11 +42,10 @@ def display_available() -> tuple[bool, str]:
 X_PROBE_TIMEOUT_S = 3.0
 
 
-def _x_display_opens(display: str, timeout_s: float | None = None) -> bool | None:
-    """Whether libX11 can open ``display`` within ``timeout_s`` (default :data:`X_PROBE_TIMEOUT_S`; no answer:
-    False); None when libX11 is not
-    there to ask. The call has no timeout of its own: it runs in a daemon thread (ctypes releases the GIL),
-    left behind blocked when the server never answers."""
+def _x_display_opens(display: str) -> bool | None:
+    """Whether libX11 can open ``display`` within :data:`X_PROBE_TIMEOUT_S` (no answer: False); None when
+    libX11 is not there to ask. The call has no timeout of its own: it runs in a daemon thread (ctypes
+    releases the GIL), left behind blocked when the server never answers."""
     import ctypes
     import ctypes.util
     import threading
@@ -71,7 +70,7 @@ def _x_display_opens(display: str, timeout_s: float | None = None) -> bool | Non
 
     thread = threading.Thread(target=probe, name="x-display-probe", daemon=True)
     thread.start()
-    thread.join(X_PROBE_TIMEOUT_S if timeout_s is None else timeout_s)
+    thread.join(X_PROBE_TIMEOUT_S)
     return bool(opened and opened[0])
 
 

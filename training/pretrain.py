@@ -204,7 +204,7 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
         return {"window": asdict(w), "round0": _figures(m, 0), "per_count": _figures(m, 1),
                 "all_counts": _figures(shared, 1)}
 
-    shared_sha = read_json_or_none(root / "evaluation.json") or {}  # the all-counts figures are evaluate's
+    evaluation = read_json_or_none(root / "evaluation.json") or {}  # the all-counts figures are evaluate's
     rows = _parallel(jobs, one, evals)
     summary: dict[str, Any] = {"channels": channels, "n_seeds": len(rows)}
     for k in METRICS:
@@ -212,7 +212,7 @@ def per_count(root: Path, channels: int = 16, epochs: int = EPOCHS, jobs: int = 
         b = np.array([r["per_count"].get(k) for r in rows], float)
         summary[k] = {"all_counts": _mean_std(a), "per_count": _mean_std(b), "per_count_better_in": int(np.sum(b < a))}
     res = {"weights_per_count": str(weights), "weights_per_count_sha256": weights_sha256(weights),
-           "all_counts_weights_sha256": shared_sha.get("weights_sha256"), "rows": rows, "summary": summary}
+           "all_counts_weights_sha256": evaluation.get("weights_sha256"), "rows": rows, "summary": summary}
     atomic_write_json(root / f"per_count_{channels}.json", res)
     return res
 

@@ -387,13 +387,13 @@ class Trainer:
             raise damaged(exc) from None
         if newer:
             raise CheckpointMismatch(f"{newer}; {hint}")
-        now = self.dataset.describe()
+        described = now = self.dataset.describe()
         stored = st.get("dataset", now)
         if stored != now and _without_edge_hashes(stored) == stored:  # written before the hash was kept:
             now = _without_edge_hashes(now)  # its counts only
         if stored != now:
             raise CheckpointMismatch(f"{path}: checkpoint was written with a different configuration (other "
-                                     f"training data: {st['dataset']}, now {self.dataset.describe()}); {hint}")
+                                     f"training data: {stored}, now {described}); {hint}")
         if "init_checkpoint_sha256" in stored_key:  # checkpoints of before the path left the key: its content counts
             stored_key.pop("init_checkpoint", None)
         if stored_key != self.config.resume_key() or st.get("world_size") != self.world_size:
