@@ -211,11 +211,12 @@ class GraphConfig(_Section):
         "replaces it): 'scaled_hessian' hessian_scale * H / sigma0^2; 'cluster_robust' the inverse of the sandwich "
         "covariance H^-1 M H^-1 from the residual gradients summed over cubes of cluster_size "
         "(gr_graph.registration_covariance; no hessian_scale)")
-    cluster_size: float = Field(12.0, gt=0.0, description="cluster_robust: side of the cubes whose residuals may be "
+    cluster_size: float = Field(12.0, gt=0.0, description="cluster_robust (registration_covariance or "
+                                "training.learned_noise_covariance): side of the cubes whose residuals may be "
                                 "correlated [m]")
     min_clusters: int = Field(20, ge=7, description="cluster_robust: fewer clusters with correspondences fall back "
-                              "to scaled_hessian (counted in the round summary); at least 7, the 6x6 spread of the "
-                              "cluster sums has rank at most their number")
+                              "to scaled_hessian, or for the learned noise to H(C) (counted in the round summary); at "
+                              "least 7, the 6x6 spread of the cluster sums has rank at most their number")
     fixed_sigmas: tuple[float, float, float, float, float, float] = (0.002, 0.002, 0.002, 0.05, 0.05, 0.05)
     fallback_sigmas: tuple[float, float, float, float, float, float] = (0.05, 0.05, 0.05, 1.0, 1.0, 1.0)
     loop_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
@@ -387,7 +388,16 @@ class TrainingConfig(_Section):
         "default): every loop counts. Opt-in: 1e-4 keeps one wrong loop from weakening every edge on constructed "
         "graphs, but on the full synthetic route it left out 5 correct loops (README)"
     )
-    learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies H(C) before the eigenvalue floor")
+    learned_noise_covariance: Literal["hessian", "cluster_robust", "cluster_robust_offset"] = Field(
+        "hessian", description="with edge_noise 'learned': each edge's information is 'hessian' = H(C), or "
+        "'cluster_robust' = the inverse of the sandwich covariance H^-1 M H^-1 of the same learned cost (H and M "
+        "one Gauss-Newton step from the edge's pose), M from "
+        "its residual gradients summed over cubes of graph.cluster_size (at least graph.min_clusters, else H(C), "
+        "counted); 'cluster_robust_offset' that plus the squared offset of the edge's pose from the learned cost's "
+        "minimum; opt-in (gr_graph.edge_noise.learned_sandwich_information)"
+    )
+    learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies the learned information before the "
+                                       "eigenvalue floor")
     learned_noise_min_correspondences: int = Field(
         50, ge=3, description="fewer nearest-neighbour pairs (within odometry.corr_max_distance): registration fallback"
     )

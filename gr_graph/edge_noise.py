@@ -8,7 +8,12 @@ instead of the registration information (:mod:`gr_graph.odometry`, :mod:`gr_grap
 - :func:`learned_information` computes, for one edge, the WLS Gauss-Newton Hessian
   ``H(C) = sum_i J_i^T Lambda_i J_i`` at T̂ with ``Lambda_i = (2 C_qi)^-1`` on the
   nearest-neighbour pairs under T̂ (:func:`gr_graph.correspondences.nearest_correspondences`),
-  scaled and floored by ``graph.min_information_eigenvalue``;
+  scaled and floored by ``graph.min_information_eigenvalue``; with
+  ``training.learned_noise_covariance: cluster_robust`` (opt-in) the information is instead the
+  inverse of the cluster-robust ("sandwich") covariance ``H^-1 M H^-1`` of the same learned cost
+  (:func:`learned_sandwich_information`): H(C)'s weights, but the spread over the six axes that
+  the residuals show; ``cluster_robust_offset`` adds the squared offset of T̂ from the learned
+  cost's minimum;
 - :class:`LearnedEdgeNoise` applies it edge by edge during a SLAM run, reusing the
   covariances densification predicted (:meth:`gr_graph.densify.DensifiedSequence.prediction`;
   a loop's older scan, read long ago, is predicted again);
@@ -33,14 +38,18 @@ from typing import Any
 
 import numpy as np
 
+from factors.wls import WLSInputError, residual_information, wls_cost_gradient_hessian
 from gr_graph.config import SlamConfig
 from gr_graph.correspondences import nearest_correspondences, target_tree
 from gr_graph.odometry import RegistrationEdge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LEARNED_FALLBACK_REASONS", "LearnedInformation", "learned_information", "LearnedEdgeNoise",
-           "registration_edge_noise_summary"]
+__all__ = ["LEARNED_COVARIANCES", "LEARNED_FALLBACK_REASONS", "LearnedInformation", "learned_information",
+           "learned_sandwich_information", "LearnedEdgeNoise", "registration_edge_noise_summary"]
+
+#: what a learned edge's information is made of (``training.learned_noise_covariance``)
+LEARNED_COVARIANCES = ("hessian", "cluster_robust", "cluster_robust_offset")
 
 #: why an edge did not get its learned information H(C) (counted per round, never silent)
 LEARNED_FALLBACK_REASONS = {
@@ -69,6 +78,11 @@ class LearnedInformation:
         Whether the eigenvalue floor raised any eigenvalue.
     detail : str
         Human-readable detail of a fallback (degenerate directions...).
+    model : str
+        What ``information`` was made from: ``"hessian"`` (``H(C)``), ``"cluster_robust"`` or
+        ``"cluster_robust_offset"`` (the inverse sandwich covariance, without or with the offset of
+        T̂) or ``"hessian_fallback"`` (the sandwich was asked for but not available: too few
+        clusters, not positive definite; ``H(C)`` is used); ``""`` on fallback.
     """
 
     information: np.ndarray | None
@@ -77,6 +91,7 @@ class LearnedInformation:
     reason: str = ""
     floored: bool = False
     detail: str = ""
+    model: str = ""
 
 
 def learned_information(
@@ -91,6 +106,9 @@ def learned_information(
     degeneracy_rel: float = 1e-4,
     tree: Any | None = None,
     num_threads: int = 1,
+    covariance: str = "hessian",
+    cluster_size: float = 12.0,
+    min_clusters: int = 20,
 ) -> LearnedInformation:
     """Pose information of an edge from learned covariances: the pose-likelihood Hessian H(C).
 
@@ -101,6 +119,11 @@ def learned_information(
     Gauss-Newton Hessian of the WLS cost at ``T`` (:func:`factors.wls.wls_cost_gradient_hessian`),
     gtsam order ``[omega, v]``, right perturbation. It is scaled and floored by
     :func:`factors.noise.floored_information` (``min_eigenvalue``).
+
+    With ``covariance="cluster_robust"`` (or ``"cluster_robust_offset"``) the information scaled and
+    floored is instead the inverse of :func:`learned_sandwich_information`'s covariance on the same
+    pairs (cubes of ``cluster_size``, at least ``min_clusters``; with the offset of T̂ from the learned
+    minimum); where that is not available, ``H(C)`` is used and ``model`` says ``"hessian_fallback"``.
 
     Fallbacks (``information=None``, ``reason`` set, logged by the caller): fewer than
     ``min_correspondences`` pairs; non-finite / non-PSD ``H(C)``; degenerate ``H(C)``
@@ -119,10 +142,13 @@ def learned_information(
         :func:`gr_graph.correspondences.target_tree` of ``target`` (built if omitted).
     num_threads : int
         Threads of the nearest-neighbour search.
+    covariance : {"hessian", "cluster_robust", "cluster_robust_offset"}
+        ``training.learned_noise_covariance``.
+    cluster_size, min_clusters : float, int
+        ``graph.cluster_size`` and ``graph.min_clusters`` (the two cluster-robust forms only).
     """
     from factors.degeneracy import degeneracy_report
     from factors.noise import NoiseModelError, floored_information
-    from factors.wls import WLSInputError, residual_information, wls_cost_gradient_hessian
 
     T = np.asarray(T, np.float64)
     src = np.asarray(source, np.float64)
@@ -149,11 +175,82 @@ def learned_information(
     rep = degeneracy_report(H, rel_threshold=degeneracy_rel, length_scale=10.0)
     if rep.is_degenerate:
         return LearnedInformation(None, H, n, "degenerate", detail=rep.describe())
+    if covariance not in LEARNED_COVARIANCES:
+        raise ValueError(f"learned_information: covariance must be one of {LEARNED_COVARIANCES}, got {covariance!r}")
+    information, model = H, "hessian"
+    if covariance != "hessian":
+        try:
+            sandwich = learned_sandwich_information(T, src[pairs[:, 0]], tgt[pairs[:, 1]], info, cluster_size,
+                                                    min_clusters, include_offset=covariance == "cluster_robust_offset")
+        except (WLSInputError, np.linalg.LinAlgError, FloatingPointError, ValueError):  # e.g. a non-finite step
+            sandwich = None
+        information, model = (H, "hessian_fallback") if sandwich is None else (sandwich, covariance)
     try:
-        out, nrep = floored_information(H, scale=scale, min_eigenvalue=min_eigenvalue)
+        out, nrep = floored_information(information, scale=scale, min_eigenvalue=min_eigenvalue)
     except NoiseModelError as exc:
         return LearnedInformation(None, H, n, "nonfinite", detail=str(exc))
-    return LearnedInformation(out, H, n, "", floored=nrep.was_floored)
+    return LearnedInformation(out, H, n, "", floored=nrep.was_floored, model=model)
+
+
+def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, info: np.ndarray,
+                                 cluster_size: float, min_clusters: int, include_offset: bool = False
+                                 ) -> np.ndarray | None:
+    """Inverse cluster-robust covariance of the learned cost's pose estimate near ``T``.
+
+    The learned cost ``1/2 sum_i d_i^T Lambda_i d_i`` (``Lambda_i = (2 C_qi)^-1``, the pairs found
+    under T̂) is not at its minimum at T̂, which another cost (VGICP's) chose: the gradient terms
+    are taken one Gauss-Newton step further, at ``T o Exp(-H^-1 g)`` with the same pairs, where
+    their sum vanishes to first order. There, :func:`gr_graph.registration_covariance.
+    cluster_robust_covariance` gives ``H^-1 M H^-1`` with ``M`` the outer products of the gradient
+    sums over cubes of ``cluster_size`` (source frame). Residuals within a cube may be correlated
+    arbitrarily; ``H(C)``'s shape over the six axes is replaced by what the residuals show (an
+    error the whole scan shares stays invisible: measured in the README's NEES section). No ground
+    truth is used.
+
+    Parameters
+    ----------
+    T : (4, 4) array
+        T̂ of the edge (source into target frame).
+    p, q : (N, 3) arrays
+        Paired source and target points.
+    info : (N, 3, 3) array
+        ``Lambda_i`` of each pair.
+    cluster_size : float
+        Side of the cubes [m].
+    min_clusters : int
+        Fewer cubes holding pairs: None.
+    include_offset : bool
+        Add ``s s^T`` for the Gauss-Newton step ``s`` (``training.learned_noise_covariance:
+        cluster_robust_offset``): the graph holds T̂, not the learned cost's minimum, and by the learned
+        cost T̂ is off that minimum by ``s``; without it the covariance is that of the minimum.
+
+    Returns
+    -------
+    (6, 6) array or None
+        The information (symmetric), or None when the covariance is not available (too few
+        clusters, a Hessian or covariance that is not positive definite).
+    """
+    from factors.se3 import exp_se3
+    from gr_graph.registration_covariance import cluster_robust_covariance, cube_labels, point_gradients
+
+    _, grad, H = wls_cost_gradient_hessian(T, p, q, info)
+    try:
+        step = -np.linalg.solve(H, grad)
+    except np.linalg.LinAlgError:
+        return None
+    T_min = np.asarray(T, np.float64) @ exp_se3(step)
+    _, _, H_min = wls_cost_gradient_hessian(T_min, p, q, info)
+    labels, n_clusters = cube_labels(p, cluster_size)
+    cov = cluster_robust_covariance(H_min, point_gradients(T_min, p, q, info), labels, n_clusters, min_clusters)
+    if cov is None:
+        return None
+    if include_offset:  # T̂ is off the learned cost's minimum by -step (first order, in T̂'s tangent space)
+        cov = cov + np.outer(step, step)
+    try:
+        information = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        return None
+    return 0.5 * (information + information.T)
 
 
 #: ``predictions(frame_index)``: the points of a frame and the network's covariances of them, or None
@@ -176,7 +273,8 @@ class LearnedEdgeNoise:
         self.predictions = predictions
         self.cfg = cfg
         self.counts: dict[str, dict[str, Any]] = {
-            kind: {"n_learned": 0, "n_floored": 0, "fallbacks": defaultdict(int)} for kind in ("odometry", "loop")}
+            kind: {"n_learned": 0, "n_floored": 0, "fallbacks": defaultdict(int), "models": defaultdict(int)}
+            for kind in ("odometry", "loop")}
         self.hessians: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> raw H(C), for inspection
         self.calibration: dict[str, Any] | None = None
         #: set by a frame loop that deskews its frames: ``(frame_index, points, C) -> (points, C)`` moves a
@@ -225,7 +323,8 @@ class LearnedEdgeNoise:
                     min_correspondences=tc.learned_noise_min_correspondences,
                     min_eigenvalue=self.cfg.graph.min_information_eigenvalue, scale=tc.learned_noise_scale,
                     degeneracy_rel=tc.learned_noise_degeneracy_rel,
-                    num_threads=self.cfg.odometry.num_threads,
+                    num_threads=self.cfg.odometry.num_threads, covariance=tc.learned_noise_covariance,
+                    cluster_size=self.cfg.graph.cluster_size, min_clusters=self.cfg.graph.min_clusters,
                 )
                 reason, detail = res.reason, res.detail
                 if res.hessian is not None:
@@ -240,6 +339,7 @@ class LearnedEdgeNoise:
         assert res is not None and res.information is not None
         counts["n_learned"] += 1
         counts["n_floored"] += int(res.floored)
+        counts["models"][res.model] += 1
         edge.information = res.information
         edge.info["edge_noise"] = "learned"
         edge.info["learned_noise_correspondences"] = res.n_correspondences
@@ -254,13 +354,17 @@ class LearnedEdgeNoise:
 
     def summary(self) -> dict[str, Any]:
         """``{"mode": "learned", "n_learned", "n_floored", "n_fallback", "fallbacks"}`` of the
-        odometry edges, ``"loop"``: the same four of the loop edges, ``"edges"``
+        odometry edges (and ``"models"``, learned edges per :attr:`LearnedInformation.model`, with
+        ``training.learned_noise_covariance: cluster_robust``), ``"loop"``: the same of the loop edges, ``"edges"``
         (``training.learned_noise_edges``) and ``"calibration"``
         (:meth:`gr_graph.noise_calibration.VarianceFactor.summary`, or ``{"method": "none"}``)."""
         def kind(k: str) -> dict[str, Any]:
             c = self.counts[k]
-            return {"n_learned": int(c["n_learned"]), "n_floored": int(c["n_floored"]),
-                    "n_fallback": int(sum(c["fallbacks"].values())), "fallbacks": dict(c["fallbacks"])}
+            out = {"n_learned": int(c["n_learned"]), "n_floored": int(c["n_floored"]),
+                   "n_fallback": int(sum(c["fallbacks"].values())), "fallbacks": dict(c["fallbacks"])}
+            if self.cfg.training.learned_noise_covariance != "hessian":  # what each learned edge's information is
+                out["models"] = dict(sorted(c["models"].items()))
+            return out
 
         return {"mode": "learned", **kind("odometry"), "loop": kind("loop"),
                 "edges": self.cfg.training.learned_noise_edges,

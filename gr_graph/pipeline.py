@@ -107,6 +107,7 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                               ("loops", "min_path_length"): 0.0, ("loops", "sc_height_offset"): 2.0,
                                               ("training", "prediction_passes"): "split",
                                               ("training", "learned_noise_outlier_alpha"): 0.0,
+                                              ("training", "learned_noise_covariance"): "hessian",
                                               ("sensor", "rotation"): "clockwise",
                                               ("sensor", "sweep_start_azimuth_deg"): 180.0,
                                               ("sensor", "frame_stamp"): None,
@@ -127,7 +128,7 @@ def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
     options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
     ``sensor.rotation``, ``sweep_start_azimuth_deg`` and ``frame_stamp``, ``training.prediction_passes`` and
-    ``learned_noise_outlier_alpha``; the trainer's
+    ``learned_noise_outlier_alpha`` and ``learned_noise_covariance``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as what the data's

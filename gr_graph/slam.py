@@ -139,6 +139,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration-covariance", choices=("scaled_hessian", "cluster_robust"), default=None,
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")
+    p.add_argument("--learned-noise-covariance", choices=("hessian", "cluster_robust", "cluster_robust_offset"),
+                   default=None,
+                   help="learning rounds: each edge's learned information is the network's H(C), or the inverse of "
+                        "the cluster-robust covariance of the same learned cost (its shape over the six axes from the "
+                        "residuals), or that with the offset of the edge's pose from the learned cost's minimum "
+                        f"(default: {d.training.learned_noise_covariance})")
     p.add_argument("--map-keyframe", type=float, nargs=2, default=None, metavar=("M", "DEG"),
                    help="odometry map ('map' mode): a scan enters it only after moving M metres or turning DEG "
                         "degrees since the last one that entered, e.g. 0.1 1; 0 leaves that test out (default: "
@@ -222,6 +228,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["graph"]["loop_variance"] = args.loop_variance
     if args.registration_covariance is not None:
         o["graph"]["registration_covariance"] = args.registration_covariance
+    if args.learned_noise_covariance is not None:
+        o["training"]["learned_noise_covariance"] = args.learned_noise_covariance
     if args.map_keyframe is not None:
         translation, rotation_deg = args.map_keyframe
         o["odometry"]["map_keyframe_translation"] = translation
@@ -272,6 +280,8 @@ def learning_flags_given(args: argparse.Namespace) -> list[str]:
         given.append("--long-baseline-guard")
     if args.device is not None:
         given.append(f"--device {args.device}")
+    if args.learned_noise_covariance is not None:
+        given.append(f"--learned-noise-covariance {args.learned_noise_covariance}")
     return given
 
 

@@ -105,7 +105,8 @@ def test_a_shared_flag_means_the_same_everywhere() -> None:
 BAD_CHOICES = {"--log-level": "nonsense", "--channels": "48", "--device": "tpu", "--point-format": "xyzrgb",
                "--backend": "tcp", "--solvers": "icp", "--deskew": "sometimes", "--synthetic-preset": "noisy",
                "--preset": "noisy", "--world": "urban", "--dataset": "pcap", "--sensor": "hdl32e", "--budget": "huge",
-               "--loop-variance": "sometimes", "--registration-covariance": "sandwich"}
+               "--loop-variance": "sometimes", "--registration-covariance": "sandwich",
+               "--learned-noise-covariance": "sandwich"}
 BAD_CASES = [(module, flag) for module, (build, *_) in sorted(CLIS.items()) for flag in BAD_CHOICES
              if flag in _options(build())]
 
@@ -167,6 +168,10 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"graph": {"loop_variance": "estimated"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--registration-covariance", "cluster_robust"]))
     assert o == {"graph": {"registration_covariance": "cluster_robust"}}
+    o = slam.overrides_from_args(slam.build_parser().parse_args(["--learned-noise-covariance", "cluster_robust"]))
+    assert o == {"training": {"learned_noise_covariance": "cluster_robust"}}
+    assert slam.learning_flags_given(slam.build_parser().parse_args(["--learned-noise-covariance", "cluster_robust"])) \
+        == ["--learned-noise-covariance cluster_robust"]  # named as ignored without learning rounds
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--loop-min-path", "25"]))
     assert o == {"loops": {"min_path_length": 25.0}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--map-keyframe", "0.1", "1"]))

@@ -847,7 +847,7 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                                             "sensor": spin_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped", "prediction_passes",
-                                                         "learned_noise_outlier_alpha"}})
+                                                         "learned_noise_outlier_alpha", "learned_noise_covariance"}})
     d1["sensor"].update(time_unit="s", time_reference="sweep_start")
     for key in ("corr_likelihood", "corr_dof"):  # the trainer's options added later, likewise
         d1["training"]["trainer"].pop(key)
@@ -863,6 +863,9 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # training.learned_noise_outlier_alpha (2026-12-06) likewise
     oa = load_config(None, {"training": {"rounds": 2, **legacy, "learned_noise_outlier_alpha": 1e-4}})
     assert round_fingerprint(oa, 1) != round_fingerprint(a, 1) and round_fingerprint(oa, 0) == round_fingerprint(a, 0)
+    # training.learned_noise_covariance (2026-12-07) likewise
+    lc = load_config(None, {"training": {"rounds": 2, **legacy, "learned_noise_covariance": "cluster_robust"}})
+    assert round_fingerprint(lc, 1) != round_fingerprint(a, 1) and round_fingerprint(lc, 0) == round_fingerprint(a, 0)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2, **legacy}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]

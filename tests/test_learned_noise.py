@@ -8,6 +8,7 @@ import logging
 import numpy as np
 import pytest
 
+from estimate_support import mean_nees, spread_ratio
 from factors.wls import solve_wls
 from gr_graph.config import GraphConfig, load_config
 from gr_graph.edge_noise import LearnedEdgeNoise, learned_information
@@ -200,3 +201,136 @@ def test_the_calibration_scales_only_the_learned_information():
     assert scale_learned_information(edges, 0.01) == 2
     # a failed registration's fallback (a guess) is scaled with the learned edges: it stays weak beside them
     np.testing.assert_allclose([e.information[0, 0] for e in edges], [0.04, 4.0, 0.04, 4.0, 0.04])
+
+
+def _clustered_trials(trials: int = 120, shared_sigma: float = 0.02, point_sigma: float = 0.01, seed: int = 4):
+    """Monte-Carlo draws of a learned-weights WLS pose: noise shared within 6 m cubes beside
+    independent noise; the weights Lambda = (2 C)^-1 of random learned covariances.
+
+    Returns the estimates' errors ``xi`` (T_true^-1 T_est), the sandwich covariances computed from a
+    start pose off the optimum (as a VGICP T̂ is), the same at the optimum, and the informations
+    H(C) / s² (s² the residuals' variance factor)."""
+    from factors.se3 import exp_se3, log_se3
+    from factors.wls import residual_information
+    from gr_graph.edge_noise import learned_sandwich_information
+    from gr_graph.registration_covariance import cube_labels
+
+    rng = np.random.default_rng(seed)
+    n = 2500
+    p = rng.uniform([-30, -30, -2], [30, 30, 6], (n, 3))
+    labels, n_clusters = cube_labels(p, 6.0)
+    T_true = exp_se3(np.array([0.01, -0.02, 0.05, 0.8, 0.1, -0.05]))
+    C = _spd(rng, n) + 0.02 * np.eye(3)
+    info = residual_information(C)
+    xi, from_start, at_optimum, hessians = [], [], [], []
+    for _ in range(trials):
+        noise = rng.normal(0, shared_sigma, (n_clusters, 3))[labels] + rng.normal(0, point_sigma, (n, 3))
+        q = p @ T_true[:3, :3].T + T_true[:3, 3] + noise
+        est = solve_wls(p, q, C, T0=T_true)
+        start = est.T @ exp_se3(rng.normal(0, [2e-3, 2e-3, 2e-3, 0.02, 0.02, 0.02]))
+        from_start.append(np.linalg.inv(learned_sandwich_information(start, p, q, info, 6.0, 20)))
+        at_optimum.append(np.linalg.inv(learned_sandwich_information(est.T, p, q, info, 6.0, 20)))
+        hessians.append(est.hessian / (2 * est.cost / (3 * n - 6)))  # H(C) with its variance factor
+        xi.append(log_se3(np.linalg.inv(T_true) @ est.T))
+    return np.array(xi), np.array(from_start), np.array(at_optimum), np.array(hessians), n_clusters
+
+
+def test_learned_sandwich_matches_the_spread_of_the_learned_estimate():
+    """Against Monte Carlo: with noise shared within cubes, H(C) scaled by its variance factor is
+    over-confident (its NEES far above 6), the sandwich's covariance matches the spread of the
+    learned-weights estimate; computed from a start off the optimum (one Gauss-Newton step, the
+    same pairs) it equals the one at the optimum."""
+    xi, from_start, at_optimum, hessians, n_clusters = _clustered_trials()
+    assert n_clusters >= 60
+    np.testing.assert_allclose(from_start, at_optimum, rtol=1e-2, atol=1e-2 * np.abs(at_optimum).max())  # 1.5-50x off without the step
+    nees_sandwich, nees_hessian = mean_nees(xi, from_start), mean_nees(xi, np.linalg.inv(hessians))
+    assert 4.5 < nees_sandwich < 10.0, nees_sandwich
+    assert nees_hessian > 30.0, nees_hessian
+    assert 0.7 < spread_ratio(xi, from_start) < 1.4
+
+
+def test_learned_information_cluster_robust_and_its_fallback():
+    from factors.se3 import exp_se3
+    from factors.wls import residual_information
+    from gr_graph.edge_noise import learned_sandwich_information
+
+    T, p, q, target, C, Cq = _synthetic_edge(seed=5)
+    rng = np.random.default_rng(5)
+    noisy = target + rng.normal(0, 0.02, target.shape)  # residuals for the sandwich to measure
+    start = T @ exp_se3(np.array([1e-3, 0, 0, 0.01, 0, 0]))
+    res = learned_information(start, p, noisy, C, max_distance=0.5, min_eigenvalue=None, covariance="cluster_robust",
+                              cluster_size=8.0, min_clusters=20)
+    assert res.reason == "" and res.model == "cluster_robust"
+    hessian = learned_information(start, p, noisy, C, max_distance=0.5, min_eigenvalue=None)
+    assert hessian.model == "hessian"
+    np.testing.assert_allclose(res.hessian, hessian.hessian)  # the same pairs and weights
+    assert not np.allclose(res.information, hessian.information, rtol=0.1)
+    # the same pairs as learned_information's own search find (the pairing is checked here; the math by the
+    # Monte-Carlo test above)
+    from gr_graph.correspondences import nearest_correspondences, target_tree
+    pairs = nearest_correspondences(p, target_tree(noisy, 1), start, 0.5, 1)
+    expect = learned_sandwich_information(start, p[pairs[:, 0]], noisy[pairs[:, 1]],
+                                          residual_information(C[pairs[:, 1]]), 8.0, 20)
+    np.testing.assert_allclose(res.information, expect, rtol=1e-9)
+    # one cube holds every pair: too few clusters, H(C) is kept and said so
+    few = learned_information(start, p, noisy, C, max_distance=0.5, min_eigenvalue=None, covariance="cluster_robust",
+                              cluster_size=1000.0, min_clusters=20)
+    assert few.model == "hessian_fallback"
+    np.testing.assert_allclose(few.information, hessian.information)
+    with pytest.raises(ValueError, match="cluster_robust"):
+        learned_information(start, p, noisy, C, max_distance=0.5, covariance="sandwich")
+
+
+def test_the_offset_term_is_the_squared_distance_of_the_pose_from_the_learned_minimum():
+    """cluster_robust_offset adds ``s s^T``: against the learned cost's minimum found independently
+    (factors.wls.solve_wls, iterated to convergence), ``s`` is log(T̂^-1 T_min) to first order."""
+    from factors.se3 import exp_se3, log_se3
+    from factors.wls import residual_information
+    from gr_graph.edge_noise import learned_sandwich_information
+
+    T, p, q, target, C, Cq = _synthetic_edge(seed=7)
+    rng = np.random.default_rng(7)
+    noisy_q = q + rng.normal(0, 0.02, q.shape)
+    info = residual_information(Cq)
+    T_min = solve_wls(p, noisy_q, Cq, T0=T).T
+    start = T_min @ exp_se3(np.array([2e-3, -1e-3, 1.5e-3, 0.03, -0.02, 0.01]))
+    without = np.linalg.inv(learned_sandwich_information(start, p, noisy_q, info, 8.0, 20))
+    with_offset = np.linalg.inv(learned_sandwich_information(start, p, noisy_q, info, 8.0, 20, include_offset=True))
+    s = log_se3(np.linalg.inv(start) @ T_min)
+    np.testing.assert_allclose(with_offset - without, np.outer(s, s), rtol=0.02, atol=0.02 * np.abs(s).max() ** 2)
+    assert np.abs(s).max() > 0.009  # the term is not negligible here
+
+
+def test_learned_covariance_names_agree_with_the_config():
+    from typing import get_args
+
+    from gr_graph.config import TrainingConfig
+    from gr_graph.edge_noise import LEARNED_COVARIANCES
+
+    assert get_args(TrainingConfig.model_fields["learned_noise_covariance"].annotation) == LEARNED_COVARIANCES
+
+
+def test_edge_noise_counts_what_each_learned_edge_is_made_of():
+    T, p, q, target, C, Cq = _synthetic_edge(seed=6)
+    rng = np.random.default_rng(6)
+    noisy = target + rng.normal(0, 0.02, target.shape)
+    preds = {5: (p, np.tile(np.eye(3), (len(p), 1, 1))), 4: (noisy, C)}
+    cfg = load_config(overrides={"odometry": {"corr_max_distance": 0.5},
+                                 "training": {"learned_noise_covariance": "cluster_robust"},
+                                 "graph": {"cluster_size": 8.0}})
+    en = LearnedEdgeNoise(preds.get, cfg)
+    en.apply(_edge(T, np.eye(6)), 5, 4)
+    loop = _edge(T, np.eye(6))
+    loop.kind = "loop"
+    en.apply(loop, 5, 4)
+    few = load_config(overrides={"odometry": {"corr_max_distance": 0.5},
+                                 "training": {"learned_noise_covariance": "cluster_robust"},
+                                 "graph": {"cluster_size": 1000.0}})
+    en_few = LearnedEdgeNoise(preds.get, few)
+    en_few.apply(_edge(T, np.eye(6)), 5, 4)
+    s, s_few = en.summary(), en_few.summary()
+    assert s["models"] == {"cluster_robust": 1} and s["loop"]["models"] == {"cluster_robust": 1}
+    assert s_few["models"] == {"hessian_fallback": 1} and s_few["n_learned"] == 1
+    # the default (H(C)) keeps the summary of runs made before the option
+    assert "models" not in LearnedEdgeNoise(preds.get, load_config()).summary()
+
