@@ -394,7 +394,7 @@ class TrainingConfig(_Section):
         "one Gauss-Newton step from the edge's pose), M from "
         "its residual gradients summed over cubes of graph.cluster_size (at least graph.min_clusters, else H(C), "
         "counted); 'cluster_robust_offset' that plus the squared offset of the edge's pose from the learned cost's "
-        "minimum; opt-in (gr_graph.edge_noise.learned_sandwich_information)"
+        "minimum, axis by axis; opt-in (gr_graph.edge_noise.learned_sandwich_information)"
     )
     learned_noise_scale: float = Field(1.0, gt=0.0, description="multiplies the learned information before the "
                                        "eigenvalue floor")

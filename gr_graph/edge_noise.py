@@ -13,7 +13,7 @@ instead of the registration information (:mod:`gr_graph.odometry`, :mod:`gr_grap
   inverse of the cluster-robust ("sandwich") covariance ``H^-1 M H^-1`` of the same learned cost
   (:func:`learned_sandwich_information`): H(C)'s weights, but the spread over the six axes that
   the residuals show; ``cluster_robust_offset`` adds the squared offset of T̂ from the learned
-  cost's minimum;
+  cost's minimum, axis by axis;
 - :class:`LearnedEdgeNoise` applies it edge by edge during a SLAM run, reusing the
   covariances densification predicted (:meth:`gr_graph.densify.DensifiedSequence.prediction`;
   a loop's older scan, read long ago, is predicted again);
@@ -220,9 +220,12 @@ def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, in
     min_clusters : int
         Fewer cubes holding pairs: None.
     include_offset : bool
-        Add ``s s^T`` for the Gauss-Newton step ``s`` (``training.learned_noise_covariance:
+        Add ``diag(s^2)`` for the Gauss-Newton step ``s`` (``training.learned_noise_covariance:
         cluster_robust_offset``): the graph holds T̂, not the learned cost's minimum, and by the learned
-        cost T̂ is off that minimum by ``s``; without it the covariance is that of the minimum.
+        cost T̂ is off that minimum by ``s``; without it the covariance is that of the minimum. Each
+        axis (roll, pitch, yaw, x, y, z of the source frame) gets its own squared offset; the
+        rank-one ``s s^T`` (measured first, 2026-12-07) claimed correlations one draw cannot show
+        and left the odometry edges over-confident (README).
 
     Returns
     -------
@@ -245,7 +248,7 @@ def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, in
     if cov is None:
         return None
     if include_offset:  # T̂ is off the learned cost's minimum by -step (first order, in T̂'s tangent space)
-        cov = cov + np.outer(step, step)
+        cov = cov + np.diag(step * step)
     try:
         information = np.linalg.inv(cov)
     except np.linalg.LinAlgError:
