@@ -150,6 +150,8 @@ def learned_information(
     from factors.degeneracy import degeneracy_report
     from factors.noise import NoiseModelError, floored_information
 
+    if covariance not in LEARNED_COVARIANCES:
+        raise ValueError(f"learned_information: covariance must be one of {LEARNED_COVARIANCES}, got {covariance!r}")
     T = np.asarray(T, np.float64)
     src = np.asarray(source, np.float64)
     tgt = np.asarray(target, np.float64)
@@ -165,9 +167,10 @@ def learned_information(
     if n < min_correspondences:
         return LearnedInformation(None, None, n, "few_correspondences",
                                   detail=f"{n} < {min_correspondences} pairs within {max_distance} m")
+    p, q = src[pairs[:, 0]], tgt[pairs[:, 1]]
     try:
         info = residual_information(cov[pairs[:, 1]])
-        _, _, H = wls_cost_gradient_hessian(T, src[pairs[:, 0]], tgt[pairs[:, 1]], info)
+        _, grad, H = wls_cost_gradient_hessian(T, p, q, info)
     except (WLSInputError, np.linalg.LinAlgError, FloatingPointError) as exc:
         return LearnedInformation(None, None, n, "nonfinite", detail=str(exc))
     if not np.all(np.isfinite(H)):
@@ -175,13 +178,12 @@ def learned_information(
     rep = degeneracy_report(H, rel_threshold=degeneracy_rel, length_scale=10.0)
     if rep.is_degenerate:
         return LearnedInformation(None, H, n, "degenerate", detail=rep.describe())
-    if covariance not in LEARNED_COVARIANCES:
-        raise ValueError(f"learned_information: covariance must be one of {LEARNED_COVARIANCES}, got {covariance!r}")
     information, model = H, "hessian"
     if covariance != "hessian":
         try:
-            sandwich = learned_sandwich_information(T, src[pairs[:, 0]], tgt[pairs[:, 1]], info, cluster_size,
-                                                    min_clusters, include_offset=covariance == "cluster_robust_offset")
+            sandwich = learned_sandwich_information(T, p, q, info, cluster_size, min_clusters,
+                                                    include_offset=covariance == "cluster_robust_offset",
+                                                    gradient_hessian=(grad, H))
         except (WLSInputError, np.linalg.LinAlgError, FloatingPointError, ValueError):  # e.g. a non-finite step
             sandwich = None
         information, model = (H, "hessian_fallback") if sandwich is None else (sandwich, covariance)
@@ -193,8 +195,8 @@ def learned_information(
 
 
 def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, info: np.ndarray,
-                                 cluster_size: float, min_clusters: int, include_offset: bool = False
-                                 ) -> np.ndarray | None:
+                                 cluster_size: float, min_clusters: int, include_offset: bool = False,
+                                 gradient_hessian: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | None:
     """Inverse cluster-robust covariance of the learned cost's pose estimate near ``T``.
 
     The learned cost ``1/2 sum_i d_i^T Lambda_i d_i`` (``Lambda_i = (2 C_qi)^-1``, the pairs found
@@ -226,6 +228,9 @@ def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, in
         axis (roll, pitch, yaw, x, y, z of the source frame) gets its own squared offset; the
         rank-one ``s s^T`` (measured first, 2026-12-07) claimed correlations one draw cannot show
         and left the odometry edges over-confident (README).
+    gradient_hessian : (grad, H), optional
+        The learned cost's gradient and Hessian at ``T`` when the caller has them
+        (:func:`factors.wls.wls_cost_gradient_hessian` of the same arguments); computed otherwise.
 
     Returns
     -------
@@ -234,26 +239,18 @@ def learned_sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, in
         clusters, a Hessian or covariance that is not positive definite).
     """
     from factors.se3 import exp_se3
-    from gr_graph.registration_covariance import cluster_robust_covariance, cube_labels, point_gradients
+    from gr_graph.registration_covariance import sandwich_information
 
-    _, grad, H = wls_cost_gradient_hessian(T, p, q, info)
+    grad, H = gradient_hessian if gradient_hessian is not None else wls_cost_gradient_hessian(T, p, q, info)[1:]
     try:
         step = -np.linalg.solve(H, grad)
     except np.linalg.LinAlgError:
         return None
     T_min = np.asarray(T, np.float64) @ exp_se3(step)
     _, _, H_min = wls_cost_gradient_hessian(T_min, p, q, info)
-    labels, n_clusters = cube_labels(p, cluster_size)
-    cov = cluster_robust_covariance(H_min, point_gradients(T_min, p, q, info), labels, n_clusters, min_clusters)
-    if cov is None:
-        return None
-    if include_offset:  # T̂ is off the learned cost's minimum by -step (first order, in T̂'s tangent space)
-        cov = cov + np.diag(step * step)
-    try:
-        information = np.linalg.inv(cov)
-    except np.linalg.LinAlgError:
-        return None
-    return 0.5 * (information + information.T)
+    # T̂ is off the learned cost's minimum by -step (first order, in T̂'s tangent space)
+    offset = np.diag(step * step) if include_offset else None
+    return sandwich_information(T_min, p, q, info, H_min, cluster_size, min_clusters, offset)[0]
 
 
 #: ``predictions(frame_index)``: the points of a frame and the network's covariances of them, or None

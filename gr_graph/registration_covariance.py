@@ -47,7 +47,7 @@ import small_gicp
 from factors.wls import _components, _inv3_spd, _matrices, _rotate_covariances, _spd_flags, wls_cost_gradient_hessian
 
 __all__ = ["point_gradients", "cube_labels", "cluster_robust_covariance", "Correspondences", "vgicp_correspondences",
-           "gicp_correspondences", "cluster_robust_information"]
+           "gicp_correspondences", "cluster_robust_information", "sandwich_information"]
 
 # Voxel keys are packed exactly into one int64: 21 bits per axis (+- 2^20 voxels).
 _KEY_BITS = 21
@@ -228,10 +228,26 @@ def cluster_robust_information(T: np.ndarray, corr: Correspondences, cluster_siz
     if len(p) < 6:
         return None, 0
     _, _, H = wls_cost_gradient_hessian(T, p, q, info)
+    return sandwich_information(T, p, q, info, H, cluster_size, min_clusters)
+
+
+def sandwich_information(T: np.ndarray, p: np.ndarray, q: np.ndarray, info: np.ndarray, H: np.ndarray,
+                         cluster_size: float, min_clusters: int,
+                         added_covariance: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
+    """``(Sigma + added_covariance)^-1`` (symmetrised) for the sandwich ``Sigma`` of a WLS cost at ``T``.
+
+    ``Sigma`` is :func:`cluster_robust_covariance` of ``H`` (the cost's Gauss-Newton Hessian at ``T``)
+    and the pairs' gradient terms (:func:`point_gradients`) summed over cubes of ``cluster_size``
+    around the source points ``p``. Returns ``(information or None, number of clusters)``; None when
+    the covariance is not available (too few clusters, not positive definite, singular). Shared by
+    :func:`cluster_robust_information` and :func:`gr_graph.edge_noise.learned_sandwich_information`.
+    """
     labels, n_clusters = cube_labels(p, cluster_size)
     cov = cluster_robust_covariance(H, point_gradients(T, p, q, info), labels, n_clusters, min_clusters)
     if cov is None:
         return None, n_clusters
+    if added_covariance is not None:
+        cov = cov + added_covariance
     try:
         information = np.linalg.inv(cov)
     except np.linalg.LinAlgError:
