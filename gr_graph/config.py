@@ -20,8 +20,9 @@ training    the learning rounds (Algorithm 3): training, densification, converge
 from __future__ import annotations
 
 import os
+import types
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -485,6 +486,26 @@ def loop_max_rmse(loops: LoopConfig, sensor: SensorConfig, channels: int | None 
 class ConfigError(ValueError):
     """The configuration is invalid; the message names each bad key (an unknown one with the
     valid keys of its section) and where the configuration came from."""
+
+
+def option_choices(section: type[BaseModel], option: str) -> tuple[str, ...]:
+    """The values the ``Literal`` option ``option`` of the configuration class ``section`` takes, in
+    their declared order (``None`` of an optional one left out): a command line's ``choices``, so they
+    are written once, in the configuration.
+
+    Raises
+    ------
+    TypeError
+        If the option is not a ``Literal`` (or an optional one).
+    """
+    def values(annotation: Any) -> tuple[Any, ...]:
+        if get_origin(annotation) is Literal:
+            return get_args(annotation)
+        if get_origin(annotation) in (Union, types.UnionType):
+            return tuple(v for arm in get_args(annotation) if arm is not type(None) for v in values(arm))
+        raise TypeError(f"{section.__name__}.{option} is not a Literal option ({annotation!r})")
+
+    return values(section.model_fields[option].annotation)
 
 
 def load_config(path: str | os.PathLike[str] | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:

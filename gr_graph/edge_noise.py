@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from factors.wls import WLSInputError, residual_information, wls_cost_gradient_hessian
-from gr_graph.config import SlamConfig
+from gr_graph.config import SlamConfig, TrainingConfig, option_choices
 from gr_graph.correspondences import nearest_correspondences, target_tree
 from gr_graph.odometry import RegistrationEdge
 
@@ -49,7 +49,7 @@ __all__ = ["LEARNED_COVARIANCES", "LEARNED_FALLBACK_REASONS", "LearnedInformatio
            "learned_sandwich_information", "LearnedEdgeNoise", "registration_edge_noise_summary"]
 
 #: what a learned edge's information is made of (``training.learned_noise_covariance``)
-LEARNED_COVARIANCES = ("hessian", "cluster_robust", "cluster_robust_offset")
+LEARNED_COVARIANCES = option_choices(TrainingConfig, "learned_noise_covariance")
 
 #: why an edge did not get its learned information H(C) (counted per round, never silent)
 LEARNED_FALLBACK_REASONS = {

@@ -43,7 +43,18 @@ from gr_graph.cli_common import (
     make_parser,
     setup_logging,
 )
-from gr_graph.config import PAPER_TRAINING, SlamConfig, config_to_yaml, load_config, merge_config
+from gr_graph.config import (
+    PAPER_TRAINING,
+    DataConfig,
+    GraphConfig,
+    OdometryConfig,
+    SlamConfig,
+    TrainingConfig,
+    config_to_yaml,
+    load_config,
+    merge_config,
+    option_choices,
+)
 from gr_graph.datasets.registry import DATASETS, parse_frames
 
 log = logging.getLogger(__name__)
@@ -98,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"synthetic: seed of the generated route (default: {d.data.route_seed})")
     p.add_argument("--trajectory", default=None, metavar="PATH",
                    help="synthetic: render along this KITTI/TUM pose file or KITTI root instead of the route")
-    p.add_argument("--synthetic-preset", choices=("clean", "kitti", "raw"), default=None,
+    p.add_argument("--synthetic-preset", choices=option_choices(DataConfig, "synthetic_preset"), default=None,
                    help="synthetic data: the world and its sensor: clean (plain town, ideal sensor), kitti "
                         "(residential world, moving actors, KITTI-like sensor errors) or raw (kitti with the full "
                         "motion distortion) (default: kitti)")
@@ -125,21 +136,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="loop candidates lie at least M metres of path back along the estimate, not only "
                         "loops.min_frame_gap frames: a vehicle stopped longer than that closes no loops with itself; "
                         f"0: off (default: {d.loops.min_path_length})")
-    p.add_argument("--deskew", choices=("auto", "on", "off"), default=None,
+    p.add_argument("--deskew", choices=option_choices(OdometryConfig, "deskew"), default=None,
                    help="constant-velocity motion compensation of each scan to mid-sweep; auto: on for sequences "
                         f"that are not motion-compensated, off for KITTI odometry folders (default: {d.odometry.deskew})")
     p.add_argument("--kitti-vertical-correction", type=float, default=None, metavar="DEG",
                    help="raise every point's elevation by DEG degrees (KITTI folders and raw drives, the synthetic sequence; any data) "
                         "(KISS-ICP: 0.205) "
                         f"(default: {d.data.kitti_vertical_correction_deg})")
-    p.add_argument("--loop-variance", choices=("fixed", "estimated", "estimated_axes"), default=None,
+    p.add_argument("--loop-variance", choices=option_choices(GraphConfig, "loop_variance"), default=None,
                    help="loop edges' information: as registered, divided by the loops' variance factor estimated "
                         "from the graph's residuals, or that and then weakened per axis where an axis needs it "
                         f"(default: {d.graph.loop_variance})")
-    p.add_argument("--registration-covariance", choices=("scaled_hessian", "cluster_robust"), default=None,
+    p.add_argument("--registration-covariance", choices=option_choices(GraphConfig, "registration_covariance"), default=None,
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")
-    p.add_argument("--learned-noise-covariance", choices=("hessian", "cluster_robust", "cluster_robust_offset"),
+    p.add_argument("--learned-noise-covariance", choices=option_choices(TrainingConfig, "learned_noise_covariance"),
                    default=None,
                    help="learning rounds: each edge's learned information is the network's H(C), or the inverse of "
                         "the cluster-robust covariance of the same learned cost (its shape over the six axes from the "

@@ -127,6 +127,24 @@ def test_every_flag_with_choices_is_exercised() -> None:
         assert with_choices <= set(BAD_CHOICES), f"{module}: add bad values for {with_choices - set(BAD_CHOICES)}"
 
 
+def test_slam_choices_are_the_configurations_values() -> None:
+    from gr_graph.config import DataConfig, GraphConfig, OdometryConfig, TrainingConfig, option_choices
+
+    expected = {"--synthetic-preset": (DataConfig, "synthetic_preset", ("clean", "kitti", "raw")),  # optional: no None
+                "--deskew": (OdometryConfig, "deskew", ("auto", "on", "off")),
+                "--loop-variance": (GraphConfig, "loop_variance", ("fixed", "estimated", "estimated_axes")),
+                "--registration-covariance": (GraphConfig, "registration_covariance",
+                                              ("scaled_hessian", "cluster_robust")),
+                "--learned-noise-covariance": (TrainingConfig, "learned_noise_covariance",
+                                               ("hessian", "cluster_robust", "cluster_robust_offset"))}
+    actions = _options(slam.build_parser())
+    for flag, (section, option, values) in expected.items():
+        assert option_choices(section, option) == values
+        assert tuple(actions[flag].choices) == values, flag
+    with pytest.raises(TypeError, match="GraphConfig.cluster_size is not a Literal"):
+        option_choices(GraphConfig, "cluster_size")
+
+
 def test_log_level_is_case_insensitive_and_applied() -> None:
     for module, (build, _, required, _) in CLIS.items():
         assert build().parse_args(required + ["--log-level", "warning"]).log_level == "WARNING"

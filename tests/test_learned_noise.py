@@ -10,7 +10,7 @@ import pytest
 
 from estimate_support import mean_nees, spread_ratio
 from factors.wls import solve_wls
-from gr_graph.config import GraphConfig, load_config
+from gr_graph.config import ConfigError, GraphConfig, load_config
 from gr_graph.edge_noise import LearnedEdgeNoise, learned_information
 from gr_graph.odometry import RegistrationEdge
 from gr_graph.pose_graph import edge_noise_model
@@ -301,13 +301,14 @@ def test_the_offset_term_is_the_squared_distance_of_the_pose_from_the_learned_mi
     assert np.abs(s).max() > 0.009  # the term is not negligible here
 
 
-def test_learned_covariance_names_agree_with_the_config():
-    from typing import get_args
-
-    from gr_graph.config import TrainingConfig
+def test_learned_covariance_names_are_the_config_options_values():
     from gr_graph.edge_noise import LEARNED_COVARIANCES
 
-    assert get_args(TrainingConfig.model_fields["learned_noise_covariance"].annotation) == LEARNED_COVARIANCES
+    assert LEARNED_COVARIANCES == ("hessian", "cluster_robust", "cluster_robust_offset")
+    for name in LEARNED_COVARIANCES:  # each a value the configuration accepts
+        assert load_config(overrides={"training": {"learned_noise_covariance": name}}).training.learned_noise_covariance == name
+    with pytest.raises(ConfigError, match="learned_noise_covariance"):
+        load_config(overrides={"training": {"learned_noise_covariance": "sandwich"}})
 
 
 def test_edge_noise_counts_what_each_learned_edge_is_made_of():
