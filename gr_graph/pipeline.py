@@ -113,6 +113,10 @@ _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed
                                               ("sensor", "frame_stamp"): None,
                                               **{("training", "trainer", k): v for k, v in ADDED_TRAIN_OPTIONS.items()}}
 
+# added options of the learned edge noise: left out of the fingerprint with ``edge_noise: registration``, where they
+# do nothing (only these: the older ones stay, so that finished rounds of that ablation keep their fingerprint)
+_LEARNED_NOISE_ADDED = ("learned_noise_outlier_alpha", "learned_noise_covariance")
+
 # sensor options whose default became None (guessed from the data) after runs were published: None
 # hashes as the value the default was, so that rounds finished before stay finished
 _GUESSED_SENSOR_DEFAULTS: dict[str, str] = {"time_unit": "s", "time_reference": "sweep_start"}
@@ -129,7 +133,9 @@ def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None
     options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
     ``sensor.rotation``, ``sweep_start_azimuth_deg`` and ``frame_stamp``, ``training.prediction_passes`` and
     ``learned_noise_outlier_alpha`` and ``learned_noise_covariance``; the trainer's
-    :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default,
+    :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default
+    (``learned_noise_outlier_alpha`` and ``learned_noise_covariance`` not at all with ``training.edge_noise:
+    registration``, where they do nothing),
     so that rounds finished before the option existed stay finished; ``sensor.time_unit``
     and ``time_reference``, whose default became None (guessed), hash None as what the data's
     conventions guessed (``guessed``, :func:`guessed_sensor_options`: a recording's time unit),
@@ -152,6 +158,9 @@ def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None
 
             d["weights_sha256"] = weights_sha256(tc.weights)
             d["fine_tune"] = tc.fine_tune
+    if r > 0 and d["training"].get("edge_noise") != "learned":  # the learned edge noise's added options do nothing
+        for key in _LEARNED_NOISE_ADDED:
+            d["training"].pop(key, None)
     for (*sections, key), default in _ADDED_OPTIONS.items():
         node = d
         for section in sections:

@@ -866,6 +866,16 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     # training.learned_noise_covariance (2026-12-07) likewise
     lc = load_config(None, {"training": {"rounds": 2, **legacy, "learned_noise_covariance": "cluster_robust"}})
     assert round_fingerprint(lc, 1) != round_fingerprint(a, 1) and round_fingerprint(lc, 0) == round_fingerprint(a, 0)
+    # ... but neither counts where the learned edge noise is off: the edges keep the registration's information
+    reg = load_config(None, {"training": {"rounds": 2, **legacy, "edge_noise": "registration"}})
+    reg_set = load_config(None, {"training": {"rounds": 2, **legacy, "edge_noise": "registration",
+                                              "learned_noise_covariance": "cluster_robust_offset",
+                                              "learned_noise_outlier_alpha": 1e-4}})
+    assert round_fingerprint(reg, 1) != round_fingerprint(a, 1)
+    assert round_fingerprint(reg_set, 1) == round_fingerprint(reg, 1)
+    reg_older = load_config(None, {"training": {"rounds": 2, **legacy, "edge_noise": "registration",
+                                                "learned_noise_scale": 2.0}})  # an older option: still counted
+    assert round_fingerprint(reg_older, 1) != round_fingerprint(reg, 1)
     # how frames are read (data.read_threads, like prefetch) is in no fingerprint
     t = load_config(None, {"training": {"rounds": 2, **legacy}, "data": {"read_threads": 1, "prefetch": 2}})
     assert [round_fingerprint(t, r) for r in (0, 1)] == [round_fingerprint(a, r) for r in (0, 1)]
