@@ -13,6 +13,7 @@ import torch
 __all__ = ["hat", "vee", "exp_so3", "log_so3", "exp_se3", "log_se3", "inverse_se3"]
 
 _SMALL = 1e-4  # below this angle (rad) log_so3 uses its Taylor branch (theta / sin theta has no cancellation)
+_NEAR_PI = 1e-3  # within this of pi (rad) log_so3 reads the axis from the symmetric part (as factors.se3)
 _SERIES_ANGLE = 0.05
 """Below this angle (rad) the coefficients of Exp and of V⁻¹ in Log are their Taylor series, to the
 θ⁶ term (the next term is below 1e-16 there): the closed forms cancel digits for small angles, and
@@ -58,20 +59,37 @@ def exp_so3(w: torch.Tensor) -> torch.Tensor:
 
 
 def log_so3(R: torch.Tensor) -> torch.Tensor:
-    """Rotation ``(..., 3, 3)`` -> axis-angle ``(..., 3)``; valid for angles below ``pi - 1e-6``.
+    """Rotation ``(..., 3, 3)`` -> axis-angle ``(..., 3)`` with ``|w| <= pi``, as :func:`factors.se3.log_so3`.
 
-    The poses this is applied to in training are discrepancies between two estimates of the
-    same relative pose, i.e. small rotations, far from the ``pi`` singularity.
+    Within ``_NEAR_PI`` of ``pi`` the axis is read from the symmetric part of ``R`` (``sin theta`` -> 0
+    leaves the skew part without digits; ``theta / sin theta`` would be NaN at ``pi``); the value there
+    is exact, its derivative is not used (the rotations training takes the log of are discrepancies
+    between two estimates of the same relative pose, far from ``pi``). Every branch is computed with
+    safe denominators, so the branches not taken give no NaN gradients.
     """
     s = vee(R)  # = sin(theta) * axis
     cos_t = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]) - 1) / 2
     sin_t = torch.linalg.norm(s, dim=-1)
     theta = torch.atan2(sin_t, cos_t)
     small = theta < _SMALL
-    sin_safe = torch.where(small, torch.ones_like(sin_t), sin_t)
+    near_pi = (torch.pi - theta) < _NEAR_PI
+    sin_safe = torch.where(small | near_pi, torch.ones_like(sin_t), sin_t)
     th2 = theta * theta
     factor = torch.where(small, 1 + th2 / 6 + 7 * th2 * th2 / 360, theta / sin_safe)
-    return factor[..., None] * s
+    regular = factor[..., None] * s
+    if not bool(near_pi.any()):
+        return regular
+    # near pi: R ~ 2 n n^T - I (+ the sin term), so (sym(R) - cos I) / (1 - cos) = n n^T; the column of its
+    # largest diagonal entry is n (up to sign), whose sign the skew part gives
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    one_minus_cos = torch.where(near_pi, 1 - cos_t, torch.ones_like(cos_t))
+    nn = (0.5 * (R + R.transpose(-1, -2)) - cos_t[..., None, None] * eye) / one_minus_cos[..., None, None]
+    diagonal = torch.diagonal(nn, dim1=-2, dim2=-1)
+    k = diagonal.argmax(-1)
+    column = torch.gather(nn, -1, k[..., None, None].expand(*k.shape, 3, 1))[..., 0]
+    n = column / torch.linalg.norm(column, dim=-1, keepdim=True).clamp_min(1e-300)
+    sign = torch.where((n * s).sum(-1) < 0, -torch.ones_like(theta), torch.ones_like(theta))
+    return torch.where(near_pi[..., None], (sign * theta)[..., None] * n, regular)
 
 
 def exp_se3(xi: torch.Tensor) -> torch.Tensor:

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from training.pose_layer import PoseLayerError, exact_hessian, solve_pose, wls_terms
-from training.se3_torch import exp_se3, inverse_se3, log_se3
+from training.se3_torch import exp_se3, exp_so3, inverse_se3, log_se3, log_so3
 
 torch.set_num_threads(1)
 
@@ -32,6 +32,38 @@ def test_se3_matches_factors_and_roundtrip():
         np.testing.assert_allclose(T, fse3.exp_se3(xi), atol=1e-12)
         np.testing.assert_allclose(log_se3(torch.tensor(T)).numpy(), xi, atol=1e-11, rtol=1e-9)
         np.testing.assert_allclose(log_se3(torch.tensor(T)).numpy(), fse3.log_se3(T), atol=1e-11)
+
+
+def test_log_so3_at_and_near_pi_matches_factors():
+    """At pi, theta / sin(theta) is 0/0: the axis comes from the symmetric part (as factors.se3.log_so3)."""
+    fse3 = pytest.importorskip("factors.se3")
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(40, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.pi - np.r_[0.0, 1e-12, 1e-9, 1e-7, 1e-5, 9e-4, 1.1e-3, 1e-2, rng.uniform(0, 1e-3, 32)]
+    R = np.stack([fse3.exp_so3(a * n) for a, n in zip(angles, axes)]
+                 + [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])])
+    w = log_so3(torch.tensor(R)).numpy()  # one batch mixing both branches
+    assert np.all(np.isfinite(w))
+    expected = np.stack([fse3.log_so3(r) for r in R])
+    # at exactly pi, w and -w are the same rotation: compare the rotations, and the vectors up to that sign
+    np.testing.assert_allclose(exp_so3(torch.tensor(w)).numpy(), R, atol=1e-9)
+    same = np.minimum(np.abs(w - expected).max(1), np.abs(w + expected).max(1))
+    assert same.max() < 1e-7
+    np.testing.assert_allclose(np.linalg.norm(w, axis=1)[:len(angles)], angles, atol=1e-9)
+    assert np.all(np.linalg.norm(w, axis=1) <= np.pi + 1e-12)
+
+
+def test_log_so3_gradient_of_ordinary_rotations_unchanged_beside_one_at_pi():
+    """A batch holding a rotation by pi gives the other rotations the same finite gradients as alone."""
+    rng = np.random.default_rng(4)
+    ordinary = torch.tensor(np.stack([exp_so3(torch.tensor(rng.normal(size=3) * 0.3)).numpy() for _ in range(5)]),
+                            requires_grad=True)
+    alone = torch.autograd.grad(log_so3(ordinary).sum(), ordinary)[0]
+    at_pi = torch.tensor(np.diag([1.0, -1.0, -1.0]))[None]
+    both = torch.autograd.grad(log_so3(torch.cat([ordinary, at_pi])).sum(), ordinary)[0]
+    assert torch.isfinite(both).all()
+    torch.testing.assert_close(both, alone, rtol=0, atol=0)
 
 
 def test_agrees_with_factors_solve_wls():
