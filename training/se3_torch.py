@@ -87,7 +87,8 @@ def log_so3(R: torch.Tensor) -> torch.Tensor:
     diagonal = torch.diagonal(nn, dim1=-2, dim2=-1)
     k = diagonal.argmax(-1)
     column = torch.gather(nn, -1, k[..., None, None].expand(*k.shape, 3, 1))[..., 0]
-    n = column / torch.linalg.norm(column, dim=-1, keepdim=True).clamp_min(1e-300)
+    column_norm = torch.linalg.norm(column, dim=-1, keepdim=True)
+    n = column / torch.where(near_pi[..., None], column_norm, torch.ones_like(column_norm))
     sign = torch.where((n * s).sum(-1) < 0, -torch.ones_like(theta), torch.ones_like(theta))
     return torch.where(near_pi[..., None], (sign * theta)[..., None] * n, regular)
 

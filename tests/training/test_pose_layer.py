@@ -55,15 +55,18 @@ def test_log_so3_at_and_near_pi_matches_factors():
 
 
 def test_log_so3_gradient_of_ordinary_rotations_unchanged_beside_one_at_pi():
-    """A batch holding a rotation by pi gives the other rotations the same finite gradients as alone."""
+    """A batch holding a rotation by pi gives the other rotations (among them the identity, where the near-pi
+    branch not taken divides by 1 - cos = 0 and by a zero column unless guarded) the same finite gradients as
+    alone, in float64 and float32; the rotation by pi gets a finite one too."""
     rng = np.random.default_rng(4)
-    ordinary = torch.tensor(np.stack([exp_so3(torch.tensor(rng.normal(size=3) * 0.3)).numpy() for _ in range(5)]),
-                            requires_grad=True)
-    alone = torch.autograd.grad(log_so3(ordinary).sum(), ordinary)[0]
-    at_pi = torch.tensor(np.diag([1.0, -1.0, -1.0]))[None]
-    both = torch.autograd.grad(log_so3(torch.cat([ordinary, at_pi])).sum(), ordinary)[0]
-    assert torch.isfinite(both).all()
-    torch.testing.assert_close(both, alone, rtol=0, atol=0)
+    rotations = np.stack([np.eye(3)] + [exp_so3(torch.tensor(rng.normal(size=3) * 0.3)).numpy() for _ in range(5)])
+    for dtype in (torch.float64, torch.float32):
+        ordinary = torch.tensor(rotations, dtype=dtype, requires_grad=True)
+        alone = torch.autograd.grad(log_so3(ordinary).sum(), ordinary)[0]
+        at_pi = torch.tensor(np.diag([1.0, -1.0, -1.0]), dtype=dtype)[None].requires_grad_(True)
+        both = torch.autograd.grad(log_so3(torch.cat([ordinary, at_pi])).sum(), (ordinary, at_pi))
+        assert torch.isfinite(both[0]).all() and torch.isfinite(both[1]).all(), dtype
+        torch.testing.assert_close(both[0], alone, rtol=0, atol=0)
 
 
 def test_agrees_with_factors_solve_wls():
