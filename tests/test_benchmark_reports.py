@@ -3,26 +3,13 @@ JSON beside it changes nothing (a script edited since, or a report edited by han
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _script(name: str):
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location(f"_report_{name}", BENCHMARKS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
+from benchmark_support import BENCHMARKS, benchmark_script
 
 
 @pytest.mark.parametrize("name, report, inputs", [
@@ -34,7 +21,7 @@ def test_a_rebuilt_report_equals_the_published_one(tmp_path: Path, monkeypatch, 
     results = BENCHMARKS / "results"
     for f in [results / report, *results.glob(inputs)]:
         shutil.copy(f, tmp_path / f.name)
-    module = _script(name)
+    module = benchmark_script(name)
     monkeypatch.setattr(module, "RESULTS", tmp_path)
     published_machine = re.search(r"Machine: (.*?Python \d+\.\d+\.\d+)", (results / report).read_text())
     monkeypatch.setattr(module, "machine", lambda: published_machine.group(1))  # where it ran, not this machine
@@ -43,7 +30,7 @@ def test_a_rebuilt_report_equals_the_published_one(tmp_path: Path, monkeypatch, 
 
 
 def test_table2_nontrivial_rebuilds_from_its_json(tmp_path: Path, monkeypatch, capsys) -> None:
-    module = _script("table2_nontrivial")
+    module = benchmark_script("table2_nontrivial")
     published = BENCHMARKS / "results" / "table2_nontrivial.md"
     monkeypatch.setattr(module, "print_and_write", lambda name, text, document, write: print(text))
     argv = ["benchmarks/results/table2_nontrivial.json", "--from-json", "--write", "table2_nontrivial"]
@@ -55,7 +42,7 @@ def test_table2_nontrivial_rebuilds_from_its_json(tmp_path: Path, monkeypatch, c
 def test_a_checkout_run_that_prints_nothing_is_named(tmp_path: Path) -> None:
     """``checkouts.run_alternating`` takes a run's last output line as its result: a run that prints none is an
     error naming the checkout, not an IndexError."""
-    module = _script("checkouts")
+    module = benchmark_script("checkouts")
     silent = tmp_path / "silent.py"
     silent.write_text("import sys\nprint('the cause', file=sys.stderr)\n")
     with pytest.raises(SystemExit, match=r"(?s)the a checkout \(.*\) printed nothing.*the cause"):

@@ -3,31 +3,17 @@ exactly, and a round the re-solve does not reproduce refused."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from benchmark_support import benchmark_script
 from factors.se3 import exp_se3
 from gr_graph.config import GraphConfig
 from gr_graph.noise_consistency import edge_nees, round_noise_consistency
 from gr_graph.pose_graph import PoseGraph, position_covariance_world
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _study():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location("_loop_factor_undone_study", BENCHMARKS / "loop_factor_undone_study.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
 
 
 def _round(tmp_path: Path, common: float, axes: np.ndarray) -> tuple[Path, np.ndarray, np.ndarray]:
@@ -73,7 +59,7 @@ def _round(tmp_path: Path, common: float, axes: np.ndarray) -> tuple[Path, np.nd
 
 
 def test_the_loop_factors_are_divided_out_and_the_run_reproduced(tmp_path: Path) -> None:
-    study = _study()
+    study = benchmark_script("loop_factor_undone_study")
     axes = np.array([1.0, 0.3, 1.0, 1.0, 1.0, 1.0])
     rd, info, base = _round(tmp_path, 0.5, axes)
     with np.load(rd / "marginals.npz") as z:
@@ -91,7 +77,7 @@ def test_the_loop_factors_are_divided_out_and_the_run_reproduced(tmp_path: Path)
 
 
 def test_a_round_the_resolve_does_not_reproduce_is_refused(tmp_path: Path) -> None:
-    study = _study()
+    study = benchmark_script("loop_factor_undone_study")
     rd, _, _ = _round(tmp_path, 0.5, np.ones(6))
     summary = json.loads((rd / "round.json").read_text())
     summary["slam"]["ate_rmse"] *= 1.5  # as if the round had been solved with other edges
