@@ -23,6 +23,7 @@ import json
 import shlex
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,9 +36,13 @@ from results_io import print_and_write  # noqa: E402
 REPRODUCE_RTOL = 0.01
 
 
-def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool) -> dict[str, Any]:
+def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool,
+                information_change: Callable[[dict[str, np.ndarray], np.ndarray], np.ndarray] | None = None
+                ) -> dict[str, Any]:
     """NEES (odometry, loop, positions) and ATE RMSE of round ``round_dir``'s graph solved again,
-    with the loops' variance factors divided out if ``undo_loop_factors``."""
+    with the loops' variance factors divided out if ``undo_loop_factors``, then every edge's
+    information passed through ``information_change(marginals, information)`` if given
+    (``marginals``: the round's marginals.npz as a dict; ``information``: ``(E, 6, 6)``)."""
     from gr_graph.metrics import ate
     from gr_graph.noise_calibration import _axis_scaled
     from gr_graph.noise_consistency import round_noise_consistency
@@ -54,6 +59,8 @@ def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool) -> dic
     if undo_loop_factors:
         for i in np.nonzero(loops)[0]:
             information[i] = _axis_scaled(information[i], 1.0 / axes) / common
+    if information_change is not None:
+        information = information_change(d, information)
     graph = PoseGraph(graph_cfg)
     for T in d["poses"]:
         graph.add_pose(T)

@@ -227,6 +227,11 @@ class GraphConfig(_Section):
         "by the loops' variance factor from the graph's residuals, odometry held fixed; 'estimated_axes' that, then "
         "one more factor per tangent axis (roll, pitch, yaw, x, y, z) shared by all loops that only weakens them "
         "where an axis' residuals need it (gr_graph.noise_calibration)")
+    ground_tilt_offset: bool = Field(
+        False, description="widen every registered edge's covariance (odometry and loops) by its ground-tilt offset: "
+        "the roll and pitch correction that would map the source scan's ground plane onto the target's, rank one "
+        "(gr_graph.ground_tilt); the registrations' pull towards equal sensor attitude, which their residuals "
+        "cannot show")
     max_iterations: int = Field(100, ge=1)
     relative_error_tol: float = Field(1e-6, gt=0.0)
     marginals: bool = True

@@ -51,6 +51,7 @@ from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, find
 from gr_graph.datasets.frame_fields import FieldConventions
 from gr_graph.deskew import deskew, deskew_covariances, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
+from gr_graph.ground_tilt import GroundTiltOffsets
 from gr_graph.loop_closure import LoopClosureSchedule, RowBuffer, ScanContextDatabase, loop_candidates, verify_loop
 from gr_graph.odometry import RegistrationEdge, VgicpOdometry
 from gr_graph.noise_calibration import (
@@ -415,6 +416,7 @@ class _FrameLoop:
         self.checked = np.zeros(len(sequence), dtype=bool)
         self.n_flagged = 0
         self.loop_variance: dict[str, Any] | None = None  # graph.loop_variance: estimated (finish)
+        self.ground_tilt = GroundTiltOffsets() if cfg.graph.ground_tilt_offset else None
         self.n_dropped = 0
         self.usable: list[bool] = []  # per run position: the scan was usable (preprocess.min_points)
         self.deskew_on, self.deskew_reason = deskew_enabled(cfg.odometry.deskew, sequence)
@@ -509,6 +511,8 @@ class _FrameLoop:
             self.n_dropped -= scan.n_dropped  # counted when the frame was first preprocessed
             self.scans[j] = scan.points.astype(np.float32)
             self.usable[j] = bool(scan.usable)
+            if self.ground_tilt is not None:
+                self.ground_tilt.forget(j)
         with self.timer("odometry"):
             self.odometry.rebuild_map(scans)
         log.debug("deskewed the %d startup frames and rebuilt the odometry map", len(scans))
@@ -543,6 +547,8 @@ class _FrameLoop:
         if self.edge_noise is not None:
             with self.timer("edge_noise"):
                 self.edge_noise.apply(edge, self.frame_index[edge.source], self.frame_index[edge.target])
+        if self.ground_tilt is not None:
+            self.ground_tilt.widen(edge, self.scans)
         self.edges.append(edge)
         self.n_flagged += int(not edge.ok)
         self.graph.add_edge(edge.source, edge.target, edge.T, edge.information, loop=False)
@@ -569,6 +575,8 @@ class _FrameLoop:
                 if self.edge_noise is not None:
                     with self.timer("edge_noise"):
                         self.edge_noise.apply(le, self.frame_index[le.source], self.frame_index[le.target])
+                if self.ground_tilt is not None:
+                    self.ground_tilt.widen(le, self.scans)
                 self.edges.append(le)
                 self.graph.add_edge(le.source, le.target, le.T, le.information, loop=True)
                 self.schedule.loop_accepted()
@@ -766,7 +774,8 @@ class _FrameLoop:
                                                   self.stamps_moved_by_s),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
                              "loop_max_rmse": self.loop_cfg.max_rmse},
-                  "marginals": marginals, "loop_variance": self.loop_variance},
+                  "marginals": marginals, "loop_variance": self.loop_variance,
+                  "ground_tilt_offset": None if self.ground_tilt is None else self.ground_tilt.summary()},
         )
 
 

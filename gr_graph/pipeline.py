@@ -99,6 +99,7 @@ READ_OPTIONS = {"prefetch", "frame_cache", "read_threads", "render_process"}
 # path of an option (sections, then its key) -> the default it had in effect before it existed; at that
 # value it is left out of the round fingerprint
 _ADDED_OPTIONS: dict[tuple[str, ...], Any] = {("graph", "loop_variance"): "fixed", ("training", "keep_dropped"): False,
+                                              ("graph", "ground_tilt_offset"): False,
                                               ("graph", "registration_covariance"): "scaled_hessian",
                                               **{("graph", k): GraphConfig.model_fields[k].default
                                                  for k in ("cluster_size", "min_clusters")},
@@ -130,7 +131,7 @@ def round_fingerprint(cfg: SlamConfig, r: int, guessed: Mapping[str, str] | None
     after ``--rounds 1`` reuses both finished rounds; a changed test re-judges finished rounds),
     nor on output options. Options added after runs were published (:data:`_ADDED_OPTIONS`:
     ``graph.loop_variance``, ``training.keep_dropped``, ``graph.registration_covariance`` and its two
-    options, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
+    options, ``graph.ground_tilt_offset``, ``odometry.map_keyframe_*``, ``loops.min_path_length`` and ``sc_height_offset``,
     ``sensor.rotation``, ``sweep_start_azimuth_deg`` and ``frame_stamp``, ``training.prediction_passes`` and
     ``learned_noise_outlier_alpha`` and ``learned_noise_covariance``; the trainer's
     :data:`training.config.ADDED_TRAIN_OPTIONS`) count only when they are not at their default

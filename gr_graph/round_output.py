@@ -153,6 +153,8 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
         "loop_variance": res.info.get("loop_variance"),
+        # graph.ground_tilt_offset (only when on): scans without a ground plane, edges widened, RMS offsets
+        **({"ground_tilt_offset": res.info["ground_tilt_offset"]} if res.info.get("ground_tilt_offset") else {}),
         # usable scans that did not enter the odometry's map (odometry.map_keyframe_*; 0 by default)
         "scans_left_out_of_map": res.info.get("scans_left_out_of_map"),
         # the information each accepted edge entered the graph with: the registration's model

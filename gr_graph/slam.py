@@ -147,6 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="loop edges' information: as registered, divided by the loops' variance factor estimated "
                         "from the graph's residuals, or that and then weakened per axis where an axis needs it "
                         f"(default: {d.graph.loop_variance})")
+    p.add_argument("--ground-tilt-offset", action=argparse.BooleanOptionalAction, default=None,
+                   help="widen every registered edge's roll and pitch by the disagreement of its rotation with the "
+                        "ground planes of its two scans (gr_graph.ground_tilt) "
+                        f"(default: {'on' if d.graph.ground_tilt_offset else 'off'})")
     p.add_argument("--registration-covariance", choices=option_choices(GraphConfig, "registration_covariance"), default=None,
                    help="information of registered edges: the scaled registration Hessian, or the cluster-robust "
                         f"covariance from the residuals (default: {d.graph.registration_covariance})")
@@ -239,6 +243,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         o["graph"]["loop_variance"] = args.loop_variance
     if args.registration_covariance is not None:
         o["graph"]["registration_covariance"] = args.registration_covariance
+    if args.ground_tilt_offset is not None:
+        o["graph"]["ground_tilt_offset"] = args.ground_tilt_offset
     if args.learned_noise_covariance is not None:
         o["training"]["learned_noise_covariance"] = args.learned_noise_covariance
     if args.map_keyframe is not None:

@@ -188,6 +188,9 @@ def test_slam_flags_become_config_overrides(capsys) -> None:
     assert o == {"graph": {"registration_covariance": "cluster_robust"}}
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--learned-noise-covariance", "cluster_robust"]))
     assert o == {"training": {"learned_noise_covariance": "cluster_robust"}}
+    for flag, value in (("--ground-tilt-offset", True), ("--no-ground-tilt-offset", False)):
+        o = slam.overrides_from_args(slam.build_parser().parse_args([flag]))
+        assert o == {"graph": {"ground_tilt_offset": value}}
     assert slam.learning_flags_given(slam.build_parser().parse_args(["--learned-noise-covariance", "cluster_robust"])) \
         == ["--learned-noise-covariance cluster_robust"]  # named as ignored without learning rounds
     o = slam.overrides_from_args(slam.build_parser().parse_args(["--loop-min-path", "25"]))
