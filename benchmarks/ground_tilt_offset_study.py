@@ -91,8 +91,15 @@ KEYS = ("odometry_nees", "loop_nees", "position_nees", "ate_rmse")
 COLUMNS = ("as_run", "loop_factors_undone", "ground_tilt_offset")
 
 
+def group_of(label: str) -> str:
+    """The group a run's label names: what comes before its last ``-s`` (``full-s0`` -> ``full``), else the label."""
+    head, sep, _ = label.rpartition("-s")
+    return head if sep else label
+
+
 def table(rows: list[tuple[str, dict[str, Any]]]) -> str:
-    """Markdown: per run the three solves (odometry / loop / position NEES, ATE), then mean ± std."""
+    """Markdown: per run the three solves (odometry / loop / position NEES, ATE), then mean ± std per group of
+    runs (:func:`group_of`) holding several."""
     lines = ["| run | as run (loops with their own factors) | loop factors undone | loop factors undone, every edge "
              "widened by its ground-tilt offset | offset vs. pitch error: correlation odometry / loops |",
              "|---|---|---|---|---|"]
@@ -100,12 +107,17 @@ def table(rows: list[tuple[str, dict[str, Any]]]) -> str:
         a = r["agreement"]
         lines.append(f"| {label} | " + " | ".join(" / ".join(_fmt(r[c][k]) for k in KEYS) for c in COLUMNS)
                      + f" | {a['odometry']['corr_roll_pitch'][1]:.2f} / {a['loop']['corr_roll_pitch'][1]:.2f} |")
-    if len(rows) > 1:
+    for group in dict.fromkeys(group_of(label) for label, _ in rows):
+        members = [r for label, r in rows if group_of(label) == group]
+        if len(members) < 2:
+            continue
+
         def ms(c: str, k: str) -> str:
-            v = np.array([r[c][k] for _, r in rows], float)
+            v = np.array([r[c][k] for r in members], float)
             return f"{_fmt(v.mean())} ± {_fmt(v.std(ddof=1))}"
 
-        lines.append("| mean ± std | " + " | ".join(" / ".join(ms(c, k) for k in KEYS) for c in COLUMNS) + " | |")
+        lines.append(f"| {group}: mean ± std | " + " | ".join(" / ".join(ms(c, k) for k in KEYS) for c in COLUMNS)
+                     + " | |")
     return "\n".join(lines)
 
 

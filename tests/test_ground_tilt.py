@@ -169,3 +169,35 @@ def test_a_run_with_the_offset_equals_the_same_run_widened_offline(revisit_run: 
     for key, own in (("position_nees", nc["position"]["mean"]), ("ate_rmse", summary["slam"]["ate_rmse"])):
         assert offline["ground_tilt_offset"][key] == pytest.approx(own, rel=study.REPRODUCE_RTOL), key
     assert offline["n_widened"] == n_ok
+
+
+def test_two_renders_from_one_spot_show_the_tilt_in_the_ground_not_in_the_registration() -> None:
+    """benchmarks/tilt_bias_study.py at one spot of the clean world: at 64 channels the registration gives
+    back a 0.5 deg pitch, at 16 channels it falls short of it (the pull the offset widens the edges for),
+    while the ground planes give it back at both."""
+    from gr_graph.datasets.synthetic import SyntheticSequence
+
+    study = benchmark_script("tilt_bias_study")
+    fractions = {n: study.spot_fractions(SyntheticSequence(seed=0, preset="clean", n_rings=n), 1000, 1, np.radians(0.5))
+                 for n in (16, 64)}
+    for registration, ground in fractions.values():
+        assert ground == pytest.approx(1.0, abs=0.1)
+    assert fractions[64][0] == pytest.approx(1.0, abs=0.1)
+    assert fractions[16][0] < fractions[64][0] - 0.25
+
+
+def test_the_study_table_gives_one_mean_per_group_of_runs() -> None:
+    study = benchmark_script("ground_tilt_offset_study")
+    assert study.group_of("full-s0") == "full" and study.group_of("w-32-s12") == "w-32"
+    assert study.group_of("run") == "run"
+
+    def solve(x: float) -> dict[str, float]:
+        return {"odometry_nees": x, "loop_nees": x, "position_nees": x, "ate_rmse": x}
+
+    def row(x: float) -> dict:
+        agreement = {"corr_roll_pitch": [0.0, -0.5]}
+        return {c: solve(x) for c in study.COLUMNS} | {"agreement": {"odometry": agreement, "loop": agreement}}
+
+    text = study.table([("a-s0", row(1.0)), ("a-s1", row(3.0)), ("b-s0", row(5.0))])
+    means = [line for line in text.splitlines() if "mean ± std" in line]
+    assert len(means) == 1 and means[0].startswith("| a: mean ± std | 2 ± 1.41 / 2 ± 1.41")
