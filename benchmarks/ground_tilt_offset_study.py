@@ -36,6 +36,8 @@ def ground_tilt_offsets(round_dir: Path, marginals: dict[str, np.ndarray]) -> tu
     from gr_graph.memory import load_memory
 
     memory = load_memory(round_dir / "memory")
+    if memory.n_scans != len(marginals["poses"]):
+        raise RuntimeError(f"{round_dir}: the memory holds {memory.n_scans} scans, the round {len(marginals['poses'])} poses")
     planes = [fit_ground_plane(memory.scan(k)) for k in range(memory.n_scans)]
     offsets = np.full((len(marginals["edges"]), 3), np.nan)
     for e, ((k, l), T, ok) in enumerate(zip(marginals["edges"], marginals["edge_T"], marginals["edge_ok"], strict=True)):
@@ -144,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         if not (round_dir / "memory").is_dir():
             ap.error(f"{round_dir}: no memory folder (the stored scans the ground planes are fitted on)")
         cfg = load_config(None, yaml.safe_load((Path(run) / "config.yaml").read_text()))
+        if int(r) > 0 and (cfg.training.densify or cfg.training.slam_voxel_size is not None):
+            ap.error(f"{spec}: a learning round's memory holds round 0's scans, and this run's learning rounds "
+                     "registered others (training.densify or slam_voxel_size): the planes would not be the run's")
         rows.append((label, study_round(round_dir, cfg.graph)))
     command = shlex.join(["python", "benchmarks/ground_tilt_offset_study.py", *(sys.argv[1:] if argv is None else argv)])
     text = (f"# {args.title}\n\nCommand: `{command}`. Each cell: odometry / loop / position NEES, ATE RMSE [m]. "

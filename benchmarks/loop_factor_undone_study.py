@@ -74,6 +74,9 @@ def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool,
         nc = round_noise_consistency(tmp, summary.get("marginals"))
     return {"odometry_nees": nc["edges"]["odometry"]["mean"], "loop_nees": nc["edges"]["loop"]["mean"],
             "position_nees": nc["position"]["mean"], "ate_rmse": float(ate(res.poses, d["gt_poses"]).rmse),
+            "odometry_z2_axes": nc["edges"]["odometry"]["per_axis"]["z2_mean"],
+            "loop_z2_axes": nc["edges"]["loop"]["per_axis"]["z2_mean"],
+            "position_nees_vertical": nc["position"]["vertical"]["mean"],
             "loop_factor_common": common, "loop_factor_axes": axes.tolist(), "n_loops": int(loops.sum())}
 
 

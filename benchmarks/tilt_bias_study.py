@@ -2,12 +2,12 @@
 
 The clean synthetic world (no sensor effects, exact poses) is rendered from a route pose and
 from the same position with the sensor tilted by a known angle about its y axis (pitch) or x
-axis (roll). The tilted scan is registered onto the other as the loop verification does
-(``preprocess`` at its defaults, small_gicp GICP, correspondences within 1 m, started from the
-true relative pose). Reported per channel count: the fraction of the tilt the registration
+axis (roll). The tilted scan is registered onto the other with the loop verification's last
+stage (``preprocess`` at its defaults, small_gicp GICP, correspondences within 1 m), started
+from the true relative pose. Reported per channel count: the fraction of the tilt the registration
 recovers (1 = unbiased; 0 = it returns the identity whatever the tilt), and the same for the
-ground planes of the two renders (:func:`gr_graph.ground_tilt.fit_ground_plane`, the tilt that
-maps one plane onto the other), mean ± std over the spots.
+ground planes of the two preprocessed scans (:func:`gr_graph.ground_tilt.fit_ground_plane`, the
+tilt that maps one plane onto the other), mean ± std over the spots.
 
 Usage::
 
@@ -57,7 +57,7 @@ def spot_fractions(sequence: Any, frame: int, axis: int, tilt_rad: float) -> tup
     res = small_gicp.align(t.cloud, s.cloud, t.tree, init_T_target_source=truth, registration_type="GICP",
                            max_correspondence_distance=1.0, max_iterations=30)
     registered = log_so3(np.asarray(res.T_target_source)[:3, :3])[axis]
-    ps, pt = fit_ground_plane(source), fit_ground_plane(target)
+    ps, pt = fit_ground_plane(s.points), fit_ground_plane(t.points)  # the scans as SLAM stores them
     ground = float("nan")
     if ps is not None and pt is not None:  # the rotation that maps the source's ground onto the target's
         ground = tilt_offset(np.eye(4), ps.normal, pt.normal)[axis]

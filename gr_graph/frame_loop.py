@@ -742,12 +742,20 @@ class _FrameLoop:
         with self.timer("graph"):
             self.graph.set_estimate(self.estimate.poses(K))
             res = self.graph.optimize(marginals=False)
+            calibrating = ((self.edge_noise is not None and self.edge_noise.calibrate)
+                           or self.cfg.graph.loop_variance != "fixed")
+            if calibrating and self.ground_tilt is not None:  # estimated on the informations before the widening
+                self.ground_tilt.restore()
             if self.edge_noise is not None and self.edge_noise.calibrate:
                 res = replace(self.calibrate_noise(res.poses), initial_error=res.initial_error)
             if self.cfg.graph.loop_variance != "fixed":
                 scaled = self.estimate_loop_variance(res.poses)
                 if scaled is not None:
                     res = replace(scaled, initial_error=res.initial_error)
+            if calibrating and self.ground_tilt is not None:  # then the calibrated informations widened
+                self.ground_tilt.rewiden()
+                self.graph = self._graph_of(res.poses, self.cfg.graph)
+                res = replace(self.graph.optimize(marginals=False), initial_error=res.initial_error)
         covs, marginals = None, None
         if self.cfg.graph.marginals:
             with self.timer("marginals"):

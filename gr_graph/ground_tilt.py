@@ -4,10 +4,10 @@ Why. Two scans taken from nearly the same place with the sensor tilted different
 with the body pitched by braking, accelerating or loading) sample the world along the same
 sensor-frame beams, but at other places. Registration by nearest neighbours (GICP, ICP, VGICP)
 is pulled towards the relative attitude at which the two ring patterns coincide, i.e. towards
-no relative tilt: in the synthetic town at 16 channels, GICP recovers about 13 % of a pure
-0.44° pitch between two renders from the same spot, and on the full route the loops' pitch
-errors follow the relative pitch of the two passes (correlation -0.9 with the offset below;
-benchmarks/results/findings.md, "The ground-tilt offset"). The registration's own residuals
+no relative tilt: in the clean synthetic town, GICP recovers 24-34 % of a pure 0.25-0.5° tilt
+between two renders from one spot at 16 channels (95-101 % at 64), and on the full route the
+loops' pitch errors follow the relative pitch of the two passes (correlation -0.85 to -0.88 with
+the offset below; benchmarks/results/findings.md, "The ground-tilt offset"). The registration's own residuals
 cannot show this error (they are smaller at the biased pose than at the true one), so no
 residual-based covariance (the Hessian, the cluster-robust sandwich) contains it.
 
@@ -33,8 +33,8 @@ Ground plane of one scan (:func:`fit_ground_plane`): the points below the sensor
 horizontal annulus (4-25 m by default), seeded at the 10th percentile of their heights, then
 least squares ``z = a x + b y + c`` refitted on the points within a band of the plane, a few
 times. The fit is refused (None, counted by :class:`GroundTiltOffsets`; the edges of that scan
-keep their information) when too few points support it or they do not spread around the sensor
-(a plane through one side of the annulus does not fix the tilt). It assumes a sensor mounted
+keep their information) when too few points support it or they spread too thinly in some
+horizontal direction (a strip of ground leaves the tilt across it open). It assumes a sensor mounted
 roughly level above the ground, z up (KITTI, most cars); on a sensor tilted by more than a few
 degrees the annulus misses the ground and the fit is refused or the offset meaningless.
 """
@@ -166,13 +166,17 @@ class GroundTiltOffsets:
 
     :meth:`widen` on every edge before it enters the graph, with the run's scans (sensor-frame
     points by run position); each scan's plane is fitted once, when an edge first needs it
-    (:meth:`forget` drops it when a scan is preprocessed again). Flagged edges (``ok=False``: a
-    fallback guess with its own weak noise) and edges of a scan without a ground plane keep
-    their information and are counted.
+    (:meth:`forget` drops it when a scan is preprocessed again; edges widened before keep their
+    offset). Flagged edges (``ok=False``: a fallback guess with its own weak noise) and edges of a
+    scan without a ground plane keep their information and are counted. The residual-based
+    calibrations (the learned noise's shared scale, the loops' variance factors) are estimated on
+    the informations before the widening (:meth:`restore`), which then widens the calibrated ones
+    (:meth:`rewiden`): ``Σ = Σ₀ / s + v vᵀ``, the offset stays in radians.
     """
 
     def __init__(self) -> None:
         self.planes: dict[int, GroundPlane | None] = {}
+        self.widened: list[tuple[Any, np.ndarray, np.ndarray]] = []  # (edge, information before, offset)
         self.offsets: dict[str, list[np.ndarray]] = {"odometry": [], "loop": []}
         self.n_without_ground = {"odometry": 0, "loop": 0}
         self.n_flagged = 0
@@ -198,9 +202,21 @@ class GroundTiltOffsets:
             self.n_without_ground[edge.kind] += 1
             return
         o = tilt_offset(edge.T, source.normal, target.normal)
+        self.widened.append((edge, np.array(edge.information, np.float64), o))
         edge.information = widened_information(edge.information, o)
         edge.info["ground_tilt_offset_deg"] = np.degrees(o).tolist()
         self.offsets[edge.kind].append(o)
+
+    def restore(self) -> None:
+        """Every widened edge back to its information before the widening (for the residual-based
+        calibrations, which are estimated without it; :meth:`rewiden` afterwards)."""
+        for edge, before, _ in self.widened:
+            edge.information = before.copy()
+
+    def rewiden(self) -> None:
+        """Widen every edge of :meth:`widen` again, from its information as it is now (calibrated)."""
+        for edge, _, o in self.widened:
+            edge.information = widened_information(edge.information, o)
 
     def summary(self) -> dict[str, Any]:
         """For the round summary: scans without a ground plane, edges widened or left, RMS offsets."""

@@ -201,3 +201,35 @@ def test_the_study_table_gives_one_mean_per_group_of_runs() -> None:
     text = study.table([("a-s0", row(1.0)), ("a-s1", row(3.0)), ("b-s0", row(5.0))])
     means = [line for line in text.splitlines() if "mean ± std" in line]
     assert len(means) == 1 and means[0].startswith("| a: mean ± std | 2 ± 1.41 / 2 ± 1.41")
+
+
+def test_the_loops_variance_factor_is_estimated_before_the_widening(tmp_path: Path) -> None:
+    """With ``graph.loop_variance: estimated`` the loops' factor comes from the informations before the
+    widening (the same factor as without the option), and the widening is added to the scaled ones."""
+    from slam_support import revisit_config, revisit_sequence
+
+    from gr_graph.ground_tilt import fit_ground_plane
+    from gr_graph.memory import load_memory
+    from gr_graph.pipeline import SlamPipeline
+
+    runs = {}
+    for on in (False, True):
+        cfg = revisit_config(tmp_path / str(on))
+        cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(
+            update={"ground_tilt_offset": on, "loop_variance": "estimated"})})
+        SlamPipeline(cfg, revisit_sequence(), "synthetic route revisit excerpt").run()
+        runs[on] = tmp_path / str(on) / "round_0"
+    factor = {on: json.loads((rd / "round.json").read_text())["loop_variance"]["scale"] for on, rd in runs.items()}
+    assert factor[True] == pytest.approx(factor[False], rel=1e-3)
+    assert abs(np.log(factor[False])) > 0.1  # a factor that matters
+    memory = load_memory(runs[True] / "memory")
+    planes = [fit_ground_plane(memory.scan(k)) for k in range(memory.n_scans)]
+    with np.load(runs[True] / "marginals.npz") as a, np.load(runs[False] / "marginals.npz") as b:
+        np.testing.assert_array_equal(a["edges"], b["edges"])
+        loops = np.nonzero(a["edge_kind"] == 1)[0]
+        assert len(loops) > 0
+        for e in loops:
+            k, l = a["edges"][e]
+            o = tilt_offset(a["edge_T"][e], planes[k].normal, planes[l].normal)
+            np.testing.assert_allclose(a["edge_information"][e], widened_information(b["edge_information"][e], o),
+                                       rtol=2e-3, atol=1e-9 * np.abs(b["edge_information"][e]).max())
