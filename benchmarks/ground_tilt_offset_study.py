@@ -16,7 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import shlex
 import sys
 from pathlib import Path
@@ -25,7 +24,13 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_factor_undone_study import REPRODUCE_RTOL, check_reproduced, solve_round  # noqa: E402
+from loop_factor_undone_study import (  # noqa: E402
+    REPRODUCE_RTOL,
+    check_reproduced,
+    rounds_given,
+    solve_round,
+    study_parser,
+)
 from results_io import print_and_write  # noqa: E402
 
 
@@ -124,29 +129,13 @@ def table(rows: list[tuple[str, dict[str, Any]]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("pairs", nargs="+", help="LABEL RUN@R, repeated")
-    ap.add_argument("--write", action="store_true", help="write benchmarks/results/NAME.md / .json")
-    ap.add_argument("--name", default="ground_tilt_offset_study")
-    ap.add_argument("--title", default="The ground-tilt offset on finished rounds, offline")
-    ap.add_argument("--note", default="", help="a paragraph written under the table (how the runs were made)")
+    ap = study_parser(__doc__, "ground_tilt_offset_study", "The ground-tilt offset on finished rounds, offline")
     args = ap.parse_args(argv)
-    if len(args.pairs) % 2:
-        ap.error("give LABEL RUN@R pairs")
-    import yaml
-
-    from gr_graph.config import load_config
-
     rows = []
-    for label, spec in zip(args.pairs[::2], args.pairs[1::2], strict=True):
-        run, _, r = spec.rpartition("@")
-        if not run or not r.isdigit():
-            ap.error(f"{spec}: give RUN@R (a run folder and a round number)")
-        round_dir = Path(run) / f"round_{r}"
+    for label, spec, round_dir, cfg in rounds_given(ap, args.pairs):
         if not (round_dir / "memory").is_dir():
             ap.error(f"{round_dir}: no memory folder (the stored scans the ground planes are fitted on)")
-        cfg = load_config(None, yaml.safe_load((Path(run) / "config.yaml").read_text()))
-        if int(r) > 0 and (cfg.training.densify or cfg.training.slam_voxel_size is not None):
+        if round_dir.name != "round_0" and (cfg.training.densify or cfg.training.slam_voxel_size is not None):
             ap.error(f"{spec}: a learning round's memory holds round 0's scans, and this run's learning rounds "
                      "registered others (training.densify or slam_voxel_size): the planes would not be the run's")
         rows.append((label, study_round(round_dir, cfg.graph)))

@@ -23,7 +23,7 @@ import json
 import shlex
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -115,27 +115,39 @@ def table(rows: list[tuple[str, dict[str, Any], dict[str, Any]]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def study_parser(doc: str, name: str, title: str) -> argparse.ArgumentParser:
+    """The command line of a study of finished rounds: ``LABEL RUN@R`` pairs, ``--write``, ``--name``,
+    ``--title``, ``--note``."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("pairs", nargs="+", help="LABEL RUN@R, repeated")
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/NAME.md / .json")
-    ap.add_argument("--name", default="loop_factor_undone")
-    ap.add_argument("--title", default="The graph without the loops' own variance factors")
+    ap.add_argument("--name", default=name)
+    ap.add_argument("--title", default=title)
     ap.add_argument("--note", default="", help="a paragraph written under the table (how the runs were made)")
-    args = ap.parse_args(argv)
-    if len(args.pairs) % 2:
+    return ap
+
+
+def rounds_given(ap: argparse.ArgumentParser, pairs: list[str]) -> Iterator[tuple[str, str, Path, Any]]:
+    """``(label, RUN@R, round folder, the run's configuration)`` of each ``LABEL RUN@R`` pair (errors
+    through ``ap``)."""
+    if len(pairs) % 2:
         ap.error("give LABEL RUN@R pairs")
     import yaml
 
     from gr_graph.config import load_config
 
-    rows = []
-    for label, spec in zip(args.pairs[::2], args.pairs[1::2], strict=True):
+    for label, spec in zip(pairs[::2], pairs[1::2], strict=True):
         run, _, r = spec.rpartition("@")
         if not run or not r.isdigit():
             ap.error(f"{spec}: give RUN@R (a run folder and a round number)")
-        round_dir = Path(run) / f"round_{r}"
-        cfg = load_config(None, yaml.safe_load((Path(run) / "config.yaml").read_text()))
+        yield label, spec, Path(run) / f"round_{r}", load_config(None, yaml.safe_load((Path(run) / "config.yaml").read_text()))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = study_parser(__doc__, "loop_factor_undone", "The graph without the loops' own variance factors")
+    args = ap.parse_args(argv)
+    rows = []
+    for label, _, round_dir, cfg in rounds_given(ap, args.pairs):
         as_run = solve_round(round_dir, cfg.graph, undo_loop_factors=False)
         check_reproduced(as_run, round_dir)
         rows.append((label, as_run, solve_round(round_dir, cfg.graph, undo_loop_factors=True)))
