@@ -816,7 +816,8 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
     d = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                     "render_process"}, "training": True,
                                            "device": True, "graph": {"loop_variance", "registration_covariance",
-                                                                      "cluster_size", "min_clusters"},
+                                                                      "cluster_size", "min_clusters",
+                                                                      "ground_tilt_offset"},
                                            "odometry": keyframes, "loops": loop_options, "sensor": spin_options})
     # sensor.time_unit / time_reference became None (guessed): hashed as their former defaults
     d["sensor"].update(time_unit="s", time_reference="sweep_start")
