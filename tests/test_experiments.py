@@ -838,13 +838,16 @@ def test_stop_on_reject_is_not_part_of_the_round_fingerprint():
                              ("sensor", {"frame_stamp": "sweep_start"})):
         lp = load_config(None, {"training": {"rounds": 2}, section: options})
         assert all(round_fingerprint(lp, r) != round_fingerprint(a, r) for r in (0, 1)), options
+    g = load_config(None, {"training": {"rounds": 2}, "graph": {"ground_tilt_offset": True}})
+    assert all(round_fingerprint(g, r) != round_fingerprint(now, r) for r in (0, 1))
     # training.keep_dropped likewise, for the learning rounds (round 0 never hashes the training section)
     k = load_config(None, {"training": {"rounds": 2, **legacy, "keep_dropped": True}})
     assert round_fingerprint(k, 1) != round_fingerprint(a, 1) and round_fingerprint(k, 0) == round_fingerprint(a, 0)
     d1 = a.model_dump(mode="json", exclude={"output": True, "data": {"prefetch", "frame_cache", "read_threads",
                                                                      "render_process"},
                                             "graph": {"loop_variance", "registration_covariance", "cluster_size",
-                                                      "min_clusters"}, "odometry": keyframes, "loops": loop_options,
+                                                      "min_clusters", "ground_tilt_offset"}, "odometry": keyframes,
+                                            "loops": loop_options,
                                             "sensor": spin_options,
                                             "training": {"rounds", "convergence_delta", "acceptance", "stop_on_reject",
                                                          "weights", "fine_tune", "keep_dropped", "prediction_passes",
