@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_factor_undone_study import (  # noqa: E402
     REPRODUCE_RTOL,
+    _fmt,
     check_reproduced,
     rounds_given,
     solve_round,
@@ -54,14 +55,14 @@ def ground_tilt_offsets(round_dir: Path, marginals: dict[str, np.ndarray]) -> tu
 def offset_agreement(marginals: dict[str, np.ndarray], offsets: np.ndarray, has: np.ndarray) -> dict[str, Any]:
     """Per edge kind: correlation of the offsets with the edges' roll and pitch errors against the ground
     truth, and their RMS [deg]."""
-    import gtsam
+    from gr_graph.noise_consistency import edge_errors, gt_relative_poses
 
     out: dict[str, Any] = {}
     for kind, name in ((0, "odometry"), (1, "loop")):
         sel = np.nonzero(has & (marginals["edge_kind"] == kind))[0]
-        err = np.array([gtsam.Pose3.Logmap(gtsam.Pose3(
-            np.linalg.inv(np.linalg.inv(marginals["gt_poses"][l]) @ marginals["gt_poses"][k]) @ marginals["edge_T"][e]))[:2]
-            for e, (k, l) in zip(sel, marginals["edges"][sel], strict=True)]).reshape(-1, 2)
+        # the measurement's deviation from the truth, Log(T_kl^-1 T̂_kl) = -Log(T̂_kl^-1 T_kl)
+        err = -edge_errors(marginals["edge_T"][sel], gt_relative_poses(marginals["edges"][sel],
+                                                                       marginals["gt_poses"]))[:, :2]
         o = offsets[sel, :2]
         out[name] = {"n": len(sel), "corr_roll_pitch": [float(np.corrcoef(o[:, a], err[:, a])[0, 1]) for a in (0, 1)],
                      "rms_offset_deg": np.degrees(np.sqrt(np.mean(o**2, axis=0))).tolist(),
@@ -88,10 +89,6 @@ def study_round(round_dir: Path, graph_cfg: Any) -> dict[str, Any]:
     undone = solve_round(round_dir, graph_cfg, undo_loop_factors=True)
     tilt = solve_round(round_dir, graph_cfg, undo_loop_factors=True, information_change=widen)
     return {"as_run": as_run, "loop_factors_undone": undone, "ground_tilt_offset": tilt, **seen}
-
-
-def _fmt(x: float) -> str:
-    return f"{x:.3g}"
 
 
 KEYS = ("odometry_nees", "loop_nees", "position_nees", "ate_rmse")

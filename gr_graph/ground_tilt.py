@@ -177,7 +177,6 @@ class GroundTiltOffsets:
     def __init__(self) -> None:
         self.planes: dict[int, GroundPlane | None] = {}
         self.widened: list[tuple[Any, np.ndarray, np.ndarray]] = []  # (edge, information before, offset)
-        self.offsets: dict[str, list[np.ndarray]] = {"odometry": [], "loop": []}
         self.n_without_ground = {"odometry": 0, "loop": 0}
         self.n_flagged = 0
 
@@ -205,7 +204,6 @@ class GroundTiltOffsets:
         self.widened.append((edge, np.array(edge.information, np.float64), o))
         edge.information = widened_information(edge.information, o)
         edge.info["ground_tilt_offset_deg"] = np.degrees(o).tolist()
-        self.offsets[edge.kind].append(o)
 
     def restore(self) -> None:
         """Every widened edge back to its information before the widening (for the residual-based
@@ -223,8 +221,8 @@ class GroundTiltOffsets:
         out: dict[str, Any] = {"n_scans_fitted": len(self.planes),
                                "n_scans_without_ground": sum(p is None for p in self.planes.values()),
                                "n_flagged_edges_left": self.n_flagged}
-        for kind, offs in self.offsets.items():
-            o = np.degrees(np.asarray(offs).reshape(-1, 3))
-            out[kind] = {"n_widened": len(offs), "n_without_ground": self.n_without_ground[kind],
-                         "rms_offset_deg": np.sqrt(np.mean(o**2, axis=0)).tolist() if len(o) else None}
+        for kind in ("odometry", "loop"):
+            deg = np.degrees(np.asarray([o for edge, _, o in self.widened if edge.kind == kind]).reshape(-1, 3))
+            out[kind] = {"n_widened": len(deg), "n_without_ground": self.n_without_ground[kind],
+                         "rms_offset_deg": np.sqrt(np.mean(deg**2, axis=0)).tolist() if len(deg) else None}
         return out
