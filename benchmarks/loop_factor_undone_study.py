@@ -46,7 +46,7 @@ def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool,
     from gr_graph.metrics import ate
     from gr_graph.noise_calibration import _axis_scaled
     from gr_graph.noise_consistency import round_noise_consistency
-    from gr_graph.pose_graph import PoseGraph, position_covariance_world
+    from gr_graph.pose_graph import build_pose_graph, position_covariance_world
 
     with np.load(round_dir / "marginals.npz") as z:
         d = {k: np.array(z[k]) for k in z.files}
@@ -61,11 +61,8 @@ def solve_round(round_dir: Path, graph_cfg: Any, undo_loop_factors: bool,
             information[i] = _axis_scaled(information[i], 1.0 / axes) / common
     if information_change is not None:
         information = information_change(d, information)
-    graph = PoseGraph(graph_cfg)
-    for T in d["poses"]:
-        graph.add_pose(T)
-    for (k, l), T, H, loop in zip(d["edges"], d["edge_T"], information, loops, strict=True):
-        graph.add_edge(int(k), int(l), T, H, loop=bool(loop))
+    graph = build_pose_graph(graph_cfg, d["poses"], ((k, l, T, H, loop) for (k, l), T, H, loop
+                                                     in zip(d["edges"], d["edge_T"], information, loops, strict=True)))
     res = graph.optimize(marginals=True)
     d.update(poses=res.poses, covariance=res.covariances, edge_information=information,
              position_cov_world=position_covariance_world(res.poses, res.covariances))

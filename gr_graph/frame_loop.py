@@ -62,7 +62,7 @@ from gr_graph.noise_calibration import (
     outlying_loop,
     variance_factor,
 )
-from gr_graph.pose_graph import GraphResult, PoseGraph
+from gr_graph.pose_graph import GraphResult, PoseGraph, build_pose_graph
 from gr_graph.preprocess import Scan, preprocess_scan, rebuild_scan
 
 log = logging.getLogger(__name__)
@@ -718,14 +718,9 @@ class _FrameLoop:
         """A new pose graph with ``poses`` as estimate and every edge of the run (with
         ``informations`` in edge order instead of the edges' own, if given), but the edges at
         the positions ``skip``."""
-        graph = PoseGraph(graph_cfg)
-        for T in poses:
-            graph.add_pose(T)
         infos = informations if informations is not None else [e.information for e in self.edges]
-        for i, (e, H) in enumerate(zip(self.edges, infos, strict=True)):
-            if i not in skip:
-                graph.add_edge(e.source, e.target, e.T, H, loop=e.kind == "loop")
-        return graph
+        return build_pose_graph(graph_cfg, poses, ((e.source, e.target, e.T, H, e.kind == "loop") for i, (e, H)
+                                                   in enumerate(zip(self.edges, infos, strict=True)) if i not in skip))
 
     def finish(self) -> SlamResult:
         """Optimise the whole graph, compute the marginals; the run's result (the frame loop

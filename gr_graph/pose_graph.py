@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -286,6 +287,18 @@ class PoseGraph:
     def current_poses(self) -> np.ndarray:
         """(K, 4, 4) poses of the current estimate."""
         return np.stack([self.values.atPose3(X(i)).matrix() for i in range(self.n_poses)])
+
+
+def build_pose_graph(cfg: GraphConfig, poses: np.ndarray,
+                     edges: Iterable[tuple[int, int, np.ndarray, np.ndarray, bool]]) -> PoseGraph:
+    """A pose graph with ``poses`` ``(K, 4, 4)`` as estimate (the prior on the first) and one factor per
+    ``(k, l, T̂_kl, information, is_loop)`` of ``edges`` (:meth:`PoseGraph.add_edge`)."""
+    graph = PoseGraph(cfg)
+    for T in poses:
+        graph.add_pose(T)
+    for k, l, T, H, loop in edges:
+        graph.add_edge(int(k), int(l), T, H, loop=bool(loop))
+    return graph
 
 
 def position_covariance_world(poses: np.ndarray, covs: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gr_graph.config import GraphConfig
-from gr_graph.pose_graph import PoseGraph, position_covariance_world
+from gr_graph.pose_graph import PoseGraph, build_pose_graph, position_covariance_world
 
 
 def pose(t=(0, 0, 0), yaw=0.0):
@@ -166,3 +166,22 @@ def test_connected_graph_marginals_report_ok():
     covs, report = g.marginals_with_fallback()
     assert report.status == "ok" and report.error is None and report.fallback_poses == 0
     np.testing.assert_allclose(covs, g.marginal_covariances())
+
+
+def test_build_pose_graph_adds_the_poses_and_edges_it_is_given():
+    poses = np.stack([pose((i, 0.1 * i, 0), yaw=0.05 * i) for i in range(5)])
+    info = np.diag([1e4, 1e4, 1e4, 100, 100, 100.0])
+    edges = [(k + 1, k, np.linalg.inv(poses[k]) @ poses[k + 1] @ pose((0.01, 0, 0)), info, False) for k in range(4)]
+    edges.append((4, 0, np.linalg.inv(poses[0]) @ poses[4], 4 * info, True))
+    cfg = GraphConfig()
+    built = build_pose_graph(cfg, poses, iter(edges))  # any iterable, consumed once
+    by_hand = PoseGraph(cfg)
+    for T in poses:
+        by_hand.add_pose(T)
+    for k, l, T, H, loop in edges:
+        by_hand.add_edge(k, l, T, H, loop=loop)
+    assert built.n_poses == 5 and built.n_loops == 1 and built.graph.size() == by_hand.graph.size() == 6
+    assert built.graph.error(built.values) == pytest.approx(by_hand.graph.error(by_hand.values), rel=1e-12)
+    assert built.graph.error(built.values) > 0  # the odometry's 1 cm disagrees with the poses
+    np.testing.assert_allclose(built.optimize(marginals=False).poses, by_hand.optimize(marginals=False).poses,
+                               atol=1e-12)
