@@ -4,17 +4,18 @@ For each finished round (``marginals.npz``): the odometry edges' NEES one by one
 10 and 100 consecutive edges (:func:`gr_graph.noise_consistency.chain_nees`: the error of the
 relative pose a chain adds up to, against the covariance its edges give it when independent, as
 the graph takes them), the same edges chained in a random order (every edge of the 100-edge chains
-once; their covariances kept, any correlation between neighbours removed), the per-axis ``z²`` of edges and chains, and the
-marginals' position NEES, horizontal and vertical. Chains below their shuffled figure: errors that
-cancel from one edge to the next; above: errors that persist. With ``--draws N``, also the spread of
-one run's mean position NEES were every edge's information exact
+once; their covariances kept, any correlation between neighbours removed), the per-axis ``z²`` of
+edges and chains, and the marginals' position NEES, horizontal and vertical. Chains below their
+shuffled figure: errors that cancel from one edge to the next; above: errors that persist. With
+``--draws N``, also the spread of one run's mean position NEES were every edge's information exact
 (:func:`gr_graph.noise_consistency.position_nees_draws`, Monte Carlo around the round's solution,
 the graph solved as the run did): its 5 / 50 / 95 % points, how often it falls in the band, and
 where the observed figure falls among the draws.
 
 Usage::
 
-    python benchmarks/position_nees_study.py LABEL RUN@R [LABEL RUN@R ...] [--draws N] [--seed S --name N --title T --note N --write]
+    python benchmarks/position_nees_study.py LABEL RUN@R [LABEL RUN@R ...] [--draws N] [--seed S]
+        [--name N --title T --note N --write]
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ def study_round(round_dir: Path, seed: int, graph_cfg: Any, draws: int) -> dict[
                              gt_relative_poses(edges, gt), LONG)
     odometry = nc["edges"]["odometry"]
     out = {"odometry": {k: odometry[k] for k in ("n", "mean", "per_axis", "chains")},
-           "chains_shuffled": {str(LONG): shuffled}, "position": nc["position"], "loop_nees": nc["edges"]["loop"]["mean"]}
+           "chains_shuffled": {str(LONG): shuffled}, "position": nc["position"],
+           "loop_nees": nc["edges"]["loop"]["mean"]}
     if draws:
         out["position_draws"] = position_nees_draws(round_dir, graph_cfg, draws, seed, progress=True)
     return out
@@ -139,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             "Group rows: mean ± std over the group's runs, the z² columns their means.\n\n"
             + table(rows) + "\n"
             + (f"\nThe spread of one run's mean position NEES if every edge's information were exact ({args.draws} "
-               "draws a round, seed " f"{args.seed}; gr_graph.noise_consistency.position_nees_draws: measurements drawn "
+               f"draws a round, seed {args.seed}; gr_graph.noise_consistency.position_nees_draws: measurements drawn "
                "around the round's solution from the covariances its graph uses, the graph solved as the run did, "
                "scored with the round's own marginals):\n\n" + draws_table(rows) + "\n" if args.draws else "")
             + (f"\n{args.note}\n" if args.note else ""))

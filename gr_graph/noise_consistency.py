@@ -161,8 +161,9 @@ def chain_nees(edges: np.ndarray, edge_T: np.ndarray, information: np.ndarray, g
     edge's right perturbation carried into the chain's last frame), the informations floored as
     the pose graph floors them (``min_eigenvalue``, ``graph.min_information_eigenvalue``; the
     per-edge NEES uses them unfloored, the same wherever no eigenvalue is below the floor). This
-    is the independence the pose graph assumes: mean NEES 6 over chains when it holds, whatever ``m``. Edges whose
-    errors are correlated along the chain show here and not in the per-edge NEES: errors that
+    is the independence the pose graph assumes: mean NEES 6 over chains when it holds, whatever
+    ``m``. Edges whose errors are correlated along the chain show here and not in the per-edge
+    NEES: errors that
     partly cancel from one edge to the next (a scan's own error enters the edges on both of its
     sides with opposite signs) give chain NEES below the per-edge one, so the marginals' positions,
     which accumulate the chain, turn conservative; errors that persist (a bias) give it above.
@@ -191,7 +192,8 @@ def chain_nees_of(chains: list[np.ndarray], edge_T: np.ndarray, information: np.
         return out
     edge_T = np.asarray(edge_T, np.float64)
     used = np.unique(np.concatenate(chains))
-    cov = {int(i): np.linalg.inv(floored_information(information[i], min_eigenvalue=min_eigenvalue)[0]) for i in used}
+    cov = {int(i): np.linalg.inv(floored_information(information[i], min_eigenvalue=min_eigenvalue)[0])
+           for i in used}
     nees, z2, edge_z2 = [], [], []
     for chain in chains:
         measured = gtsam.Pose3()
@@ -303,9 +305,10 @@ def position_nees_draws(round_dir: str | Path, graph_cfg: Any, n_draws: int = 10
     Returns
     -------
     dict
-        ``n_draws``, ``seed``, per part (``position``, ``horizontal``, ``vertical``) each draw's mean NEES
-        (``draws``), their ``mean`` and ``percentiles`` 5 / 50 / 95, and for ``position`` ``frac_in_band`` (:data:`POSITION_BAND`),
-        ``observed`` and ``observed_percentile`` (None without ground truth).
+        ``n_draws``, ``seed``, per part (``position``, ``horizontal``, ``vertical``) each draw's mean
+        NEES (``draws``), their ``mean`` and ``percentiles`` 5 / 50 / 95, and for ``position``
+        ``frac_in_band`` (:data:`POSITION_BAND`), ``observed`` and ``observed_percentile`` (None
+        without ground truth).
     """
     from factors.noise import floored_information
     from gr_graph.pose_graph import build_pose_graph
@@ -316,7 +319,8 @@ def position_nees_draws(round_dir: str | Path, graph_cfg: Any, n_draws: int = 10
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file (not a finished round)")
     with np.load(path) as z:
-        missing = [k for k in ("poses", "position_cov_world", "edges", "edge_information", "edge_kind") if k not in z.files]
+        missing = [k for k in ("poses", "position_cov_world", "edges", "edge_information", "edge_kind")
+                   if k not in z.files]
         if missing:
             raise ValueError(f"{path}: lacks {missing}")
         d = {k: np.array(z[k]) for k in z.files}
@@ -330,6 +334,8 @@ def position_nees_draws(round_dir: str | Path, graph_cfg: Any, n_draws: int = 10
     marginals = (read_json_or_none(Path(round_dir) / "round.json") or {}).get("marginals")
     keep = ~poses_without_world_marginals(d["position_cov_world"], marginals)
     keep[0] = True  # _position_errors drops the first pose itself
+    if keep.sum() < 2:
+        raise ValueError(f"{path}: no pose besides the first has a world-frame position marginal")
     cov = d["position_cov_world"][keep]
     rng = np.random.default_rng(seed)
     draws = np.empty((n_draws, 3))
@@ -358,7 +364,8 @@ def position_nees_draws(round_dir: str | Path, graph_cfg: Any, n_draws: int = 10
     if "gt_poses" in d:
         observed = float(position_nees(d["poses"][keep], cov, d["gt_poses"][keep]).mean())
     out["position"]["observed"] = observed
-    out["position"]["observed_percentile"] = None if observed is None else float(100.0 * np.mean(draws[:, 0] < observed))
+    out["position"]["observed_percentile"] = (None if observed is None
+                                              else float(100.0 * np.mean(draws[:, 0] < observed)))
     return out
 
 
@@ -462,15 +469,16 @@ def format_table(result: dict[str, Any]) -> str:
 
     lines = ["| round | odometry NEES mean (n) | odometry chains of " + " / ".join(map(str, CHAIN_LENGTHS))
              + ": NEES mean | loop NEES mean (n) | position NEES mean / median "
-             "| position NEES horizontal / vertical | odometry / loop: worst axis (z^2) |", "|---|---|---|---|---|---|---|"]
+             "| position NEES horizontal / vertical | odometry / loop: worst axis (z^2) |",
+             "|---|---|---|---|---|---|---|"]
     for r, res in result.items():
         o, lp, p = res["edges"]["odometry"], res["edges"]["loop"], res["position"]
         lines.append(f"| {r} | {f(o['mean'])} ({o['n']}) | {chains(o)} | {f(lp['mean'])} ({lp['n']}) | "
                      f"{f(p['mean'])} / {f(p['median'])} | {part(p, 'horizontal')} / {part(p, 'vertical')} | "
                      f"{worst(o)} / {worst(lp)} |")
-    lines.append("ideal: edges and chains of edges 6 (chi2(6)), positions 3 (chi2(3)), horizontal 2, vertical 1; median of chi2(6) 5.35, "
-                 "of chi2(3) 2.37; z^2 = error^2 / variance of one axis, ideal 1 (the JSON has every axis, error mean "
-                 "and RMS, and the position error RMS per world axis)")
+    lines.append("ideal: edges and chains of edges 6 (chi2(6)), positions 3 (chi2(3)), horizontal 2, vertical 1; "
+                 "median of chi2(6) 5.35, of chi2(3) 2.37; z^2 = error^2 / variance of one axis, ideal 1 (the JSON "
+                 "has every axis, error mean and RMS, and the position error RMS per world axis)")
     return "\n".join(lines)
 
 

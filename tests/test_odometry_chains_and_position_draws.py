@@ -244,6 +244,12 @@ def test_position_nees_draws_without_ground_truth_and_bad_input(tmp_path, capsys
         position_nees_draws(rd, cfg, n_draws=0)
     with pytest.raises(FileNotFoundError, match="marginals.npz"):
         position_nees_draws(tmp_path / "nowhere", cfg)
+    with np.load(rd / "marginals.npz") as z:
+        failed = {k: np.array(z[k]) for k in z.files}
+    failed["position_cov_world"][:] = np.nan  # every marginal failed: nothing to score
+    np.savez(rd / "marginals.npz", **failed)
+    with pytest.raises(ValueError, match="no pose besides the first"):
+        position_nees_draws(rd, cfg, n_draws=2)
     # the command line: a run with ground truth and its config.yaml
     rd, cfg = _loop_round(tmp_path / "cli", np.random.default_rng(6))
     (rd.parent / "config.yaml").write_text("graph: {loop_kernel: none}\n")
