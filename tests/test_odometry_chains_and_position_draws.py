@@ -5,6 +5,8 @@ implies) and the spread of one run's mean position NEES under an exact noise mod
 
 from __future__ import annotations
 
+import json
+
 import gtsam
 import numpy as np
 import pytest
@@ -202,8 +204,6 @@ def test_position_nees_draws_floor_the_informations_and_leave_out_poses_as_the_n
     """An edge without information along one axis (the graph floors it; without the floor it could
     not be sampled) and poses whose marginals failed (NaN) or were anchored apart: the draws stay
     finite and the observed figure is round_noise_consistency's."""
-    import json
-
     rd, cfg = _loop_round(tmp_path, np.random.default_rng(8))
     with np.load(rd / "marginals.npz") as z:
         arrays = {k: np.array(z[k]) for k in z.files}
@@ -286,3 +286,21 @@ def test_position_nees_study_reports_chains_shuffled_chains_and_draws(tmp_path, 
     assert study.shuffled_chains([], 3) == []
     r = study.study_round(rd, 3, cfg, 0)
     assert "position_draws" not in r and r["chains_shuffled"]["10"]["n"] == 5
+
+
+def test_position_nees_figure_draws_the_rounds_with_draws(tmp_path):
+    from benchmark_support import benchmark_script
+
+    figure = benchmark_script("position_nees_figure")
+    rng = np.random.default_rng(10)
+    runs = [{"label": f"r{i}", "position_draws": {"position": {"draws": rng.chisquare(3, 50).tolist(),
+                                                               "observed": 1.0 + i}}} for i in range(3)]
+    runs.append({"label": "no-draws"})
+    (tmp_path / "study.json").write_text(json.dumps({"runs": runs}))
+    out = tmp_path / "fig" / "draws.png"
+    assert figure.main([str(tmp_path / "study.json"), str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 5000
+    (tmp_path / "none.json").write_text(json.dumps({"runs": [{"label": "no-draws"}]}))
+    with pytest.raises(SystemExit):
+        figure.main([str(tmp_path / "none.json"), str(tmp_path / "none.png")])
+    assert not (tmp_path / "none.png").exists()
