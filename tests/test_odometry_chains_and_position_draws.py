@@ -20,7 +20,7 @@ from gr_graph.noise_consistency import (
     position_nees_draws,
     round_noise_consistency,
 )
-from gr_graph.pose_graph import PoseGraph, position_covariance_world
+from gr_graph.pose_graph import build_pose_graph, position_covariance_world
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:
@@ -152,11 +152,7 @@ def _loop_round(tmp_path, rng: np.random.Generator, cov_factor: float = 1.0, wit
     chol = np.linalg.cholesky(np.linalg.inv(info))
     edge_T = np.array([np.linalg.inv(gt[l]) @ gt[k] @ _exp(-chol @ rng.normal(size=6)) for k, l in pairs])
     cfg = GraphConfig(loop_kernel="none")
-    graph = PoseGraph(cfg)
-    for T in gt:
-        graph.add_pose(T)
-    for (k, l), T in zip(pairs, edge_T):
-        graph.add_edge(k, l, T, info, loop=k != l + 1)
+    graph = build_pose_graph(cfg, gt, ((k, l, T, info, k != l + 1) for (k, l), T in zip(pairs, edge_T)))
     res = graph.optimize(marginals=True)
     rd = tmp_path / "run" / "round_0"
     rd.mkdir(parents=True)
