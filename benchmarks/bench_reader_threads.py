@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gr_graph.atomic import read_json_or_none
+
 RESULTS = Path(__file__).resolve().parent / "results"
 HERE = Path(__file__).resolve().parents[1]
 
@@ -59,7 +61,7 @@ SETTINGS: dict[str, tuple[str, str, tuple[Variant, Variant]]] = {
 def run_one(work: Path, variant: Variant, rep: int, frames: str, channels: int) -> Path:
     """The run of ``variant``, repeat ``rep`` (skipped when finished)."""
     out = work / f"{variant.label}_{rep}"
-    if (out / "metrics.json").is_file():
+    if "final_round" in (read_json_or_none(out / "metrics.json") or {}):  # finished (written after each round)
         return out
     cfg = work / f"{variant.label}.yaml"
     cfg.write_text(f"data:\n  read_threads: {variant.read_threads}\noutput:\n  plot: false\n")

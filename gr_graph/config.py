@@ -115,6 +115,13 @@ class PreprocessConfig(_Section):
     num_neighbors: int = Field(10, ge=5, description="neighbours for the per-point GICP covariances")
     min_points: int = Field(100, ge=10, description="fewer points after preprocessing: the scan is unusable")
 
+    @model_validator(mode="after")
+    def _range_not_empty(self) -> PreprocessConfig:
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range {self.min_range:g} m is not below max_range {self.max_range:g} m: no point "
+                             "would be kept")
+        return self
+
 
 class OdometryConfig(_Section):
     """VGICP front end (small_gicp) with a constant-velocity initial guess."""

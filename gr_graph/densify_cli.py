@@ -101,11 +101,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for other, what in ((out, "OUT"), (Path(args.input), "IN")):
             if Path(args.covariances).resolve() == other.resolve():
                 raise ValueError(f"{args.covariances}: --covariances is {what}; it would be overwritten")
+    default = PreprocessConfig()
+    lo = default.min_range if args.min_range is None else args.min_range
+    hi = default.max_range if args.max_range is None else args.max_range
+    if lo >= hi:  # said with the options' names, before the config's own check
+        raise ValueError(f"--min-range {lo:g} m is not below --max-range {hi:g} m: no point would be left")
     pre = PreprocessConfig(**{k: v for k, v in (("voxel_size", args.voxel_size), ("min_range", args.min_range),
                                                  ("max_range", args.max_range)) if v is not None})
-    if pre.min_range >= pre.max_range:
-        raise ValueError(f"--min-range {pre.min_range:g} m is not below --max-range {pre.max_range:g} m: no point "
-                         "would be left")
     points, intensity, dropped = read_cloud_counted(args.input, args.point_format)
     try:
         res = densify_cloud(points, args.weights, intensity=intensity, tau_ani=args.tau_ani,

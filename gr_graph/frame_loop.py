@@ -47,8 +47,9 @@ from tqdm import tqdm
 
 from gr_graph.config import GraphConfig, SlamConfig, loop_max_rmse
 from gr_graph.sensors import SensorConfig, check_sequence_sensor
-from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, find_in_chain, is_motion_compensated
-from gr_graph.datasets.frame_fields import FieldConventions
+from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, is_motion_compensated
+from gr_graph.datasets.registry import counted_rings
+from gr_graph.datasets.stamp_gaps import motion_times
 from gr_graph.deskew import deskew, deskew_covariances, sweep_motion_from_velocity, times_from_azimuth
 from gr_graph.edge_noise import LearnedEdgeNoise
 from gr_graph.ground_tilt import GroundTiltOffsets
@@ -210,13 +211,10 @@ def unnamed_sensor_note(sequence: Any, sensor: SensorConfig, max_rmse: float) ->
     and no sensor was named: the loop threshold (and the catalogue's other figures) are then the
     default sensor's. Only for loaders that count rings from the data (folders, bags); None
     otherwise."""
-    owner = find_in_chain(sequence, "conventions", accept=lambda c: isinstance(c, FieldConventions))
-    if owner is None:
+    rings = counted_rings(sequence)
+    if sensor.named_beams is not None or rings in (None, sensor.beams):
         return None
-    conv = owner.conventions
-    if sensor.named_beams is not None or not conv.has_ring or conv.fixed_rings or conv.n_rings == sensor.beams:
-        return None
-    return (f"the data hold {conv.n_rings} rings but no sensor is named: the loop-verification RMSE threshold is "
+    return (f"the data hold {rings} rings but no sensor is named: the loop-verification RMSE threshold is "
             f"the {sensor.model}'s ({max_rmse:.3f} m for {sensor.beams} beams); name the sensor (--sensor MODEL, "
             "or sensor: {model: custom, n_beams: N, vertical_fov_deg: [...]}) for thresholds of its ring spacing")
 
@@ -425,6 +423,9 @@ class _FrameLoop:
         self.startup_frames: list[LidarFrame] = []  # raw frames seen before any motion was known
         self.startup_given_up = False  # more than MAX_STARTUP_FRAMES of them: they stay as they are
         self.stamps_moved_by_s = float(getattr(sequence, "stamps_moved_by_s", 0.0))  # by the loader (stamp_shift)
+        stamps = getattr(sequence, "timestamps", None)
+        # the motion model's times: stamps displaced off the sensor's beat moved back onto it (stamp_gaps)
+        self.motion = None if stamps is None else motion_times(stamps, getattr(sequence, "name", "sequence"))
         if self.stamps_moved_by_s and not self.deskew_on:
             log.warning("the frame stamps were moved by %+.4g s to the sweeps' middles, but deskewing is off (%s): "
                         "the poses refer to the scans as the data hold them, not necessarily to the sweeps' middles",
@@ -482,10 +483,9 @@ class _FrameLoop:
         rebuilt from them, so that no distorted scan stays in the map (a car already driving
         at frame 0 would otherwise see its first deskewed scan jump against them).
         """
-        ts = self.sequence.timestamps
         frame_period = self.odometry.last_increment_period  # the time the increment spans (after a flagged step too)
-        if frame_period is None:
-            frame_period = float(ts[i - 1] - ts[i - 2]) if i >= 2 else None
+        if frame_period is None and i >= 2:
+            frame_period = self.frame_time_step(i - 1)
         increment = self.odometry.last_increment
         with self.timer("deskew"):
             out = self.deskewer(frame, increment, frame_period)
@@ -526,8 +526,9 @@ class _FrameLoop:
 
     def frame_time_step(self, i: int) -> float | None:
         """Seconds between frames ``i - 1`` and ``i`` (run positions) from the sequence's
-        timestamps; None for the first frame or when the timestamps do not say."""
-        ts = getattr(self.sequence, "timestamps", None)
+        timestamps, displaced stamps moved onto the sensor's beat (:func:`motion_times`); None for
+        the first frame or when the timestamps do not say."""
+        ts = None if self.motion is None else self.motion.times
         if i < 1 or ts is None or len(ts) <= i:
             return None
         dt = float(ts[i]) - float(ts[i - 1])
@@ -775,8 +776,12 @@ class _FrameLoop:
                   "scans_left_out_of_map": self.odometry.scans_left_out_of_map,
                   "deskew": self.deskewer.summary(self.deskew_on, self.cfg.odometry.deskew, self.deskew_reason,
                                                   self.stamps_moved_by_s),
+                  "stamp_gaps": None if self.motion is None else self.motion.summary(),
                   "sensor": {"model": self.cfg.sensor.model, "channels": self.cfg.channels,
-                             "loop_max_rmse": self.loop_cfg.max_rmse},
+                             "loop_max_rmse": self.loop_cfg.max_rmse,
+                             # rings a folder or bag loader counted (None: not counted), beside the
+                             # configured sensor's channels whose figures the run used
+                             "data_rings": counted_rings(self.sequence)},
                   "marginals": marginals, "loop_variance": self.loop_variance,
                   "ground_tilt_offset": None if self.ground_tilt is None else self.ground_tilt.summary()},
         )

@@ -24,7 +24,8 @@ position covariances and the re-anchored ground truth):
   Split into horizontal (ideal 2) and vertical (ideal 1) parts (:func:`position_nees_split`);
 - **chain NEES of the odometry** (:func:`chain_nees`, chains of 10 and 100 consecutive edges):
   the error of the relative pose a chain adds up to, against the covariance the graph's
-  independent edges give it. The positions accumulate chains, so where the per-edge NEES is
+  independent edges give it (their informations floored as the run's graph did:
+  :func:`run_min_eigenvalue`). The positions accumulate chains, so where the per-edge NEES is
   right and the chains' is not (errors that cancel or persist from one edge to the next), the
   marginals' positions are off in the same direction.
 
@@ -54,7 +55,7 @@ from gr_graph.config import GraphConfig
 
 __all__ = ["edge_nees", "gt_relative_poses", "edge_errors", "axis_stats", "path_error_percent", "AXES",
            "position_nees", "position_nees_split", "odometry_chains", "chain_nees", "chain_nees_of",
-           "CHAIN_LENGTHS", "MIN_EIGENVALUE", "POSITION_BAND", "position_nees_draws",
+           "CHAIN_LENGTHS", "MIN_EIGENVALUE", "POSITION_BAND", "position_nees_draws", "run_min_eigenvalue",
            "poses_without_world_marginals", "round_noise_consistency", "run_noise_consistency", "main"]
 
 EDGE_KINDS = {0: "odometry", 1: "loop"}
@@ -383,12 +384,47 @@ def poses_without_world_marginals(covariance_world: np.ndarray, marginals: dict[
     return out
 
 
-def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | None = None) -> dict[str, Any]:
+def run_min_eigenvalue(round_dir: str | Path) -> float:
+    """The eigenvalue floor the round's graph used: ``graph.min_information_eigenvalue`` of the run's
+    ``config.yaml`` (the folder above ``round_dir``), else :data:`MIN_EIGENVALUE` (no config, or one
+    that does not set it: the default then applied).
+
+    Raises
+    ------
+    ValueError
+        When the config holds a value that is not a positive number, naming the file.
+    """
+    import yaml
+
+    path = Path(round_dir).parent / "config.yaml"
+    if not path.is_file():
+        return MIN_EIGENVALUE
+    with open(path) as f:
+        cfg = yaml.safe_load(f) or {}
+    graph = cfg.get("graph") if isinstance(cfg, dict) else None
+    value = graph.get("min_information_eigenvalue") if isinstance(graph, dict) else None
+    if value is None:
+        return MIN_EIGENVALUE
+    if isinstance(value, str):  # YAML reads 1e-3 (no dot) as a string; the config's loader takes it as a number
+        try:
+            value = float(value)
+        except ValueError:
+            pass
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{path}: graph.min_information_eigenvalue must be a positive number, got {value!r}")
+    return float(value)
+
+
+def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | None = None,
+                            min_eigenvalue: float | None = None) -> dict[str, Any]:
     """Edge NEES per kind and position NEES of the marginals of one finished round.
 
     ``marginals`` is the round's :class:`gr_graph.pose_graph.MarginalsReport` as a dict (default: read
     from its ``round.json`` when there is one): the position NEES leaves out the poses of
-    :func:`poses_without_world_marginals`, counted in ``position["n_left_out"]``.
+    :func:`poses_without_world_marginals`, counted in ``position["n_left_out"]``. The chains of
+    odometry edges floor each edge's information as the round's graph did: at ``min_eigenvalue``
+    (default: :func:`run_min_eigenvalue`, the run's ``graph.min_information_eigenvalue``), recorded
+    in ``edges["odometry"]["chain_min_eigenvalue"]``.
 
     Raises
     ------
@@ -420,8 +456,10 @@ def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | N
         out["edges"][kind] = {**_stats(nees[sel], 6), "per_axis": axis_stats(xi[sel], info[sel])}
     odometry = (d["edge_kind"] == 0) & ok  # the same edges as the NEES: flagged registrations left out
     out["edges"]["odometry"]["path_error_percent"] = path_error_percent(d["edge_T"][odometry], T_gt[odometry])
+    floor = run_min_eigenvalue(round_dir) if min_eigenvalue is None else float(min_eigenvalue)
     out["edges"]["odometry"]["chains"] = {str(m): chain_nees(d["edges"][odometry], d["edge_T"][odometry],
-                                                             info[odometry], gt, m) for m in CHAIN_LENGTHS}
+                                                             info[odometry], gt, m, floor) for m in CHAIN_LENGTHS}
+    out["edges"]["odometry"]["chain_min_eigenvalue"] = floor
     out["edges"]["n_flagged_left_out"] = int((~ok).sum())
     if marginals is None:
         marginals = (read_json_or_none(Path(round_dir) / "round.json") or {}).get("marginals")

@@ -60,7 +60,8 @@ from gr_graph.atomic import atomic_write_bytes
 from gr_graph.config import GraphConfig, SlamConfig, dump_config
 from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, find_in_chain, release_render_cache, velo_to_cam_poses
-from gr_graph.datasets.frame_cache import CachedFrames, makes_frames
+from gr_graph.datasets.frame_cache import CachedFrames, makes_frames, remove_stale_frame_cache
+from gr_graph.datasets.stamp_gaps import motion_times
 from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
@@ -86,6 +87,9 @@ from gr_graph.trajectory import write_kitti_poses
 from training.config import ADDED_TRAIN_OPTIONS
 
 log = logging.getLogger(__name__)
+
+#: what a run writes at the top of ``--out`` as its summary: removed when a run starts (written again by it)
+RUN_SUMMARY_FILES = ("poses_kitti.txt", "poses_tum.txt", "metrics.json", "trajectory.png", "rounds.png")
 
 __all__ = ["ResumeDataError", "SlamPipeline", "data_fingerprint", "round_fingerprint"]
 
@@ -245,7 +249,10 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
         clouds, differ there), the sequence's timestamps, ground truth and ``T_cam_velo``, and the names
         and sizes of per-point time files read beside the scans (KITTI layout's ``times/``).
         Modification times are left out: data copied elsewhere (a cluster's scratch disk) is the
-        same data. A file that cannot be read counts as size -1.
+        same data. A file that cannot be read counts as size -1. Files whose stamps lie off the
+        sensor's beat add ``stamps_off_beat``, how many the motion model moves
+        (:func:`gr_graph.datasets.stamp_gaps.motion_times`), so that rounds made before it did are not
+        resumed beside rounds made after.
     """
     files = _input_files(sequence)
     if files is None:
@@ -272,7 +279,16 @@ def data_fingerprint(sequence: LidarSequence) -> dict[str, Any]:
     if time_files is not None:  # per-point times beside the scans (a KITTI-layout raw export): deskewed with them
         for f in time_files.time_files:
             h.update(f"time\0{f.name}\0{f.stat().st_size if f.is_file() else -1}\n".encode())
-    return {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
+    out: dict[str, Any] = {"n_frames": len(sequence), "files": len(files), "digest": h.hexdigest()[:16]}
+    stamps = getattr(sequence, "timestamps", None)
+    off_beat = 0 if stamps is None else len(motion_times(stamps, log_moves=False).moved)
+    if off_beat:  # the motion model moves them (since 2026-12-07): rounds made before used them as they were
+        out["stamps_off_beat"] = off_beat
+    return out
+
+
+def _without(d: dict[str, Any], key: str) -> dict[str, Any]:
+    return {k: v for k, v in d.items() if k != key}
 
 
 def _hash_arrays(h: Any, sequence: Any, names: tuple[str, ...]) -> None:
@@ -285,9 +301,9 @@ def _hash_arrays(h: Any, sequence: Any, names: tuple[str, ...]) -> None:
 
 
 def check_learning_config(cfg: SlamConfig) -> None:
-    """Fail fast (before round 0) when a learning round could not run: no memory to train
-    on, an invalid trainer configuration, or ``training.weights`` missing, broken or made
-    for another network configuration.
+    """Fail fast (before round 0) when a learning round could not run: ``--device cuda`` where
+    torch has no CUDA device, no memory to train on, an invalid trainer configuration, or
+    ``training.weights`` missing, broken or made for another network configuration.
 
     Raises
     ------
@@ -295,6 +311,10 @@ def check_learning_config(cfg: SlamConfig) -> None:
         With a message naming the option or the weights file.
     """
     tc = cfg.training
+    if cfg.device == "cuda":  # torch only then (the learning rounds import it anyway)
+        from training.trainer import require_device
+
+        require_device(cfg.device)
     if (tc.fine_tune or tc.acceptance.enabled) and not cfg.output.write_memory:
         raise ValueError("learning rounds train on the memory of the previous round, and the acceptance test reads "
                          "round 0's scans from it: output.write_memory must be true")
@@ -376,9 +396,13 @@ class SlamPipeline:
 
     def remove_frame_cache(self) -> None:
         """Delete ``<out>/frames`` (the end of :meth:`run`, unless ``keep_frame_cache``; the
-        harness calls it after its baseline read the frames)."""
+        harness calls it after its baseline read the frames). A run without a cache of its own
+        deletes one an earlier, interrupted run left there (gigabytes on the full route), when the
+        folder holds nothing but cache files (logged)."""
         if self.frame_cache is not None:
             self.frame_cache.remove()
+        elif remove_stale_frame_cache(self.out / "frames"):
+            log.info("%s: removed the frame cache an earlier, interrupted run left", self.out / "frames")
 
     def provenance(self) -> dict[str, Any]:
         """Commit, packages, seeds, threads and device of this run (``metrics.json["provenance"]``)."""
@@ -401,8 +425,6 @@ class SlamPipeline:
             neither ``metrics.json`` nor the final poses are written).
         """
         self.check_resume()
-        for name in ("poses_kitti.txt", "poses_tum.txt"):  # an earlier run's final trajectory, even when every
-            (self.out / name).unlink(missing_ok=True)   # round resumes: written again at the end
         if self.frame_cache is not None:
             self.frame_cache.open()
         self.prepare()
@@ -436,6 +458,8 @@ class SlamPipeline:
             else:
                 reference = r
             if converged:
+                metrics["stopped"] = (f"round {r} converged: the trajectory moved {summary['trajectory_change']:.4g} m "
+                                      f"< training.convergence_delta {self.cfg.training.convergence_delta:g} m")
                 break
             previous_poses = poses
         if self.frame_cache is not None:
@@ -454,6 +478,12 @@ class SlamPipeline:
         """Check the learning rounds' configuration, write ``config.yaml`` and the ground truth."""
         if self.cfg.training.rounds > 0:
             self.check_learning_config()
+        # an earlier run's final trajectory, metrics and figures, even when every round resumes: written again
+        # (metrics.json after each round), and never left beside this run's config.yaml when this run stops;
+        # only where an earlier run wrote (its config.yaml or round 0), not in a folder of the user's own
+        if (self.out / "config.yaml").is_file() or (self.out / "round_0").is_dir():
+            for name in RUN_SUMMARY_FILES:
+                (self.out / name).unlink(missing_ok=True)
         self.out.mkdir(parents=True, exist_ok=True)
         dump_config(self.cfg, self.out / "config.yaml")
         # One line on where the data comes from; a fallback to synthetic data is a warning.
@@ -502,13 +532,18 @@ class SlamPipeline:
             what = f"{stored.get('files')} files then, {now['files']} now"
         elif made:
             what = "the same number of frames, but the poses of the pose file it is rendered along differ"
+        elif _without(stored, "stamps_off_beat") == _without(now, "stamps_off_beat"):
+            what = (f"the same files, but {now.get('stamps_off_beat', 0)} of their frame stamps lie off the sensor's "
+                    "beat, which the odometry's guess and the deskewing move back onto it since 2026-12-07 "
+                    f"({stored.get('stamps_off_beat', 0)} when the round was made)")
         else:
             what = ("the same number of frames, but the files differ (names, sizes or sampled content) or their "
                     "timestamps, ground truth or calibration do")
             moved = float(getattr(self.sequence, "stamps_moved_by_s", 0.0) or 0.0)
             if moved:
                 what += (f"; these data's stamps and ground truth are moved {moved:+.4g} s to the sweeps' middles, "
-                         "which runs made before 2026-12-06 did not do")
+                         "which runs made before 2026-12-06 did not do (nor, before 2026-12-07, by this much for "
+                         "bags stamped with their log times or folders whose first scan is a start-up fragment)")
         raise ResumeDataError(
             f"{self.round_dir(r)}: round {r} is finished but was made from other data than {self.source_description} "
             f"({what}); its results would not belong to these data. Use a new --out, or --no-resume (output.resume: "
@@ -785,7 +820,8 @@ class SlamPipeline:
             summary.update(trajectory_summary(res, self.gt, T_cv, cfg.loops.min_frame_gap, cfg.loops.min_path_length))
             if res.covariances is not None:  # NEES of edges and marginals against ground truth
                 try:
-                    summary["noise_consistency"] = round_noise_consistency(rd, summary.get("marginals"))
+                    summary["noise_consistency"] = round_noise_consistency(rd, summary.get("marginals"),
+                                                                           cfg.graph.min_information_eigenvalue)
                 except Exception as exc:  # a diagnostic: never lose the round over it
                     log.warning("round %d: noise consistency not computed (%s: %s)", r, type(exc).__name__, exc)
                     summary["noise_consistency"] = {"error": f"{type(exc).__name__}: {exc}"}

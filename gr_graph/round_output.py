@@ -150,6 +150,8 @@ def round_summary(r: int, res: SlamResult, fingerprint: str, mean_points_per_sca
         "graph_error": list(res.graph_error),
         "mean_points_per_scan": mean_points_per_scan,
         "deskew": res.info.get("deskew"),
+        # frame stamps off the sensor's beat, moved onto it for the odometry's guess and the deskewing
+        "stamp_gaps": res.info.get("stamp_gaps"),
         "sensor": res.info.get("sensor"),
         "marginals": res.info.get("marginals"),
         "loop_variance": res.info.get("loop_variance"),

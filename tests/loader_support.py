@@ -125,13 +125,15 @@ def pointcloud2(typestore: object, arr: np.ndarray, stamp_ns: int, frame_id: str
 
 
 def write_bag(path: Path, clouds: dict[str, list[np.ndarray]], kind: str = "ros2",
-              stamps_ns: list[int] | None = None) -> Path:
+              stamps_ns: list[int] | None = None, header_stamps_ns: list[int] | None = None) -> Path:
     """Write the structured arrays of each topic as PointCloud2 messages: ``kind`` ros2 (sqlite3),
-    mcap (ROS2 with MCAP storage) or ros1. Messages are 0.1 s apart from :data:`START_NS`."""
+    mcap (ROS2 with MCAP storage) or ros1. Messages are 0.1 s apart from :data:`START_NS` (``stamps_ns``:
+    other log times), their header stamps the log times unless ``header_stamps_ns`` says."""
     from rosbags.typesys import Stores, get_typestore
 
     n = max(len(v) for v in clouds.values())
     stamps = stamps_ns or [START_NS + int(k * FRAME_PERIOD_S * 1e9) for k in range(n)]
+    headers = stamps if header_stamps_ns is None else header_stamps_ns
     msgtype = "sensor_msgs/msg/PointCloud2"
     if kind == "ros1":
         from rosbags.rosbag1 import Writer as Writer1
@@ -142,7 +144,7 @@ def write_bag(path: Path, clouds: dict[str, list[np.ndarray]], kind: str = "ros2
             for k in range(n):
                 for topic, arrs in clouds.items():
                     if k < len(arrs):
-                        msg = pointcloud2(store, arrs[k], stamps[k], ros1=True)
+                        msg = pointcloud2(store, arrs[k], headers[k], ros1=True)
                         writer.write(conns[topic], stamps[k], store.serialize_ros1(msg, msgtype))
         return path
     from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
@@ -154,7 +156,7 @@ def write_bag(path: Path, clouds: dict[str, list[np.ndarray]], kind: str = "ros2
         for k in range(n):
             for topic, arrs in clouds.items():
                 if k < len(arrs):
-                    msg = pointcloud2(store, arrs[k], stamps[k])
+                    msg = pointcloud2(store, arrs[k], headers[k])
                     writer.write(conns[topic], stamps[k], store.serialize_cdr(msg, msgtype))
     return path
 

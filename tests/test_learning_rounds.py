@@ -393,6 +393,26 @@ def test_rounds_resume_skips_finished(learning_run, caplog):
     assert set(m["rounds"]) == {"0", "1"} and "trajectory_change" in m["rounds"]["1"]
 
 
+def test_a_convergence_stop_is_recorded(learning_run, tmp_path):
+    """Rounds that stop because the trajectory moved less than training.convergence_delta say so in
+    metrics.json (``stopped``), as a rejection does (the run's rounds resume: nothing is trained)."""
+    import shutil
+
+    from gr_graph.config import load_config
+    from gr_graph.pipeline import SlamPipeline
+
+    out, _ = learning_run
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    cfg = load_config(copy / "config.yaml", {"output": {"out_dir": str(copy)}, "training": {"convergence_delta": 1e6}})
+    metrics = SlamPipeline(cfg).run()
+    assert metrics["stopped"].startswith("round 1 converged: the trajectory moved ")
+    assert "training.convergence_delta 1e+06 m" in metrics["stopped"]
+    assert json.loads((copy / "metrics.json").read_text())["stopped"] == metrics["stopped"]
+    cfg = load_config(copy / "config.yaml", {"output": {"out_dir": str(copy)}, "training": {"convergence_delta": 0.0}})
+    assert "converged" not in SlamPipeline(cfg).run().get("stopped", "")  # a delta of 0 never stops the rounds
+
+
 @pytest.mark.slow
 def test_unfinished_round_resumes_its_training(learning_run, caplog):
     """Round 1 interrupted after training (no round.json): the rerun skips round 0, resumes the

@@ -132,3 +132,51 @@ def test_points_without_a_return_at_the_origin_are_dropped_before_rings_are_prob
     assert conv.ring_table is None and "not in elevation order" not in caplog.text
     kept = DecodedCloud(np.where(no_return[:, None], 0.0, pts), None, None, None, ordered.ring, 0)
     assert FieldConventions.probe(kept, 0.1, "src").ring_table is not None  # what the zeros did before
+
+
+@pytest.mark.parametrize("time_name, ring_name", [("t", "ring"), ("scalar_t", "scalar_ring"), ("Time", "Ring"),
+                                                  ("TIMESTAMP", "RING"), ("offset_time", "ring")])
+def test_time_and_ring_fields_are_found_whatever_their_case_or_exporter_prefix(time_name: str, ring_name: str) -> None:
+    """As the intensity field already was: CloudCompare's scalar_ prefix, other cases, Livox
+    converters' offset_time (before, such a time field was not read and raw sweeps counted as
+    motion-compensated)."""
+    from gr_graph.datasets.pointcloud2 import decode_structured, field_named
+
+    arr = np.zeros(5, [("x", "f4"), ("y", "f4"), ("z", "f4"), ("scalar_Intensity", "f4"), (time_name, "f8"),
+                       (ring_name, "u2")])
+    arr["x"] = 1.0 + np.arange(5)
+    arr[time_name] = np.linspace(0.0, 0.1, 5)
+    arr[ring_name] = [3, 2, 1, 0, 4]
+    arr["scalar_Intensity"] = 7.0
+    cloud = decode_structured(arr, "a.pcd")
+    assert cloud.time_field == time_name
+    np.testing.assert_array_equal(cloud.time, arr[time_name])
+    np.testing.assert_array_equal(cloud.ring, [3, 2, 1, 0, 4])
+    np.testing.assert_array_equal(cloud.intensity, 7.0)
+    # an exact name wins over a loose one, and a preferred name over a later one
+    assert field_named(("Time", "t"), ("t", "time")) == "t"
+    assert field_named(("scalar_time", "T"), ("t", "time")) == "T"
+    assert field_named(("tag", "line"), ("t", "time")) is None
+
+
+def test_a_folder_of_files_without_a_time_field_says_what_it_assumes(tmp_path, caplog: pytest.LogCaptureFixture
+                                                                     ) -> None:
+    """A PCD / PLY / NPY folder whose scans hold no per-point time is taken as motion-compensated, logged
+    with the option that deskews raw sweeps (as a bag's topic is); .bin scans, which cannot hold one, are not
+    warned about."""
+    import logging
+
+    from gr_graph.datasets.folder import FolderSequence
+
+    rng = np.random.default_rng(0)
+    for name, write in (("npy", lambda p, a: np.save(p.with_suffix(".npy"), a)),
+                        ("bin", lambda p, a: np.c_[a, np.zeros(len(a))].astype(np.float32).tofile(p.with_suffix(".bin")))):
+        folder = tmp_path / name
+        folder.mkdir()
+        for k in range(3):
+            write(folder / f"{k}", rng.uniform(-20, 20, (500, 3)))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            assert FolderSequence(folder).motion_compensated is True
+        assert ("no per-point time field" in caplog.text) == (name == "npy"), name
+        assert ("odometry.deskew: on" in caplog.text) == (name == "npy"), name

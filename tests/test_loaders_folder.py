@@ -260,3 +260,33 @@ def test_a_kitti_raw_data_folder_names_the_drive_folder(tmp_path: Path, frames: 
     (data.parent / "timestamps.txt").write_text("".join(f"2011-09-26 13:02:25.{k}64389445\n" for k in range(N_FRAMES)))
     with pytest.raises(DatasetError, match=r"velodyne_points/timestamps.txt:1: .*date-time stamps.*drive folder"):
         FolderSequence(data)
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".ply", ".npy"])
+def test_a_scan_cut_short_in_the_middle_is_refused_when_the_folder_opens(tmp_path: Path, frames: list,
+                                                                          suffix: str) -> None:
+    """A binary PCD / PLY or a .npy in the middle of a folder cut short (a copy or a recorder that stopped)
+    is refused when the folder opens, naming the file, not when SLAM reaches it (the probe scans, the
+    first and a few spread over the folder, do not include it); frames outside the range asked for are
+    not looked at, and a complete folder opens."""
+    import open3d as o3d
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(13):  # probe scans 0, 3, 6, 9, 12
+        frame = frames[k % len(frames)]
+        if suffix == ".npy":
+            arr = np.zeros(len(frame.points), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f4")])
+            for i, c in enumerate("xyz"):
+                arr[c] = frame.points[:, i]
+            arr["t"] = frame.time * FRAME_PERIOD_S
+            np.save(folder / f"{k:02d}.npy", arr)
+        else:
+            assert o3d.t.io.write_point_cloud(str(folder / f"{k:02d}{suffix}"), _o3d_cloud(frame))
+    assert len(open_sequence(path=folder)[0]) == 13
+    cut = folder / f"04{suffix}"
+    cut.write_bytes(cut.read_bytes()[:-1000])
+    with pytest.raises(DatasetError, match=rf"04\{suffix}: \d+ data bytes, header promises .* cut short .*"
+                                           r"\(1 of the 13 scans to read are cut short"):
+        open_sequence(path=folder)
+    assert len(open_sequence(path=folder, frames="0:4")[0]) == 4

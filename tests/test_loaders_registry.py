@@ -105,3 +105,38 @@ def test_ignored_options_by_kind() -> None:
     assert ignored_options("folder", route_seed=0, point_format="xyzi", seq="00") == []  # defaults: never named
     with pytest.raises(KeyError, match="frames"):
         ignored_options("folder", frames=(0, 2))
+
+
+def test_the_description_says_how_many_rings_the_data_hold_when_no_sensor_is_named(tmp_path) -> None:
+    """A folder of 16-ring scans opened without --sensor: the description names the data's 16 rings
+    beside the default sensor whose figures apply (it said only "64 channels" before), and a run's
+    summary records them (``counted_rings``); a named sensor's beams are what it says, and 64 rings
+    kept to 16 with --channels need no remark."""
+    import numpy as np
+
+    from gr_graph.datasets.registry import counted_rings, open_sequence
+
+    rng = np.random.default_rng(1)
+
+    def folder_of(name: str, n_rings: int):
+        folder = tmp_path / name
+        folder.mkdir()
+        for k in range(3):
+            arr = np.zeros(n_rings * 200, [("x", "f4"), ("y", "f4"), ("z", "f4"), ("ring", "u2")])
+            arr["ring"] = np.repeat(np.arange(n_rings), 200)
+            elevation = np.radians(np.linspace(15.0, -15.0, n_rings))[arr["ring"]]
+            azimuth = np.tile(np.linspace(-np.pi, np.pi, 200, endpoint=False), n_rings)
+            r = rng.uniform(5.0, 20.0, len(arr))
+            arr["x"], arr["y"], arr["z"] = (r * np.cos(elevation) * np.cos(azimuth),
+                                            r * np.cos(elevation) * np.sin(azimuth), r * np.sin(elevation))
+            np.save(folder / f"{k}.npy", arr)
+        return folder
+
+    vlp16 = folder_of("vlp16", 16)
+    seq, desc = open_sequence(path=vlp16)
+    assert counted_rings(seq) == 16
+    assert desc.endswith("64 channels (16 rings in the data; no sensor named: the hdl64e's figures apply)"), desc
+    named, desc_named = open_sequence(path=vlp16, sensor="vlp16")
+    assert counted_rings(named) is None and desc_named.endswith(", 16 channels"), desc_named
+    sub, desc_sub = open_sequence(path=folder_of("hdl64", 64), channels=16)
+    assert counted_rings(sub) == 64 and desc_sub.endswith(", 16 channels"), desc_sub

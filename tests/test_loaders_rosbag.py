@@ -199,3 +199,29 @@ def test_a_bag_without_per_point_times_says_what_it_assumes(tmp_path: Path, fram
     with caplog.at_level(logging.WARNING):
         assert RosbagSequence(timed).motion_compensated is False
     assert "no per-point time field" not in caplog.text
+
+
+def test_log_times_in_place_of_unset_header_stamps_put_the_sweep_middle_before_them(
+        tmp_path: Path, frames: list, caplog: pytest.LogCaptureFixture) -> None:
+    """Header stamps left at 0 (a bridge that does not set them): the frames take the bag's log times,
+    when each message arrived, after its sweep; per-point times counted from the sweep cannot say where
+    that lies, so the sweep's middle is put half a sweep before the log time (before, the offset the
+    times show from a header stamp, +0.05 s, moved it half a sweep after: a sweep late). Ground truth
+    moves with the stamps; sensor.frame_stamp still decides when given."""
+    import logging
+
+    from gr_graph.sensors import SensorConfig
+
+    clouds = {"/points": [cloud_array(f, CloudLayout(with_time=True)) for f in frames]}
+    bag = write_bag(tmp_path / "zero", clouds, header_stamps_ns=[0] * N_FRAMES)
+    with caplog.at_level(logging.WARNING):
+        seq = RosbagSequence(bag)
+    assert "header stamps of /points do not increase" in caplog.text and "log times" in caplog.text
+    assert seq.stamps_moved_by_s == pytest.approx(-FRAME_PERIOD_S / 2)
+    assert seq.conventions.stamp_to_sweep_middle_source == "log times"
+    np.testing.assert_allclose(seq.timestamps, np.arange(N_FRAMES) * FRAME_PERIOD_S - FRAME_PERIOD_S / 2, atol=1e-9)
+    said = RosbagSequence(bag, sensor=SensorConfig(frame_stamp="sweep_start"))
+    assert said.stamps_moved_by_s == pytest.approx(FRAME_PERIOD_S / 2)
+    # header stamps that increase: the offset the per-point times show, as before
+    assert RosbagSequence(write_bag(tmp_path / "set", clouds)).stamps_moved_by_s == pytest.approx(
+        FRAME_PERIOD_S / 2, abs=1e-3)

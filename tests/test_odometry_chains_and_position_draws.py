@@ -47,6 +47,15 @@ def _drive(rng: np.random.Generator, K: int) -> tuple[np.ndarray, np.ndarray, np
     return gt, edges, np.linalg.inv(gt[edges[:, 1]]) @ gt[edges[:, 0]]
 
 
+def _measured_drive(seed: int, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_drive` with each edge measured with independent errors and the exact information."""
+    rng = np.random.default_rng(seed)
+    gt, edges, T_gt = _drive(rng, K)
+    sigma = np.r_[0.002, 0.002, 0.004, 0.02, 0.01, 0.01]
+    measured = np.array([T @ _exp(-rng.normal(0.0, sigma)) for T in T_gt])
+    return gt, edges, measured, np.tile(np.diag(1 / sigma**2), (K - 1, 1, 1))
+
+
 def test_odometry_chains_follow_consecutive_edges_and_break_at_gaps():
     edges = np.array([(3, 2), (1, 0), (2, 1), (5, 4), (6, 5), (7, 6), (4, 3), (9, 8), (10, 9)])
     # sorted by target: (1,0) (2,1) (3,2) (4,3) (5,4) (6,5) (7,6) | gap (8 missing as a target) | (9,8) (10,9)
@@ -217,19 +226,43 @@ def test_position_nees_draws_floor_the_informations_and_leave_out_poses_as_the_n
 
 
 def test_chain_nees_floors_an_unconstrained_axis_as_the_graph_does():
-    rng = np.random.default_rng(9)
-    K = 41
-    gt, edges, T_gt = _drive(rng, K)
-    sigma = np.r_[0.002, 0.002, 0.004, 0.02, 0.01, 0.01]
-    measured = np.array([T @ _exp(-rng.normal(0.0, sigma)) for T in T_gt])
-    info = np.tile(np.diag(1 / sigma**2), (K - 1, 1, 1))
-    info[3] = np.diag(np.r_[1 / sigma[:3] ** 2, 0.0, 1 / sigma[4:] ** 2])
+    gt, edges, measured, info = _measured_drive(9, 41)
+    info[3, 3, 3] = 0.0
     floored = info.copy()
     floored[3, 3, 3] = 1e-2  # GraphConfig's min_information_eigenvalue
     out = chain_nees(edges, measured, info, gt, 10)
     assert np.isfinite(out["mean"]) and np.isfinite(out["z2_mean"]).all() and np.isfinite(out["edge_z2_mean"]).all()
     assert out == chain_nees(edges, measured, floored, gt, 10)
     assert chain_nees(edges, measured, info, gt, 10, min_eigenvalue=1.0) != out
+
+
+def test_round_noise_consistency_floors_the_chains_at_the_runs_own_eigenvalue_floor(tmp_path):
+    """The chains floor each edge's information where the run's graph did: its config.yaml's
+    graph.min_information_eigenvalue, the default without one; an explicit floor wins; a broken value
+    in the config is an error naming the file."""
+    K = 61
+    gt, edges, measured, info = _measured_drive(4, K)
+    info[:, 3, 3] = 0.0  # roll unconstrained: the floor decides it
+    run = tmp_path / "run"
+    rd = run / "round_0"
+    rd.mkdir(parents=True)
+    np.savez(rd / "marginals.npz", poses=gt, gt_poses=gt, covariance=np.tile(np.eye(6), (K, 1, 1)),
+             position_cov_world=np.tile(np.eye(3), (K, 1, 1)), edges=edges, edge_T=measured,
+             edge_information=info, edge_kind=np.zeros(K - 1, np.uint8), edge_ok=np.ones(K - 1, bool))
+    default = round_noise_consistency(rd)["edges"]["odometry"]
+    assert default["chain_min_eigenvalue"] == GraphConfig().min_information_eigenvalue
+    assert default["chains"]["10"] == chain_nees(edges, measured, info, gt, 10)
+    (run / "config.yaml").write_text("graph:\n  min_information_eigenvalue: 5.0\n")
+    own = round_noise_consistency(rd)["edges"]["odometry"]
+    assert own["chain_min_eigenvalue"] == 5.0
+    assert own["chains"]["10"] == chain_nees(edges, measured, info, gt, 10, min_eigenvalue=5.0)
+    assert own["chains"]["10"]["mean"] != default["chains"]["10"]["mean"]
+    assert round_noise_consistency(rd, min_eigenvalue=1e-2)["edges"]["odometry"]["chains"] == default["chains"]
+    (run / "config.yaml").write_text("graph:\n  min_information_eigenvalue: 5e0\n")  # YAML's string '5e0'
+    assert round_noise_consistency(rd)["edges"]["odometry"]["chain_min_eigenvalue"] == 5.0
+    (run / "config.yaml").write_text("graph:\n  min_information_eigenvalue: -1\n")
+    with pytest.raises(ValueError, match="config.yaml.*min_information_eigenvalue"):
+        round_noise_consistency(rd)
 
 
 def test_position_nees_draws_without_ground_truth_and_bad_input(tmp_path, capsys):

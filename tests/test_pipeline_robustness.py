@@ -458,10 +458,65 @@ def test_a_failed_rerun_leaves_no_final_trajectory_of_the_run_before(tmp_path, m
     def fails(*args, **kwargs):
         raise RuntimeError("the rerun fails")
 
+    assert (out / "metrics.json").is_file() and (out / "trajectory.png").is_file()
+    (out / "rounds.png").write_bytes(b"an earlier run's plot")
     monkeypatch.setattr(pipe, "slam_round", fails)
     with pytest.raises(RuntimeError, match="the rerun fails"):
         pipe.run()
-    assert not (out / "poses_kitti.txt").exists() and not (out / "poses_tum.txt").exists()
+    # nor its metrics and figures, which would be taken for the new config.yaml's
+    assert not [n for n in ("poses_kitti.txt", "poses_tum.txt", "metrics.json", "trajectory.png", "rounds.png")
+                if (out / n).exists()]
+    # a folder of the user's own that no run wrote keeps its files of those names
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "metrics.json").write_text("{}")
+    pipe = SlamPipeline(load_config(out / "config.yaml", {"output": {"resume": False, "out_dir": str(mine)}}))
+    monkeypatch.setattr(pipe, "slam_round", fails)
+    with pytest.raises(RuntimeError, match="the rerun fails"):
+        pipe.run()
+    assert (mine / "metrics.json").read_text() == "{}"
+
+
+def test_a_rerun_refused_by_its_checks_keeps_the_earlier_runs_summary(tmp_path, monkeypatch, capsys):
+    """--device cuda where torch has none is refused before round 0 (it failed in the trainer, after a
+    whole round 0); the earlier run's config, metrics and poses stay as they were."""
+    import torch
+
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    assert run_cli(folder, out) == 0
+    before = {n: (out / n).read_bytes() for n in ("config.yaml", "metrics.json", "poses_kitti.txt")}
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert run_cli(folder, out, "--rounds", "1", "--device", "cuda") == 2
+    assert "--device: device 'cuda' asked for, but this torch" in capsys.readouterr().err
+    assert {n: (out / n).read_bytes() for n in before} == before
+    assert not (out / "round_1").exists()
+
+
+def test_an_empty_range_window_is_refused_with_the_config(tmp_path):
+    with pytest.raises(ValueError, match="min_range 200 m is not below max_range 100 m"):
+        load_config(None, {"preprocess": {"min_range": 200.0, "max_range": 100.0}})
+    assert load_config(None, {"preprocess": {"min_range": 0.5, "max_range": 1.0}}).preprocess.max_range == 1.0
+
+
+def test_a_run_without_a_frame_cache_removes_the_one_an_interrupted_run_left(tmp_path):
+    """A learning run interrupted in round 0 leaves <out>/frames; a later run into the same --out that keeps no
+    cache (0 rounds) removes it, but not a folder of the user's own there."""
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    cache = out / "frames"
+    cache.mkdir(parents=True)
+    (cache / "cache.json").write_text('{"key": "k", "n_frames": 4, "name": "x"}')
+    (cache / "frame_000001.npz").write_bytes(b"a cached frame")
+    assert run_cli(folder, out) == 0
+    assert not cache.exists()
+    cache.mkdir()
+    (cache / "cache.json").write_text("{}")
+    (cache / "notes.txt").write_text("mine")
+    assert run_cli(folder, out) == 0
+    assert (cache / "notes.txt").is_file()
 
 
 def test_a_map_that_cannot_be_written_does_not_lose_the_round(tmp_path, monkeypatch, caplog):
@@ -497,6 +552,30 @@ def test_rounds_along_a_pose_file_finished_before_its_digest_was_kept_still_resu
         SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {**now, "digest": "0" * 16}})
     with pytest.raises(ResumeDataError, match="40 frames then, 50 now"):
         SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": {"n_frames": 40, "files": None, "digest": None}})
+
+
+def test_a_round_made_before_off_beat_stamps_were_moved_is_not_resumed(tmp_path):
+    """Stamps off the sensor's beat enter the data fingerprint (the motion model moves them since
+    2026-12-07): a round finished before, on the same files, is refused saying so; regular stamps keep the
+    fingerprint of before."""
+    from types import SimpleNamespace
+
+    from gr_graph.datasets.folder import FolderSequence
+    from gr_graph.pipeline import ResumeDataError, SlamPipeline
+
+    scans, _, _ = drive(list(range(12)))
+    times = np.arange(12) * FRAME_PERIOD
+    regular = data_fingerprint(FolderSequence(write_folder(tmp_path / "regular", scans, times)))
+    assert set(regular) == {"n_frames", "files", "digest"}
+    times[5] = times[4] + 0.002  # received 2 ms after frame 4
+    now = data_fingerprint(FolderSequence(write_folder(tmp_path / "displaced", scans, times)))
+    assert now["stamps_off_beat"] == 1
+    stub = SimpleNamespace(data_fingerprint=now, source_description="a folder", out=tmp_path,
+                           round_dir=lambda r: tmp_path / f"round_{r}", sequence=SimpleNamespace(stamps_moved_by_s=0.0))
+    before = {"data_fingerprint": {k: v for k, v in now.items() if k != "stamps_off_beat"}}
+    with pytest.raises(ResumeDataError, match=r"1 of their frame stamps lie off the sensor's beat.*\(0 when the round"):
+        SlamPipeline.check_round_data(stub, 0, before)
+    SlamPipeline.check_round_data(stub, 0, {"data_fingerprint": now})  # made with the same handling: resumed
 
 
 def test_a_finished_round_of_data_whose_stamps_are_now_moved_says_so(tmp_path):

@@ -191,6 +191,32 @@ def test_a_full_revolution_sets_the_sweep_duration_when_the_spacing_disagrees(
     assert said.scan_period == 0.08 and said.scan_period_source == "sensor.scan_period"
 
 
+def test_a_start_up_fragment_first_does_not_set_the_sweep_duration(tmp_path: Path) -> None:
+    """A driver's first message after start-up is often a fragment of a revolution: the sweep duration
+    comes from the first probe frame that covers a full revolution (before, the fragment kept the
+    frame spacing, 0.1 s, and a 20 Hz sensor's full sweeps got time fractions 0..0.5: half the
+    deskewing)."""
+    s = _sweep()
+    ns20 = np.round(s["frac"] * 0.05 * 1e9)
+    fragment = s["frac"] >= 0.75  # the last quarter of a revolution
+    conv = FieldConventions.probe(_cloud(s, fragment, times=ns20), PERIOD, "0.pcd",
+                                  more=[(_cloud(s, times=ns20), "1.pcd"), (_cloud(s, times=ns20), "2.pcd")])
+    assert conv.scan_period == pytest.approx(0.05, rel=0.01) and conv.scan_period_source == "per-point times"
+    frac = conv.frame(_cloud(s, times=ns20), 1, 0.0, "1.pcd").time
+    assert frac.min() == 0.0 and frac.max() == pytest.approx(1.0)
+    # fragments only: the frame spacing stays
+    only = FieldConventions.probe(_cloud(s, fragment, times=ns20), PERIOD, "0.pcd",
+                                  more=[(_cloud(s, fragment, times=ns20), "1.pcd")])
+    assert only.scan_period == PERIOD and only.scan_period_source == "frame spacing"
+    # a folder of 20 Hz scans without a timestamps file whose first scan is the fragment
+    folder = _sweep_folder(tmp_path / "hz20", 0.05, None)
+    arr = np.load(folder / "000000.npy")
+    np.save(folder / "000000.npy", arr[fragment])
+    seq = FolderSequence(folder)
+    assert seq.scan_period == pytest.approx(0.05, rel=0.01)
+    assert seq[1].time.max() == pytest.approx(1.0)
+
+
 def _sweep_folder(folder: Path, sweep_s: float, times_txt: np.ndarray | None) -> Path:
     s = _sweep()
     folder.mkdir()

@@ -59,6 +59,7 @@ from training.pose_layer import PoseLayerError, solve_pose
 log = logging.getLogger(__name__)
 
 __all__ = ["TrainConfig", "TrainOptions", "TrainConfigError", "TrainingError", "CheckpointMismatch", "Trainer", "save_atomic", "load_model",
+           "require_device",
            "CHECKPOINT_FORMAT",
            "deterministic_algorithms"]
 
@@ -82,6 +83,14 @@ class CheckpointMismatch(TrainingError):
     """``checkpoint.pt`` cannot be resumed by this run: another configuration, other training data,
     more epochs than asked for, or an unreadable file. Training from scratch (``resume=False``)
     replaces it; :mod:`gr_graph.pipeline` does so, logged."""
+
+
+def require_device(device: str, what: str = "--device") -> None:
+    """Raise :class:`TrainingError` (naming ``what``: the option, or the file to be loaded) when
+    ``device`` is a CUDA device and this torch has none."""
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise TrainingError(f"{what}: device {device!r} asked for, but this torch ({torch.__version__}) has no CUDA "
+                            "device (use --device cpu, the default)")
 
 
 def _without_edge_hashes(description: Any) -> Any:
@@ -156,9 +165,7 @@ def load_model(checkpoint: str | os.PathLike[str] | CovarianceNet, device: str =
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"no model checkpoint at {path}")
-    if str(device).startswith("cuda") and not torch.cuda.is_available():
-        raise TrainingError(f"{path}: device {device!r} asked for, but this torch has no CUDA device "
-                            "(use --device cpu)")
+    require_device(device, str(path))
     try:
         state = torch.load(path, map_location=device, weights_only=True)  # tensors and plain data, no code
     except Exception as exc:  # torch raises pickle, zip and runtime errors for foreign files
@@ -211,8 +218,7 @@ class Trainer:
         self.config = config
         self.rank = rank
         self.world_size = world_size
-        if config.device.startswith("cuda") and not torch.cuda.is_available():
-            raise TrainingError("device 'cuda' requested but torch.cuda.is_available() is False")
+        require_device(config.device, "the trainer's device")
         if config.device.startswith("cuda") and "CUBLAS_WORKSPACE_CONFIG" not in os.environ:
             # cuBLAS is deterministic only with a fixed workspace (torch raises in deterministic
             # mode otherwise); read when the first cuBLAS handle is made, i.e. after this point

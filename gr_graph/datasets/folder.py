@@ -58,16 +58,19 @@ from gr_graph.datasets.frame_fields import (
     PLAUSIBLE_SWEEP_S,
     FieldConventions,
     frame_period,
+    no_time_field_note,
     probe_indices,
 )
 from gr_graph.datasets.point_files import POINT_FILE_SUFFIXES, read_point_file
-from gr_graph.datasets.pointcloud2 import DecodedCloud
+from gr_graph.datasets.pointcloud2 import TIME_FIELDS, DecodedCloud
 from gr_graph.datasets.stamp_shift import stamps_moved_by_conventions
 from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
 
 TIMESTAMP_FILES = ("times.txt", "timestamps.txt")
+#: scan files that can carry a per-point time field (a ``.bin`` holds x, y, z[, intensity] only)
+FIELD_FORMATS = (".pcd", ".ply", ".npy")
 POSE_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt")
 RUN_POSE_FILES = ("poses_kitti.txt", "poses_tum.txt")
 """The pose files a gr_graph run writes at the top of ``--out`` (its estimate, not ground truth)."""
@@ -356,6 +359,9 @@ class FolderSequence:
         self.timestamps, self.gt_poses, self.stamps_moved_by_s = stamps_moved_by_conventions(
             stamps, self.gt_poses, self.conventions, str(self.folder))
         self.motion_compensated = self.conventions.motion_compensated
+        if self.motion_compensated and self.files[0].suffix.lower() in FIELD_FORMATS:
+            # files that could hold a time field and do not: raw sweeps look the same, say what is assumed
+            log.warning(no_time_field_note(f"{self.folder} ({' / '.join(TIME_FIELDS)}, in any case)"))
 
     @property
     def n_rings(self) -> int:

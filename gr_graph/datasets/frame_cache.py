@@ -43,7 +43,7 @@ from gr_graph.datasets.base import DatasetError, LidarFrame, LidarSequence, chec
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CachedFrames", "makes_frames"]
+__all__ = ["CachedFrames", "makes_frames", "remove_stale_frame_cache"]
 
 META = "cache.json"
 #: free disk the cache always leaves for the run's own results [bytes]
@@ -215,6 +215,20 @@ class CachedFrames:
             return
         shutil.rmtree(self.directory, ignore_errors=True)
         log.info("frame cache %s removed (%s)", self.directory, json.dumps(self.stats()))
+
+
+def remove_stale_frame_cache(directory: Path) -> bool:
+    """Delete ``directory`` when it is a frame cache (its ``cache.json`` there, and nothing but the
+    cache's files) that an earlier, interrupted run left; whether it did. Anything else is left."""
+    directory = Path(directory)
+    if not (directory / META).is_file():
+        return False
+    try:
+        _check_only_cache_files(directory)
+    except DatasetError:
+        return False
+    shutil.rmtree(directory, ignore_errors=True)
+    return not directory.exists()
 
 
 _CACHE_FILE = re.compile(r"(frame_\d+\.npz|cache\.json|\.(frame_\d+|cache)\..+\.(npz|json))")

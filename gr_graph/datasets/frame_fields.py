@@ -20,12 +20,13 @@ a sequence fixes once, from its probe frames and the ``sensor`` section (:class:
   (logged; the sequence still counts as not motion-compensated, so deskewing takes the times
   from the azimuth).
 - **Sweep duration** (``scan_period``, what maps times to fractions and the odometry's motion to
-  one sweep): ``sensor.scan_period`` when given; else the frame spacing, unless the first frame is
-  a full revolution (points in at least :data:`FULL_REVOLUTION_COVERAGE` of the azimuth sectors)
-  whose per-point times span more than :data:`SWEEP_SPACING_MISMATCH` away from it and a
-  plausible sweep duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). The frame judged
-  is the first with points, as before the probe frames (the same frame times, so a resume of an
-  earlier run's output sees the same data). That is a 20 Hz
+  one sweep): ``sensor.scan_period`` when given; else the frame spacing, unless the first probe
+  frame that is a full revolution (points in at least :data:`FULL_REVOLUTION_COVERAGE` of the
+  azimuth sectors; a driver's start-up fragment is passed over, since 2026-12-07) has per-point
+  times that span more than :data:`SWEEP_SPACING_MISMATCH` away from it and a plausible sweep
+  duration (:data:`PLAUSIBLE_SWEEP_S`): then the span (logged). Where the first frame with points
+  is a full revolution, that is the frame judged, as before the probe frames (the same frame
+  times, so a resume of an earlier run's output sees the same data). That is a 20 Hz
   sensor without a timestamps file (spacing assumed 0.1 s, sweeps of 0.05 s: the folder then
   takes its frames 0.05 s apart; before, they were deskewed with half the motion) or a folder
   that keeps every other frame (spacing 0.2 s, sweeps of 0.1 s: deskewed to the sweep's middle
@@ -36,9 +37,11 @@ a sequence fixes once, from its probe frames and the ``sensor`` section (:class:
   middle: ``sensor.frame_stamp`` when given (``(0.5 - f) * scan_period`` for a stamp at sweep
   fraction ``f``), else the median over the probe frames of what their per-point times show
   (:func:`gr_graph.deskew.sweep_middle_offset`; times relative to the sweep count from the stamp,
-  absolute times from a bag's header stamp). Unknown (None) without per-point times, for absolute
-  times without a stamp on their clock (folders), and for offsets beyond one sweep (logged). The
-  loaders move the stamps by it (:func:`gr_graph.datasets.stamp_shift.stamps_at_sweep_middle`).
+  absolute times from a bag's header stamp). A bag whose header stamps do not increase is stamped
+  with its log times, when each message arrived, after its sweep: with times relative to the
+  sweep, the middle is then taken half a sweep before the stamp (``"log times"``, logged). Unknown
+  (None) without per-point times, for absolute times without a stamp on their clock (folders), and
+  for offsets beyond one sweep (logged). The loaders move the stamps by it (:func:`gr_graph.datasets.stamp_shift.stamps_at_sweep_middle`).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first probe frame's rings rises with the ring number, rings are flipped
@@ -66,7 +69,7 @@ import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame
 from gr_graph.datasets.pointcloud2 import DecodedCloud
-from gr_graph.deskew import RELATIVE_SLACK, normalise_times, sweep_middle_offset
+from gr_graph.deskew import RELATIVE_SLACK, normalise_times, resolve_time_reference, sweep_middle_offset
 from gr_graph.sensors import TIME_UNITS, SensorConfig
 
 log = logging.getLogger(__name__)
@@ -97,6 +100,13 @@ GUESSED_UNIT_SLACK = 1.0
 """With a guessed time unit, sweep fractions further than this outside ``[0, 1]`` (times spanning
 more than two sweeps) mean a wrong guess at a probe frame (an error) and an overlong frame later
 (clipped, logged, counted)."""
+
+
+def no_time_field_note(what: str) -> str:
+    """The warning for scans without a per-point time field (``what``: the folder, or the bag's topic):
+    taken as motion-compensated, since a driver's raw sweeps look the same."""
+    return (f"{what} has no per-point time field: its scans are taken as motion-compensated (odometry.deskew: auto "
+            "leaves them as they are); for raw sweeps set odometry.deskew: on (times from the azimuth)")
 
 
 def probe_indices(n_frames: int, first: int, count: int = PROBE_FRAMES) -> list[int]:
@@ -223,7 +233,7 @@ class FieldConventions:
     stamp_to_sweep_middle : float or None
         Seconds from a frame's stamp to its sweep's middle (see the module docstring); None: unknown.
     stamp_to_sweep_middle_source : str
-        ``"sensor.frame_stamp"``, ``"per-point times"`` or ``""`` (unknown).
+        ``"sensor.frame_stamp"``, ``"per-point times"``, ``"log times"`` or ``""`` (unknown).
     overlong_frames : set of str
         Sources of the frames read so far whose times spanned more than :data:`GUESSED_UNIT_SLACK`
         sweeps past one under a guessed unit (clipped to the sweep; each logged once);
@@ -261,7 +271,8 @@ class FieldConventions:
     def probe(cls, cloud: DecodedCloud, frame_period: float, source: str,
               sensor: SensorConfig | None = None,
               more: Sequence[tuple[DecodedCloud, str]] = (),
-              sweep_starts: Sequence[float | None] = ()) -> FieldConventions:
+              sweep_starts: Sequence[float | None] = (),
+              stamps_are_log_times: bool = False) -> FieldConventions:
         """Conventions of a sequence whose first frame is ``cloud`` and frames ``frame_period`` s apart.
 
         Parameters
@@ -280,11 +291,18 @@ class FieldConventions:
             ``has_ring`` false drop the field, true require it.
         more : sequence of (DecodedCloud, str)
             Further probe frames (:func:`probe_indices`) and their sources: the time unit is guessed
-            on the frame of the median time span (the sweep duration is judged on ``cloud``), the
-            ring count is their highest ring.
+            on the frame of the median time span (the sweep duration on the first of ``cloud`` and
+            them that covers a full revolution, else on ``cloud``), the ring count is their highest
+            ring.
         sweep_starts : sequence of float or None
             The stamps (s) of ``cloud`` and of each of ``more`` on the clock of absolute per-point
             times (a bag's header stamps), for :attr:`stamp_to_sweep_middle`; empty: not known.
+        stamps_are_log_times : bool
+            The frames' stamps are a bag's log times (its header stamps did not increase): when a
+            message arrived, after its sweep ended. Per-point times relative to the sweep then say
+            nothing of where the stamp lies, and the sweep's middle is taken half a sweep before it
+            (:attr:`stamp_to_sweep_middle` ``-scan_period / 2``, logged; ``sensor.frame_stamp`` and
+            absolute per-point times, which carry their own clock, still decide when there).
 
         Raises
         ------
@@ -304,7 +322,7 @@ class FieldConventions:
         probes = [(cloud, source), *[more[k - 1] for k in kept[1:]]]
         conv._probe_time(probes, frame_period, sensor)
         conv._probe_ring(probes, sensor)
-        conv._probe_stamp([(*probes[j], starts[k]) for j, k in enumerate(kept)], sensor)
+        conv._probe_stamp([(*probes[j], starts[k]) for j, k in enumerate(kept)], sensor, stamps_are_log_times)
         return conv
 
     def _probe_time(self, probes: list[tuple[DecodedCloud, str]], frame_period: float,
@@ -325,7 +343,9 @@ class FieldConventions:
             reference_given = sensor is not None and sensor.time_reference is not None
             timed = [(c, src) for c, src in probes if c.time is not None and len(c.time)]
             # the probe of the median time span (neither a short first message nor an overlong frame) sets
-            # the guessed unit; the sweep duration is judged on the first frame, as before the probes
+            # the guessed unit; the sweep duration is judged on the first frame that covers a full revolution
+            # (the first varying one when none does: a driver's first message after start-up is often a
+            # fragment, whose span says nothing of a sweep's)
             median, median_source = median_span(timed)
             if unit_given:
                 self.time_unit_s = TIME_UNITS[sensor.time_unit]  # type: ignore[union-attr]
@@ -336,7 +356,9 @@ class FieldConventions:
             if unit_given or reference_given:
                 self.time_tolerance = RELATIVE_SLACK
             if self.scan_period_source == "frame spacing":
-                self._sweep_duration_from_times(cloud, source)
+                full = next(((c, src) for c, src in varying
+                             if azimuth_coverage(c.points) >= FULL_REVOLUTION_COVERAGE), (cloud, source))
+                self._sweep_duration_from_times(*full)
             log.info("%s: per-point time field %r read in units of %g s (%s; span %.4g s, scan period %.4g s, "
                      "frame period %.4g s), counted from %s", median_source, median.time_field, self.time_unit_s,
                      "sensor.time_unit" if unit_given else "guessed", np.ptp(median.time) * self.time_unit_s,
@@ -366,17 +388,23 @@ class FieldConventions:
                     source, span, self.scan_period, span)
         self.scan_period, self.scan_period_source = span, "per-point times"
 
-    def _probe_stamp(self, probes: list[tuple[DecodedCloud, str, float | None]], sensor: SensorConfig | None) -> None:
-        """:attr:`stamp_to_sweep_middle`: ``sensor.frame_stamp``, else what the probe frames' times show."""
+    def _probe_stamp(self, probes: list[tuple[DecodedCloud, str, float | None]], sensor: SensorConfig | None,
+                     stamps_are_log_times: bool = False) -> None:
+        """:attr:`stamp_to_sweep_middle`: ``sensor.frame_stamp``, else what the probe frames' times show
+        (for log times, see :meth:`probe`)."""
         measured: list[float] = []
+        relative = False  # the times count from the sweep, not on a clock of their own
         if self.has_time and self.use_time:
             for c, _, start in probes:
                 if c.time is None or not len(c.time):
                     continue
-                offset = sweep_middle_offset(np.asarray(c.time, np.float64) * self.time_unit_s, self.scan_period,
-                                             self.time_reference, start)
+                times = np.asarray(c.time, np.float64) * self.time_unit_s
+                offset = sweep_middle_offset(times, self.scan_period, self.time_reference, start)
                 if offset is not None:
                     measured.append(offset)
+                    ref = (resolve_time_reference(times, self.scan_period) if self.time_reference == "auto"
+                           else self.time_reference)
+                    relative = relative or ref != "absolute"
         source = probes[0][1]
         median = float(np.median(measured)) if measured else None
         given = None if sensor is None else sensor.frame_stamp
@@ -389,6 +417,14 @@ class FieldConventions:
                             "followed", source, given, self.stamp_to_sweep_middle, median, len(measured))
             return
         if median is None:
+            return
+        if stamps_are_log_times and relative:
+            self.stamp_to_sweep_middle = -0.5 * self.scan_period
+            self.stamp_to_sweep_middle_source = "log times"
+            log.warning("%s: the frames are stamped with the bag's log times, when each message arrived, and the "
+                        "per-point times count from the sweep: the sweep's middle is taken half a sweep (%.4g s) "
+                        "before the log time, as if the message arrived when its sweep ended (set "
+                        "sensor.frame_stamp to say otherwise)", source, 0.5 * self.scan_period)
             return
         if abs(median) > self.scan_period:
             log.warning("%s: the per-point times put the sweep's middle %+.4g s from the frame stamps, more than "

@@ -33,6 +33,8 @@ times remain an error.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -131,12 +133,20 @@ def _read_header(path: Path, first: bytes, end: tuple[bytes, ...]) -> tuple[list
                        f"within {_MAX_HEADER_LINES} lines: not a {first.decode()} file")
 
 
-def read_pcd(path: str | Path) -> DecodedCloud:
-    """Read a PCD file (``DATA ascii`` or ``binary`` with any fields; ``binary_compressed`` via open3d).
+@dataclass(frozen=True)
+class _PcdLayout:
+    """What a PCD header says: the points' dtype, their count, the DATA mode and where the data start."""
 
-    ``POINTS 0`` gives an empty cloud; fewer data than ``POINTS`` promises is an error.
-    """
-    path = Path(path)
+    dtype: np.dtype
+    n_points: int
+    mode: str
+    offset: int
+    unique: list[str]
+    counts: list[int]
+
+
+def _pcd_layout(path: Path) -> _PcdLayout:
+    """Parse the header of the PCD file ``path`` (DatasetError naming it when malformed)."""
     try:
         lines, offset = _read_header(path, b"PCD", (b"DATA",))
     except UnicodeDecodeError as exc:
@@ -168,7 +178,18 @@ def read_pcd(path: str | Path) -> DecodedCloud:
         base = np.dtype("<" + _PCD_TYPES[(typ, size)])
         formats.append(base if count == 1 else np.dtype((base, (count,))))
     unique = [n if n != "_" else f"_pad{k}" for k, n in enumerate(names)]
-    dtype = np.dtype({"names": unique, "formats": formats})
+    return _PcdLayout(np.dtype({"names": unique, "formats": formats}), n_points, mode, offset, unique, counts)
+
+
+def read_pcd(path: str | Path) -> DecodedCloud:
+    """Read a PCD file (``DATA ascii`` or ``binary`` with any fields; ``binary_compressed`` via open3d).
+
+    ``POINTS 0`` gives an empty cloud; fewer data than ``POINTS`` promises is an error.
+    """
+    path = Path(path)
+    layout = _pcd_layout(path)
+    dtype, n_points, mode, offset = layout.dtype, layout.n_points, layout.mode, layout.offset
+    unique, counts = layout.unique, layout.counts
     if n_points == 0:  # POINTS 0: an empty cloud (its fields are still checked)
         return decode_structured(np.zeros(0, dtype=dtype), str(path))
     if mode == "binary":
@@ -228,11 +249,9 @@ def read_ply(path: str | Path) -> DecodedCloud:
     return decode_structured(read_ply_vertices(path), str(Path(path)))
 
 
-def read_ply_vertices(path: str | Path) -> np.ndarray:
-    """The ``vertex`` element of a PLY file (ASCII or binary) as a structured array with every scalar
-    property, as stored (ASCII values as float64); a DatasetError naming the file when the header is
-    malformed or the data are fewer than the header promises."""
-    path = Path(path)
+def _ply_layout(path: Path) -> tuple[str, int, list[tuple[str, str]], int]:
+    """Parse the header of the PLY file ``path``: its format, vertex count, vertex properties (name,
+    numpy type code) and where the data start (DatasetError naming it when malformed)."""
     with path.open("rb") as fh:
         if fh.read(3) != b"ply":
             raise DatasetError(f"{path}: does not start with 'ply': not a PLY file")
@@ -260,6 +279,15 @@ def read_ply_vertices(path: str | Path) -> np.ndarray:
             if parts[1] not in _PLY_TYPES:
                 raise DatasetError(f"{path}: vertex property {parts[2]!r} has unknown type {parts[1]!r}")
             props.append((parts[2], _PLY_TYPES[parts[1]]))
+    return fmt, n_points, props, offset
+
+
+def read_ply_vertices(path: str | Path) -> np.ndarray:
+    """The ``vertex`` element of a PLY file (ASCII or binary) as a structured array with every scalar
+    property, as stored (ASCII values as float64); a DatasetError naming the file when the header is
+    malformed or the data are fewer than the header promises."""
+    path = Path(path)
+    fmt, n_points, props, offset = _ply_layout(path)
     if n_points == 0:  # element vertex 0: an empty cloud (its properties are still checked)
         return np.zeros(0, dtype=[(name, "<" + code) for name, code in props])
     if fmt == "ascii":
@@ -280,6 +308,67 @@ def read_ply_vertices(path: str | Path) -> np.ndarray:
         raise DatasetError(f"{path}: {len(data)} data bytes, header promises {n_points} vertices x "
                            f"{dtype.itemsize} bytes = {need}: truncated or wrong field layout")
     return data[:need].view(dtype)
+
+
+def data_shortfall(path: str | Path) -> str | None:
+    """Why the scan ``path`` holds fewer data bytes than its header promises (a binary PCD or PLY,
+    a ``.npy``), or None: complete, empty (0 bytes: an empty frame), or a kind whose size says
+    nothing without reading it (ASCII, ``binary_compressed``). Reads the header only.
+
+    Raises
+    ------
+    DatasetError
+        A malformed header, naming the file.
+    """
+    path = Path(path)
+    suffix, size = path.suffix.lower(), path.stat().st_size
+    if size == 0:
+        return None
+    if suffix == ".pcd":
+        layout = _pcd_layout(path)
+        if layout.mode != "binary":
+            return None
+        n, item, what, offset = layout.n_points, layout.dtype.itemsize, "points", layout.offset
+    elif suffix == ".ply":
+        fmt, n, props, offset = _ply_layout(path)
+        if fmt == "ascii":
+            return None
+        item, what = np.dtype([(name, "<" + code) for name, code in props]).itemsize, "vertices"
+    elif suffix == ".npy":
+        try:
+            with path.open("rb") as fh:
+                version = np.lib.format.read_magic(fh)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(fh)
+                offset = fh.tell()
+        except (ValueError, OSError) as exc:
+            raise DatasetError(f"{path}: not a plain .npy array ({exc})") from exc
+        if dtype.hasobject:
+            return None
+        n, item, what = int(np.prod(shape)), dtype.itemsize, f"values of shape {tuple(shape)}"
+    else:
+        return None
+    need, have = n * item, size - offset
+    if have >= need:
+        return None
+    return (f"{path}: {have} data bytes, header promises {n} {what} x {item} bytes = {need}: cut short "
+            "(a recorder or a copy that stopped)")
+
+
+def check_scan_sizes(files: Sequence[Path]) -> None:
+    """Refuse, when a folder of PCD / PLY / NPY scans opens, a scan holding fewer data than its header
+    promises (:func:`data_shortfall`): otherwise the run would stop only when SLAM reaches it.
+
+    Raises
+    ------
+    DatasetError
+        The first such file's problem, with how many of the files are affected.
+    """
+    bad = [(f, msg) for f in files if (msg := data_shortfall(f)) is not None]
+    if bad:
+        more = "" if len(bad) == 1 else ", e.g. " + ", ".join(Path(f).name for f, _ in bad[1:4])
+        raise DatasetError(f"{bad[0][1]} ({len(bad)} of the {len(files)} scans to read are cut short{more}; "
+                           "--frames runs a range without them)")
 
 
 def read_npy(path: str | Path) -> DecodedCloud:

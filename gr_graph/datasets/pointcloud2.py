@@ -28,13 +28,29 @@ log = logging.getLogger(__name__)
 
 POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 """``sensor_msgs/PointField`` datatype constants (INT8 .. FLOAT64) -> numpy type codes."""
-TIME_FIELDS = ("t", "time", "timestamp")
+TIME_FIELDS = ("t", "time", "timestamp", "offset_time")
 """Names of the per-point time field, in order of preference (Ouster ``t``, Velodyne ``time``,
-Hesai/Livox ``timestamp``)."""
+Hesai/Livox ``timestamp``, Livox converters' ``offset_time``); matched as :func:`field_named` says."""
 RING_FIELDS = ("ring",)
 INTENSITY_FIELDS = ("intensity", "scalar_intensity", "reflectance")
-"""Names of the intensity field, in order of preference; when none is there as written, matched
-regardless of case (CloudCompare writes ``scalar_Intensity``, some exporters ``Intensity``)."""
+"""Names of the intensity field, in order of preference; matched as :func:`field_named` says."""
+EXPORTER_PREFIX = "scalar_"
+"""What CloudCompare puts before a scalar field's name (``scalar_Intensity``, ``scalar_t``)."""
+
+
+def field_named(names: tuple[str, ...] | list[str], preferred: tuple[str, ...]) -> str | None:
+    """The field of ``names`` that holds one of ``preferred`` (in their order): a name as written
+    first, else one differing only in case or by CloudCompare's :data:`EXPORTER_PREFIX`
+    (``scalar_Intensity``, ``Time``, ``scalar_ring``; of several such, the first in ``names``).
+    None when there is none."""
+    exact = next((n for n in preferred if n in names), None)
+    if exact is not None:
+        return exact
+    loose: dict[str, str] = {}
+    for n in reversed(list(names)):
+        key = n.lower()
+        loose[key[len(EXPORTER_PREFIX):] if key.startswith(EXPORTER_PREFIX) else key] = n
+    return next((loose[n] for n in preferred if n in loose), None)
 
 
 @dataclass(frozen=True)
@@ -145,14 +161,11 @@ def decode_structured(arr: np.ndarray, source: str) -> DecodedCloud:
     if dropped:
         xyz = xyz[finite]
         flat = flat[finite]
-    intensity_field = next((n for n in INTENSITY_FIELDS if n in names), None)  # an exact name first
-    if intensity_field is None:  # then in any case (the first of names differing only in case)
-        by_lower = {n.lower(): n for n in reversed(names)}
-        intensity_field = next((by_lower[n] for n in INTENSITY_FIELDS if n in by_lower), None)
+    intensity_field = field_named(names, INTENSITY_FIELDS)
     intensity = flat[intensity_field].astype(np.float32) if intensity_field else None
-    time_field = next((n for n in TIME_FIELDS if n in names), None)
+    time_field = field_named(names, TIME_FIELDS)
     time = flat[time_field].astype(np.float64) if time_field else None
-    ring_field = next((n for n in RING_FIELDS if n in names), None)
+    ring_field = field_named(names, RING_FIELDS)
     ring = flat[ring_field].astype(np.int64) if ring_field else None
     if intensity is not None:
         intensity = finite_intensity(intensity, source, intensity_field)

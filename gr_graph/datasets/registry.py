@@ -488,17 +488,23 @@ def _vertical_corrected(base: LidarSequence, source: str, angle_deg: float) -> t
     return view, source + f", vertical-angle correction {angle_deg:g} deg"
 
 
-def _check_bin_sizes(base: LidarSequence, start: int, stop: int) -> None:
-    """Refuse, when a sequence of ``.bin`` scans opens, one in frames ``start:stop`` whose size does
-    not fit its point format (:func:`~gr_graph.datasets.point_layout.check_bin_sizes`): the run would
-    otherwise stop only when SLAM reaches it. Files outside the range are not looked at (``--frames``
-    is how a drive with a scan cut short at its end is still run)."""
+def _check_scan_sizes(base: LidarSequence, start: int, stop: int) -> None:
+    """Refuse, when a sequence of scan files opens, one in frames ``start:stop`` cut short: a ``.bin``
+    whose size does not fit its point format (:func:`~gr_graph.datasets.point_layout.check_bin_sizes`),
+    a binary PCD / PLY or a ``.npy`` with fewer data than its header promises
+    (:func:`~gr_graph.datasets.point_files.check_scan_sizes`). The run would otherwise stop only when
+    SLAM reaches it. Files outside the range are not looked at (``--frames`` is how a drive with a
+    scan cut short at its end is still run)."""
+    from gr_graph.datasets.point_files import check_scan_sizes
     from gr_graph.datasets.point_layout import check_bin_sizes
 
     owner = find_in_chain(base, "files", accept=lambda f: isinstance(f, list) and len(f) == len(base))
-    if owner is None or not owner.files or owner.files[0].suffix.lower() != ".bin":
+    if owner is None or not owner.files:
         return
-    check_bin_sizes(owner.files[start:stop], getattr(owner, "point_format", "xyzi"))
+    if owner.files[0].suffix.lower() == ".bin":
+        check_bin_sizes(owner.files[start:stop], getattr(owner, "point_format", "xyzi"))
+    else:
+        check_scan_sizes(owner.files[start:stop])
 
 
 def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int] | None,
@@ -507,7 +513,7 @@ def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int
     as a :class:`SequenceView` whose ``sensor`` is ``sensor``; frames are checked against it."""
     start, stop = parse_frames(frames, len(base))
     name = base.name
-    _check_bin_sizes(base, start, stop)
+    _check_scan_sizes(base, start, stop)
     if sensor.frame_stamp is not None and getattr(base, "stamps_moved_by_s", None) is None:
         log.warning("%s: sensor.frame_stamp (%s) is read by the folder and bag loaders only; these data keep their "
                     "stamps (KITTI's mark the sweep's middle, the synthetic world's too)", source, sensor.frame_stamp)
@@ -535,7 +541,23 @@ def _view(base: LidarSequence, source: str, frames: str | slice | tuple[int, int
     label = "" if n_rings == sensor.beams else f"-{n_rings}ch"
     view = SequenceView(base, start, stop, transform, label)
     view.sensor = sensor
-    return view, f"{source}, frames {start}:{stop}, {n_rings} channels"
+    counted = None if named else counted_rings(base)
+    rings = f"{n_rings} channels"
+    if counted not in (None, sensor.beams):  # the default sensor's figures (thresholds) apply to other data
+        rings += f" ({counted} rings in the data; no sensor named: the {sensor.model}'s figures apply)"
+    return view, f"{source}, frames {start}:{stop}, {rings}"
+
+
+def counted_rings(sequence: LidarSequence) -> int | None:
+    """The rings a folder or bag loader counted in the data (``conventions.n_rings``), None when the
+    sequence has no such count (KITTI, the synthetic world; no ring field; a named sensor's beams)."""
+    from gr_graph.datasets.frame_fields import FieldConventions
+
+    owner = find_in_chain(sequence, "conventions", accept=lambda c: isinstance(c, FieldConventions))
+    if owner is None:
+        return None
+    conv = owner.conventions
+    return int(conv.n_rings) if conv.has_ring and not conv.fixed_rings else None
 
 
 def open_configured_sequence(data: DataConfig, synthetic_seed: int = 0,

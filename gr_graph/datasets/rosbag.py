@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from gr_graph.datasets.base import DatasetError, LidarFrame, check_index, increasing_stamps
-from gr_graph.datasets.frame_fields import FieldConventions, frame_period, probe_indices
+from gr_graph.datasets.frame_fields import FieldConventions, frame_period, no_time_field_note, probe_indices
 from gr_graph.datasets.pointcloud2 import decode_pointcloud2
 from gr_graph.datasets.stamp_shift import stamps_moved_by_conventions
 from gr_graph.sensors import SensorConfig
@@ -145,7 +145,8 @@ class RosbagSequence:
             raise DatasetError(f"{self.path}: topic {self.topic!r} has no messages")
         self.log_times = np.asarray(log_times, np.int64)
         stamp_ns = np.asarray(stamps, np.int64)
-        if len(stamp_ns) > 1 and not np.all(np.diff(stamp_ns) > 0):
+        self.stamps_are_log_times = len(stamp_ns) > 1 and not np.all(np.diff(stamp_ns) > 0)
+        if self.stamps_are_log_times:
             log.warning("%s: header stamps of %s do not increase: using the bag's log times", self.path, self.topic)
             stamp_ns = increasing_stamps(self.log_times, f"{self.path}: topic {self.topic} log times")
         self.timestamps = (stamp_ns - stamp_ns[0]).astype(np.float64) * 1e-9
@@ -157,13 +158,12 @@ class RosbagSequence:
         self._cursor = None
         self.conventions = FieldConventions.probe(first_cloud, frame_period(self.timestamps), self._source(probe_index),
                                                   sensor, more,
-                                                  [float(self.stamps_s[k]) for k in (probe_index, *more_indices)])
+                                                  [float(self.stamps_s[k]) for k in (probe_index, *more_indices)],
+                                                  self.stamps_are_log_times)
         self.scan_period = self.conventions.scan_period  # sensor.scan_period, the spacing or the times' span
         self.motion_compensated = self.conventions.motion_compensated
         if self.motion_compensated:  # a driver's raw sweeps without times look the same: say what is assumed
-            log.warning("%s: topic %s has no per-point time field: its scans are taken as motion-compensated "
-                        "(odometry.deskew: auto leaves them as they are); for raw sweeps set odometry.deskew: on "
-                        "(times from the azimuth)", self.path, self.topic)
+            log.warning(no_time_field_note(f"{self.path}: topic {self.topic}"))
         self.gt_poses: np.ndarray | None = None
         if poses is not None:
             from gr_graph.datasets.folder import check_pose_times, read_pose_file
