@@ -41,7 +41,8 @@ a sequence fixes once, from its probe frames and the ``sensor`` section (:class:
   with its log times, when each message arrived, after its sweep: with times relative to the
   sweep, the middle is then taken half a sweep before the stamp (``"log times"``, logged). Unknown
   (None) without per-point times, for absolute times without a stamp on their clock (folders), and
-  for offsets beyond one sweep (logged). The loaders move the stamps by it (:func:`gr_graph.datasets.stamp_shift.stamps_at_sweep_middle`).
+  for offsets beyond one sweep (logged). The loaders move the stamps by it
+  (:func:`gr_graph.datasets.stamp_shift.stamps_at_sweep_middle`).
 - **Rings**: the project numbers rings from the highest beam (0) down. Drivers differ (the
   Velodyne driver's ``ring`` 0 is the lowest beam, Ouster's the highest): when the median
   elevation of the first probe frame's rings rises with the ring number, rings are flipped

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MAX_RUN", "MIN_GAPS", "MIN_REGULAR_FRACTION", "SUB_BEAT_TOLERANCE", "TOLERANCE", "MotionTimes", "motion_times"]
+__all__ = ["MAX_RUN", "MIN_GAPS", "MIN_REGULAR_FRACTION", "SUB_BEAT_TOLERANCE", "TOLERANCE", "MotionTimes",
+           "motion_times"]
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +59,8 @@ class MotionTimes:
     moved : list of int
         Frames (run positions) whose time was moved.
     unresolved : list of int
-        Frames whose gap to the previous frame is off the beat and that no single moved stamp
-        explains (left as they are).
+        Frames whose gap to the previous frame is off the beat and that no moved stamps explain
+        (left as they are).
     """
 
     times: np.ndarray
@@ -115,8 +116,9 @@ def _displaced_run(t: np.ndarray, j: int, period: float) -> list[int] | None:
 
 def _beat(gaps: np.ndarray) -> float | None:
     """The sensor's period: the median gap, or a half or third of it where every gap is a whole number of
-    that within :data:`SUB_BEAT_TOLERANCE` (a topic throttled to every other sweep: gaps of mostly 0.2 s with some 0.1 and 0.3 s, every
-    stamp true), so that such stamps are not taken for displaced ones; None without a steady beat."""
+    that within :data:`SUB_BEAT_TOLERANCE` (a topic throttled to every other sweep: gaps of mostly 0.2 s
+    with some 0.1 and 0.3 s, every stamp true), so that such stamps are not taken for displaced ones;
+    None without a steady beat."""
     period = float(np.median(gaps))
     on_beat = np.array([_on_beat(g, period) for g in gaps])
     if on_beat.all():
@@ -178,7 +180,7 @@ def motion_times(stamps: np.ndarray, source: str = "sequence", log_moves: bool =
                     ", ".join(str(k) for k in moved[:5]) + (", ..." if len(moved) > 5 else ""),
                     "times" if len(moved) > 1 else "a time")
     if unresolved:
-        log.info("%s: %d frame gap%s off the %.4g s beat that no single displaced stamp explains (before frame%s "
+        log.info("%s: %d frame gap%s off the %.4g s beat that no displaced stamps explain (before frame%s "
                  "%s); used as they are", source, len(unresolved), "s" if len(unresolved) > 1 else "", period,
                  "s" if len(unresolved) > 1 else "", ", ".join(str(k) for k in unresolved[:5])
                  + (", ..." if len(unresolved) > 5 else ""))
