@@ -62,6 +62,7 @@ from gr_graph.covariance_health import covariance_failures
 from gr_graph.datasets.base import LidarSequence, find_in_chain, release_render_cache, velo_to_cam_poses
 from gr_graph.datasets.frame_cache import CachedFrames, makes_frames, remove_stale_frame_cache
 from gr_graph.datasets.stamp_gaps import motion_times
+from gr_graph.folder_lock import FolderBusyError, folder_lock
 from gr_graph.datasets.synthetic.render_process import RenderProcessSequence
 from gr_graph.densify import DensifiedSequence, densified_sequence
 from gr_graph.edge_noise import LearnedEdgeNoise, registration_edge_noise_summary
@@ -91,11 +92,19 @@ log = logging.getLogger(__name__)
 #: what a run writes at the top of ``--out`` as its summary: removed when a run starts (written again by it)
 RUN_SUMMARY_FILES = ("poses_kitti.txt", "poses_tum.txt", "metrics.json", "trajectory.png", "rounds.png")
 
-__all__ = ["ResumeDataError", "SlamPipeline", "data_fingerprint", "round_fingerprint"]
+__all__ = ["OUT_LOCK", "OutBusyError", "ResumeDataError", "SlamPipeline", "data_fingerprint", "round_fingerprint"]
 
 
 class ResumeDataError(RuntimeError):
     """A finished round in ``--out`` was made from other data than the run's (resume refused)."""
+
+
+class OutBusyError(FolderBusyError):
+    """Another process runs into the same ``--out`` (it holds :data:`OUT_LOCK`)."""
+
+
+#: the lock file a run holds in its ``--out`` (hidden; it stays, naming its last owner)
+OUT_LOCK = ".gr_graph.lock"
 
 
 #: ``data`` options that change how frames are read, never what is read: in no fingerprint or cache key.
@@ -413,10 +422,14 @@ class SlamPipeline:
                           num_threads=cfg.odometry.num_threads)
 
     def run(self) -> dict[str, Any]:
-        """Run round 0 and the learning rounds; write every output; return the metrics dict.
+        """Run round 0 and the learning rounds; write every output; return the metrics dict. One run
+        at a time in an ``--out``: the run holds ``<out>/.gr_graph.lock`` (:data:`OUT_LOCK`,
+        :func:`gr_graph.folder_lock.folder_lock`).
 
         Raises
         ------
+        OutBusyError
+            Another process runs into the same ``--out`` (nothing is written).
         ResumeDataError
             Resuming into an ``--out`` whose finished rounds were made from other data
             (:meth:`check_resume`; nothing is written).
@@ -424,6 +437,11 @@ class SlamPipeline:
             Too few scans usable for a trajectory (:meth:`slam_round`; no round is finished and
             neither ``metrics.json`` nor the final poses are written).
         """
+        with folder_lock(self.out / OUT_LOCK, f"--out {self.out}", OutBusyError):
+            return self._run_locked()
+
+    def _run_locked(self) -> dict[str, Any]:
+        """:meth:`run` once its ``--out`` is held."""
         self.check_resume()
         if self.frame_cache is not None:
             self.frame_cache.open()

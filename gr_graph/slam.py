@@ -346,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         log.warning("%s only act on learning rounds, and this run has none (--rounds 0): ignored", ", ".join(idle))
     from gr_graph.datasets.base import DatasetError
     from gr_graph.memory import MemoryFormatError
-    from gr_graph.pipeline import ResumeDataError, SlamPipeline
+    from gr_graph.pipeline import OutBusyError, ResumeDataError, SlamPipeline
 
     problem = out_dir_problem(Path(cfg.output.out_dir))
     if problem:  # before the data are opened (a bag is read through once when opened)
@@ -355,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pipe = SlamPipeline(cfg)
         metrics = pipe.run()
-    except (DatasetError, ResumeDataError) as exc:  # DatasetError: also too few usable scans
+    except (DatasetError, ResumeDataError, OutBusyError) as exc:  # DatasetError: also too few usable scans
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a full disk, a folder that became unwritable: the message names the path

@@ -113,13 +113,13 @@ def test_a_file_system_without_locks_runs_the_cell_unlocked(tmp_path: Path, monk
                                                             caplog: pytest.LogCaptureFixture) -> None:
     import errno
 
-    import gr_graph.experiments.cell_lock as cl
+    import gr_graph.folder_lock as cl
 
     def no_locks(fd, op):
         raise OSError(errno.ENOLCK, "No locks available")
 
     monkeypatch.setattr(cl.fcntl, "flock", no_locks)
-    with caplog.at_level("WARNING", logger="gr_graph.experiments.cell_lock"):
+    with caplog.at_level("WARNING", logger="gr_graph.folder_lock"):
         with cell_lock(tmp_path / "table1" / "c") as path:
             assert json.loads(path.read_text())["pid"] == os.getpid()
     assert "takes no locks" in caplog.text

@@ -594,3 +594,19 @@ def test_a_finished_round_of_data_whose_stamps_are_now_moved_says_so(tmp_path):
         with pytest.raises(ResumeDataError, match="files differ") as info:
             SlamPipeline.check_round_data(stub, 0, before)
         assert ("moved +0.05 s to the sweeps' middles" in str(info.value)) is said
+
+
+def test_a_second_run_into_the_same_out_is_refused_while_the_first_holds_it(tmp_path, capsys):
+    """One run at a time in an --out (a requeued job beside its first attempt would mix their rounds):
+    the second is refused naming the holder, writes nothing, and runs once the lock is free."""
+    from gr_graph.folder_lock import folder_lock
+    from gr_graph.pipeline import OUT_LOCK
+
+    scans, _, _ = drive(list(range(4)))
+    folder = write_folder(tmp_path / "scans", scans)
+    out = tmp_path / "out"
+    with folder_lock(out / OUT_LOCK, "the first run"):  # another open file: excluded even in this process
+        assert run_cli(folder, out) == 2
+        assert f"--out {out} is being run by process {os.getpid()}" in capsys.readouterr().err
+        assert sorted(p.name for p in out.iterdir()) == [OUT_LOCK]
+    assert run_cli(folder, out) == 0 and (out / "poses_kitti.txt").is_file()
