@@ -386,33 +386,21 @@ def poses_without_world_marginals(covariance_world: np.ndarray, marginals: dict[
 
 def run_min_eigenvalue(round_dir: str | Path) -> float:
     """The eigenvalue floor the round's graph used: ``graph.min_information_eigenvalue`` of the run's
-    ``config.yaml`` (the folder above ``round_dir``), else :data:`MIN_EIGENVALUE` (no config, or one
-    that does not set it: the default then applied).
+    ``config.yaml`` (the folder above ``round_dir``, read with :func:`gr_graph.config.load_config`),
+    else :data:`MIN_EIGENVALUE` (no config).
 
     Raises
     ------
     ValueError
-        When the config holds a value that is not a positive number, naming the file.
+        When the config is not a valid configuration (e.g. a floor that is not a positive number),
+        naming the file and the key.
     """
-    import yaml
+    from gr_graph.config import load_config
 
     path = Path(round_dir).parent / "config.yaml"
     if not path.is_file():
         return MIN_EIGENVALUE
-    with open(path) as f:
-        cfg = yaml.safe_load(f) or {}
-    graph = cfg.get("graph") if isinstance(cfg, dict) else None
-    value = graph.get("min_information_eigenvalue") if isinstance(graph, dict) else None
-    if value is None:
-        return MIN_EIGENVALUE
-    if isinstance(value, str):  # YAML reads 1e-3 (no dot) as a string; the config's loader takes it as a number
-        try:
-            value = float(value)
-        except ValueError:
-            pass
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{path}: graph.min_information_eigenvalue must be a positive number, got {value!r}")
-    return float(value)
+    return float(load_config(path).graph.min_information_eigenvalue)
 
 
 def round_noise_consistency(round_dir: str | Path, marginals: dict[str, Any] | None = None,
